@@ -1,0 +1,129 @@
+//! One configuration tree: defaults, then a TOML file, then `RADSERVE__SECTION__KEY` environment
+//! variables (e.g. `RADSERVE__SIM__GL=osmesa`), validated at start-up.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use figment::providers::{Env, Format, Serialized, Toml};
+use figment::Figment;
+use radserve_sim::{GlBackend, Limits};
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    pub server: ServerConfig,
+    pub sim: SimConfig,
+    pub limits: Limits,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    pub address: String,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        ServerConfig { address: "127.0.0.1:50051".into() }
+    }
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimConfig {
+    /// Worker processes; 0 means one per core.
+    pub workers: usize,
+    /// OpenGL platform for MuJoCo rendering: "egl" (default) or "osmesa".
+    pub gl: GlBackend,
+    /// The virtualenv whose Python the workers embed. Unset: $VIRTUAL_ENV, then a `.venv` found
+    /// walking up from the executable (the layout `make setup` creates).
+    pub venv: Option<PathBuf>,
+}
+
+impl Config {
+    pub fn load(file: Option<&Path>) -> anyhow::Result<Config> {
+        let mut figment = Figment::from(Serialized::defaults(Config::default()));
+        if let Some(file) = file {
+            if !file.exists() {
+                bail!("config file {} does not exist", file.display());
+            }
+            figment = figment.merge(Toml::file(file));
+        }
+        let config: Config = figment
+            .merge(Env::prefixed("RADSERVE__").split("__"))
+            .extract()
+            .context("invalid configuration")?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    pub fn validate(&self) -> anyhow::Result<()> {
+        self.server
+            .address
+            .parse::<SocketAddr>()
+            .with_context(|| format!("server.address '{}' is not a host:port socket address", self.server.address))?;
+        let limits = &self.limits;
+        if limits.max_sessions == 0 || limits.max_envs_per_session == 0 || limits.max_total_envs == 0 {
+            bail!("limits must all be at least 1, got {limits:?}");
+        }
+        Ok(())
+    }
+
+    pub fn worker_count(&self) -> usize {
+        if self.sim.workers > 0 {
+            self.sim.workers
+        } else {
+            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+        }
+    }
+
+    pub fn resolve_venv(&self) -> anyhow::Result<PathBuf> {
+        if let Some(venv) = &self.sim.venv {
+            return Ok(venv.clone());
+        }
+        if let Some(active) = std::env::var_os("VIRTUAL_ENV") {
+            return Ok(PathBuf::from(active));
+        }
+        let exe = std::env::current_exe().context("locating the radserve executable")?;
+        for dir in exe.ancestors().skip(1) {
+            let candidate = dir.join(".venv");
+            if candidate.join("bin/python").exists() {
+                return Ok(candidate);
+            }
+        }
+        bail!("no Python virtualenv found: run `make setup`, or set sim.venv (RADSERVE__SIM__VENV)")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid() {
+        Config::default().validate().unwrap();
+    }
+
+    #[test]
+    fn a_bad_address_is_rejected_at_start_up() {
+        let mut config = Config::default();
+        config.server.address = "localhost".into();
+        assert!(config.validate().unwrap_err().to_string().contains("server.address"));
+    }
+
+    #[test]
+    fn files_and_environment_override_defaults() {
+        figment::Jail::expect_with(|jail| {
+            jail.create_file("radserve.toml", "[sim]\nworkers = 3\n[limits]\nmax_sessions = 5\n")?;
+            jail.set_env("RADSERVE__SIM__GL", "osmesa");
+            let config = Config::load(Some(Path::new("radserve.toml"))).expect("loads");
+            assert_eq!(config.sim.workers, 3);
+            assert_eq!(config.sim.gl, GlBackend::Osmesa);
+            assert_eq!(config.limits.max_sessions, 5);
+            assert_eq!(config.limits.max_total_envs, Limits::default().max_total_envs);
+            Ok(())
+        });
+    }
+}

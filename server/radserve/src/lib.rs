@@ -1,0 +1,73 @@
+//! The radserve server, assembled: the simulator core behind the gRPC service, with health checking,
+//! reflection and graceful shutdown. `main.rs` is the command line around it.
+
+pub mod config;
+
+use std::future::Future;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use radserve_service::{proto::FILE_DESCRIPTOR_SET, RadServeServer, RadServeService, MAX_MESSAGE_BYTES};
+use radserve_sim::{GlBackend, Limits, SessionManager, WorkerLauncher, WorkerPool};
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+use tracing::info;
+
+/// Everything the server needs to start its workers.
+pub struct ServerSettings {
+    /// The executable started in `worker` mode (normally this very binary).
+    pub worker_program: PathBuf,
+    pub venv: PathBuf,
+    pub gl: GlBackend,
+    pub workers: usize,
+    pub limits: Limits,
+}
+
+pub fn session_manager(settings: ServerSettings) -> Arc<SessionManager> {
+    let launcher = WorkerLauncher { program: settings.worker_program, venv: settings.venv, gl: settings.gl };
+    let pool = WorkerPool::start(launcher, settings.workers);
+    Arc::new(SessionManager::new(pool, settings.limits))
+}
+
+/// Serves on `listener` until `shutdown` resolves; then reports NOT_SERVING, stops accepting, drains
+/// the calls in flight and closes every session.
+pub async fn serve(
+    listener: TcpListener,
+    manager: Arc<SessionManager>,
+    shutdown: impl Future<Output = ()> + Send,
+) -> anyhow::Result<()> {
+    let (health_reporter, health_service) = tonic_health::server::health_reporter();
+    health_reporter.set_serving::<RadServeServer<RadServeService>>().await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let service = RadServeServer::new(RadServeService::new(manager.clone()))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+
+    // Learn the env names in the background so the first CreateSession does not wait for them, and the
+    // catalog after them.
+    let warm = manager.clone();
+    tokio::spawn(async move {
+        if let Err(error) = warm.catalog().await {
+            tracing::warn!(%error, "could not build the environment catalog");
+        }
+    });
+
+    let reporter = health_reporter.clone();
+    let graceful = async move {
+        shutdown.await;
+        info!("shutting down: not serving, draining calls");
+        reporter.set_not_serving::<RadServeServer<RadServeService>>().await;
+    };
+    tonic::transport::Server::builder()
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(service)
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), graceful)
+        .await?;
+    manager.shutdown().await;
+    info!("stopped");
+    Ok(())
+}

@@ -1,0 +1,151 @@
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use radserve::config::Config;
+use radserve::ServerSettings;
+use radserve_sim::{GlBackend, Space, WorkerArgs};
+use tokio::net::TcpListener;
+use tracing::info;
+
+/// radserve: reinforcement-learning simulators served over gRPC.
+#[derive(Parser)]
+#[command(name = "radserve", version)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Serve the simulators over gRPC.
+    Serve {
+        /// Address to listen on (overrides server.address); port 0 picks a free port.
+        #[arg(long)]
+        address: Option<String>,
+        /// Worker processes (overrides sim.workers; default: one per core).
+        #[arg(long)]
+        workers: Option<usize>,
+        /// A TOML configuration file.
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
+    /// List every environment id with its observation and action spaces.
+    Envs {
+        /// Only ids starting with this prefix, e.g. `dmc/`.
+        #[arg(long, default_value = "")]
+        prefix: String,
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
+    /// Internal: run as a simulator worker process (started by the server).
+    #[command(hide = true)]
+    Worker {
+        #[arg(long)]
+        venv: PathBuf,
+        #[arg(long, default_value = "egl")]
+        gl: String,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    if let Command::Worker { venv, gl } = &cli.command {
+        // No tokio and no tracing in workers: one thread owns the interpreter and the simulators.
+        let Some(gl) = GlBackend::parse(gl) else {
+            eprintln!("radserve worker: --gl must be egl or osmesa, got {gl}");
+            return ExitCode::FAILURE;
+        };
+        return match radserve_sim::run_worker(&WorkerArgs { venv: venv.clone(), gl }) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(error) => {
+                eprintln!("radserve worker: {error}");
+                ExitCode::FAILURE
+            }
+        };
+    }
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .init();
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("tokio runtime");
+    match runtime.block_on(run(cli.command)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("radserve: {error:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn settings(config: &Config) -> anyhow::Result<ServerSettings> {
+    Ok(ServerSettings {
+        worker_program: std::env::current_exe().context("locating the radserve executable")?,
+        venv: config.resolve_venv()?,
+        gl: config.sim.gl,
+        workers: config.worker_count(),
+        limits: config.limits.clone(),
+    })
+}
+
+async fn run(command: Command) -> anyhow::Result<()> {
+    match command {
+        Command::Serve { address, workers, config } => {
+            let mut config = Config::load(config.as_deref())?;
+            if let Some(address) = address {
+                config.server.address = address;
+            }
+            if let Some(workers) = workers {
+                config.sim.workers = workers;
+            }
+            config.validate()?;
+            let settings = settings(&config)?;
+            let listener = TcpListener::bind(&config.server.address)
+                .await
+                .with_context(|| format!("binding {}", config.server.address))?;
+            let bound = listener.local_addr()?;
+            info!(address = %bound, workers = settings.workers, venv = %settings.venv.display(), gl = settings.gl.name(), "radserve starting");
+            // The one line on stdout: launchers (the Python client's, the tests') read the port here.
+            println!("radserve listening on {bound}");
+            let manager = radserve::session_manager(settings);
+            radserve::serve(listener, manager, shutdown_signal()).await
+        }
+        Command::Envs { prefix, config } => {
+            let mut config = Config::load(config.as_deref())?;
+            config.sim.workers = 1;
+            let manager = radserve::session_manager(settings(&config)?);
+            let catalog = manager.catalog().await?;
+            println!("{:<36} {:<40} action", "id", "observation");
+            for entry in catalog.iter().filter(|entry| entry.id.full().starts_with(&prefix)) {
+                match &entry.spaces {
+                    Ok((observation, action)) => {
+                        println!("{:<36} {:<40} {}", entry.id.full(), observation.describe(), describe_action(action))
+                    }
+                    Err(error) => println!("{:<36} unavailable: {error}", entry.id.full()),
+                }
+            }
+            Ok(())
+        }
+        Command::Worker { .. } => unreachable!("handled before the runtime starts"),
+    }
+}
+
+fn describe_action(space: &Space) -> String {
+    match space {
+        Space::Discrete { n } => format!("discrete({n})"),
+        Space::Box { .. } => space.describe(),
+    }
+}
+
+async fn shutdown_signal() {
+    let interrupt = tokio::signal::ctrl_c();
+    let mut terminate =
+        tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).expect("SIGTERM handler");
+    tokio::select! {
+        _ = interrupt => {}
+        _ = terminate.recv() => {}
+    }
+}

@@ -1,0 +1,15 @@
+use std::path::PathBuf;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // A protoc shipped inside a crate, so that building needs nothing installed by hand.
+    std::env::set_var("PROTOC", protoc_bin_vendored::protoc_bin_path()?);
+    let proto_root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../proto");
+    let proto = proto_root.join("radserve/v1/radserve.proto");
+    let descriptor = PathBuf::from(std::env::var("OUT_DIR")?).join("radserve_descriptor.bin");
+    tonic_prost_build::configure()
+        .file_descriptor_set_path(&descriptor)
+        .bytes(".radserve.v1.Tensor.data")
+        .compile_protos(&[&proto], &[&proto_root])?;
+    println!("cargo:rerun-if-changed={}", proto.display());
+    Ok(())
+}

@@ -1,0 +1,129 @@
+use std::pin::Pin;
+use std::sync::Arc;
+
+use radserve_sim::SessionManager;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+use tracing::debug;
+
+use crate::convert::{self, observation_tensor};
+use crate::error::to_status;
+use crate::proto::{self, act_request, act_response, rad_serve_server::RadServe};
+
+/// Responses of an `Act` stream that may wait for the client to read them.
+const ACT_STREAM_BUFFER: usize = 2;
+
+#[derive(Clone)]
+pub struct RadServeService {
+    manager: Arc<SessionManager>,
+}
+
+impl RadServeService {
+    pub fn new(manager: Arc<SessionManager>) -> RadServeService {
+        RadServeService { manager }
+    }
+
+    async fn reset(&self, request: proto::ResetRequest) -> Result<proto::ResetResponse, Status> {
+        let session = self.manager.get(&request.session_id).map_err(to_status)?;
+        let mut session = session.lock().await;
+        let obs = session.reset(request.seed).await.map_err(to_status)?;
+        Ok(proto::ResetResponse { obs: Some(observation_tensor(&session.observation_space, session.num_envs(), obs)) })
+    }
+
+    async fn step(&self, request: proto::StepRequest) -> Result<proto::StepResponse, Status> {
+        let (dtype, shape) = convert::tensor_header(request.actions.as_ref(), "actions")?;
+        let actions = request.actions.map(|tensor| tensor.data).unwrap_or_default();
+        let session = self.manager.get(&request.session_id).map_err(to_status)?;
+        let mut session = session.lock().await;
+        let outcome = session.step(dtype, &shape, &actions).await.map_err(to_status)?;
+        Ok(convert::step_to_proto(&session.observation_space, outcome))
+    }
+
+    async fn act_once(&self, request: proto::ActRequest) -> Result<proto::ActResponse, Status> {
+        let response = match request.request {
+            Some(act_request::Request::Reset(reset)) => act_response::Response::Reset(self.reset(reset).await?),
+            Some(act_request::Request::Step(step)) => act_response::Response::Step(self.step(step).await?),
+            None => return Err(Status::invalid_argument("ActRequest must hold a reset or a step")),
+        };
+        Ok(proto::ActResponse { response: Some(response) })
+    }
+}
+
+type ActStream = Pin<Box<dyn Stream<Item = Result<proto::ActResponse, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl RadServe for RadServeService {
+    async fn list_envs(&self, request: Request<proto::ListEnvsRequest>) -> Result<Response<proto::ListEnvsResponse>, Status> {
+        let prefix = request.into_inner().prefix;
+        let catalog = self.manager.catalog().await.map_err(to_status)?;
+        let envs = catalog
+            .iter()
+            .filter(|entry| entry.id.full().starts_with(&prefix))
+            .map(convert::catalog_entry_to_proto)
+            .collect();
+        Ok(Response::new(proto::ListEnvsResponse { envs }))
+    }
+
+    async fn create_session(
+        &self,
+        request: Request<proto::CreateSessionRequest>,
+    ) -> Result<Response<proto::SessionInfo>, Status> {
+        let request = request.into_inner();
+        let options = convert::options_from_proto(&request.options)?;
+        let info = self
+            .manager
+            .create_session(&request.env_id, request.num_envs as usize, request.seed, &options)
+            .await
+            .map_err(to_status)?;
+        Ok(Response::new(convert::session_info_to_proto(&info)))
+    }
+
+    async fn describe_session(
+        &self,
+        request: Request<proto::DescribeSessionRequest>,
+    ) -> Result<Response<proto::SessionInfo>, Status> {
+        let info = self.manager.describe(&request.into_inner().session_id).await.map_err(to_status)?;
+        Ok(Response::new(convert::session_info_to_proto(&info)))
+    }
+
+    async fn close_session(
+        &self,
+        request: Request<proto::CloseSessionRequest>,
+    ) -> Result<Response<proto::CloseSessionResponse>, Status> {
+        self.manager.close_session(&request.into_inner().session_id).await.map_err(to_status)?;
+        Ok(Response::new(proto::CloseSessionResponse {}))
+    }
+
+    async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {
+        Ok(Response::new(RadServeService::reset(self, request.into_inner()).await?))
+    }
+
+    async fn step(&self, request: Request<proto::StepRequest>) -> Result<Response<proto::StepResponse>, Status> {
+        Ok(Response::new(RadServeService::step(self, request.into_inner()).await?))
+    }
+
+    type ActStream = ActStream;
+
+    async fn act(&self, request: Request<Streaming<proto::ActRequest>>) -> Result<Response<ActStream>, Status> {
+        let mut inbound = request.into_inner();
+        let (sender, receiver) = mpsc::channel(ACT_STREAM_BUFFER);
+        let service = self.clone();
+        tokio::spawn(async move {
+            while let Some(message) = inbound.next().await {
+                let outcome = match message {
+                    Ok(request) => service.act_once(request).await,
+                    Err(status) => Err(status),
+                };
+                let failed = outcome.is_err();
+                // A failed send means the client left: stop reading its requests.
+                if sender.send(outcome).await.is_err() || failed {
+                    break;
+                }
+            }
+            debug!("act stream ended");
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
+    }
+}

@@ -1,0 +1,20 @@
+//! The gRPC face of radserve. Handlers here only validate and convert messages, call the core
+//! (`radserve_sim`), and map its errors to statuses; no logic lives in the transport.
+
+pub mod convert;
+pub mod error;
+pub mod handlers;
+
+pub mod proto {
+    tonic::include_proto!("radserve.v1");
+
+    /// The encoded descriptors of the proto files, for the reflection service.
+    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("radserve_descriptor");
+}
+
+pub use handlers::RadServeService;
+pub use proto::rad_serve_server::RadServeServer;
+
+/// Largest message the server sends or accepts. A session's batched observations (64 dm_control
+/// pixel stacks are ~6 MB) must fit.
+pub const MAX_MESSAGE_BYTES: usize = 256 << 20;

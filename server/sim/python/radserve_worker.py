@@ -1,0 +1,317 @@
+"""Environment adapters that run inside a radserve worker process.
+
+The worker (server/sim/src/worker.rs) embeds CPython, imports this module once and calls it from the one
+thread that owns every environment of the process for its whole life (OpenGL contexts are bound to the
+thread that created them). One call steps a whole group of environments while holding the GIL, and frames
+are written straight into shared memory that the server reads after the call returns.
+
+Each adapter turns one simulator into the same small contract:
+    spec() -> {"observation": space, "action": space}      (one frame, before stacking)
+    reset(seed or None) -> frame                              (numpy array of the observation space)
+    step(action) -> (frame, reward, terminated, truncated)
+"""
+
+import os
+import warnings
+
+import numpy as np
+
+warnings.filterwarnings("ignore")
+
+# The gymnasium ids radserve hosts: MuJoCo tasks (v5) and classic control.
+GYM_IDS = [
+    "Ant-v5", "HalfCheetah-v5", "Hopper-v5", "Humanoid-v5", "HumanoidStandup-v5",
+    "InvertedDoublePendulum-v5", "InvertedPendulum-v5", "Pusher-v5", "Reacher-v5", "Swimmer-v5",
+    "Walker2d-v5", "CartPole-v1", "Pendulum-v1", "Acrobot-v1", "MountainCar-v0",
+    "MountainCarContinuous-v0",
+]
+
+PROCGEN_GAMES = [
+    "bigfish", "bossfight", "caveflyer", "chaser", "climber", "coinrun", "dodgeball", "fruitbot",
+    "heist", "jumper", "leaper", "maze", "miner", "ninja", "plunder", "starpilot",
+]
+
+# Options the server consumes itself; adapters never see them.
+SERVER_OPTIONS = {"frame_stack"}
+
+
+def _quiet_absl():
+    try:
+        from absl import logging as absl_logging
+
+        absl_logging.set_verbosity(absl_logging.ERROR)
+    except ImportError:
+        pass
+
+
+def _bounds(values):
+    """Bounds as a flat list of floats; a constant bound collapses to one value."""
+    flat = np.asarray(values, dtype=np.float64).reshape(-1)
+    if flat.size > 0 and np.all(flat == flat[0]):
+        return [float(flat[0])]
+    return [float(v) for v in flat]
+
+
+def box(dtype, shape, low, high):
+    return {"kind": "box", "dtype": np.dtype(dtype).name, "shape": [int(d) for d in shape],
+            "low": _bounds(low), "high": _bounds(high)}
+
+
+def discrete(n):
+    return {"kind": "discrete", "n": int(n)}
+
+
+class DmcEnv:
+    """A DeepMind Control Suite task; pixels rendered channel-first, or the flattened state."""
+
+    def __init__(self, name, options, seed):
+        self.domain, self.task = name.split("-", 1)
+        self.pixels = options["pixels"]
+        self.height, self.width = options["height"], options["width"]
+        self.camera_id = options["camera_id"]
+        self.action_repeat = options["action_repeat"]
+        self.fast_render = options["render_profile"] == "fast"
+        self.env = None
+        self._load(seed)
+
+    def _load(self, seed):
+        from dm_control import suite
+
+        if self.env is not None:
+            self.env.close()
+        self.env = suite.load(self.domain, self.task, task_kwargs={"random": seed})
+        if self.fast_render:
+            # The fast profile for CPU-only hosts: no shadows, no reflections, no multisampling.
+            model = self.env.physics.model
+            model.vis.quality.shadowsize = 0
+            model.vis.quality.offsamples = 0
+            model.mat_reflectance[:] = 0
+            model.light_castshadow[:] = 0
+        self.action_spec = self.env.action_spec()
+
+    def spec(self):
+        if self.pixels:
+            observation = box(np.uint8, (3, self.height, self.width), 0, 255)
+        else:
+            size = sum(int(np.prod(v.shape)) for v in self.env.observation_spec().values())
+            observation = box(np.float32, (size,), -np.inf, np.inf)
+        action = box(np.float32, self.action_spec.shape, self.action_spec.minimum, self.action_spec.maximum)
+        return {"observation": observation, "action": action}
+
+    def _observe(self, time_step):
+        if self.pixels:
+            frame = self.env.physics.render(height=self.height, width=self.width, camera_id=self.camera_id)
+            return frame.transpose(2, 0, 1)
+        return np.concatenate([np.asarray(v, dtype=np.float32).reshape(-1) for v in time_step.observation.values()])
+
+    def reset(self, seed):
+        if seed is not None:
+            self._load(seed)
+        return self._observe(self.env.reset())
+
+    def step(self, action):
+        reward = 0.0
+        for _ in range(self.action_repeat):
+            time_step = self.env.step(action)
+            reward += time_step.reward or 0.0
+            if time_step.last():
+                break
+        # dm_env: a last step with discount 0 is a termination, otherwise the time limit truncated it.
+        ended = time_step.last()
+        terminated = ended and time_step.discount == 0.0
+        return self._observe(time_step), reward, terminated, ended and not terminated
+
+    def close(self):
+        self.env.close()
+
+
+class GymEnv:
+    """A gymnasium task with state observations (cast to float32)."""
+
+    def __init__(self, name, options, seed):
+        import gymnasium
+
+        kwargs = {}
+        if options["max_episode_steps"] > 0:
+            kwargs["max_episode_steps"] = options["max_episode_steps"]
+        self.env = gymnasium.make(name, **kwargs)
+        self.action_repeat = options["action_repeat"]
+        self.seed = seed
+        self.discrete = isinstance(self.env.action_space, gymnasium.spaces.Discrete)
+
+    def spec(self):
+        obs_space = self.env.observation_space
+        observation = box(np.float32, obs_space.shape, obs_space.low, obs_space.high)
+        act_space = self.env.action_space
+        if self.discrete:
+            action = discrete(act_space.n)
+        else:
+            action = box(np.float32, act_space.shape, act_space.low, act_space.high)
+        return {"observation": observation, "action": action}
+
+    def reset(self, seed):
+        # The first reset seeds the environment with its own seed; later ones continue its stream.
+        if seed is None and self.seed is not None:
+            seed, self.seed = self.seed, None
+        obs, _ = self.env.reset(seed=seed)
+        return obs
+
+    def step(self, action):
+        action = int(action) if self.discrete else action
+        reward, terminated, truncated = 0.0, False, False
+        for _ in range(self.action_repeat):
+            obs, r, terminated, truncated, _ = self.env.step(action)
+            reward += float(r)
+            if terminated or truncated:
+                break
+        return obs, reward, bool(terminated), bool(truncated)
+
+    def close(self):
+        self.env.close()
+
+
+class ProcgenEnv:
+    """One ProcGen game through gym3 (one env per object, so that env i gets exactly seed s+i).
+
+    gym3 resets an episode inside the step that ends it and never shows its last frame, so the
+    "final observation" of a ProcGen episode is the frame before its last action.
+    """
+
+    def __init__(self, name, options, seed):
+        self.name = name
+        self.kwargs = {k: v for k, v in options.items() if k not in SERVER_OPTIONS}
+        self.seed = seed
+        self.fresh = False
+        self._make(seed)
+
+    def _make(self, seed):
+        from procgen import ProcgenGym3Env
+
+        self.env = ProcgenGym3Env(num=1, env_name=self.name, rand_seed=int(seed), **self.kwargs)
+        self.fresh = True
+        self.action = np.zeros(1, dtype=np.int32)
+
+    def spec(self):
+        return {"observation": box(np.uint8, (3, 64, 64), 0, 255), "action": discrete(self.env.ac_space.eltype.n)}
+
+    def _frame(self):
+        _, obs, _ = self.env.observe()
+        return obs["rgb"][0].transpose(2, 0, 1)
+
+    def reset(self, seed):
+        # gym3 has no reset: a new game object starts a new episode from the seed's level sequence.
+        if seed is not None or not self.fresh:
+            self._make(self.seed if seed is None else seed)
+        return self._frame()
+
+    def step(self, action):
+        self.fresh = False
+        self.action[0] = action
+        self.env.act(self.action)
+        reward, obs, first = self.env.observe()
+        return obs["rgb"][0].transpose(2, 0, 1), float(reward[0]), bool(first[0]), False
+
+    def close(self):
+        self.env = None
+
+
+ADAPTERS = {"dmc": DmcEnv, "gym": GymEnv, "procgen": ProcgenEnv}
+
+
+def list_names():
+    from dm_control import suite
+
+    return {
+        "dmc": [f"{domain}-{task}" for domain, task in suite.ALL_TASKS],
+        "gym": list(GYM_IDS),
+        "procgen": list(PROCGEN_GAMES),
+    }
+
+
+def spec(family, name, options):
+    env = ADAPTERS[family](name, options, 0)
+    try:
+        return env.spec()
+    finally:
+        env.close()
+
+
+class Group:
+    """Environments of one session that live in this worker, stepped together under one GIL hold."""
+
+    def __init__(self, family, name, options, seeds):
+        self.family, self.name, self.options = family, name, options
+        self.seeds = list(seeds)
+        self.envs = [ADAPTERS[family](name, options, seed) for seed in self.seeds]
+        self._spec = self.envs[0].spec()
+        action = self._spec["action"]
+        if action["kind"] == "discrete":
+            self.action_dtype, self.action_shape = np.dtype(np.int64), ()
+        else:
+            self.action_dtype, self.action_shape = np.dtype(action["dtype"]), tuple(action["shape"])
+        self.current = self.final = None
+
+    def attach(self, frames):
+        """Views shared memory as, per env, its current frame then the final frame of its last episode."""
+        observation = self._spec["observation"]
+        dtype = np.dtype(observation["dtype"])
+        shape = tuple(observation["shape"])
+        n = len(self.envs)
+        slots = np.frombuffer(frames, dtype=dtype, count=2 * n * int(np.prod(shape))).reshape((n, 2) + shape)
+        self.current = slots[:, 0]
+        self.final = slots[:, 1]
+
+    def spec(self):
+        return self._spec
+
+    def reset(self, seeds):
+        if seeds is not None:
+            self.seeds = list(seeds)
+        for j, env in enumerate(self.envs):
+            self.current[j] = env.reset(None if seeds is None else seeds[j])
+
+    def _restart(self, j):
+        """Resets env j after its simulator raised; rebuilds it when even the reset fails."""
+        try:
+            return self.envs[j].reset(None)
+        except Exception:
+            self.envs[j] = ADAPTERS[self.family](self.name, self.options, self.seeds[j])
+            return self.envs[j].reset(None)
+
+    def step(self, actions):
+        n = len(self.envs)
+        actions = np.frombuffer(actions, dtype=self.action_dtype).reshape((n,) + self.action_shape)
+        rewards = [0.0] * n
+        terminated = [False] * n
+        truncated = [False] * n
+        errors = []
+        for j, env in enumerate(self.envs):
+            try:
+                frame, rewards[j], terminated[j], truncated[j] = env.step(actions[j])
+            except Exception as exc:  # the simulator raised: end this episode, keep the worker
+                errors.append((j, f"{type(exc).__name__}: {exc}"))
+                self.final[j] = self.current[j]
+                truncated[j] = True
+                self.current[j] = self._restart(j)
+                continue
+            if terminated[j] or truncated[j]:
+                if self.family == "procgen":
+                    self.final[j] = self.current[j]
+                    self.current[j] = frame
+                else:
+                    self.final[j] = frame
+                    self.current[j] = env.reset(None)
+            else:
+                self.current[j] = frame
+        return rewards, terminated, truncated, errors
+
+    def close(self):
+        for env in self.envs:
+            env.close()
+        self.envs = []
+        self.current = self.final = None
+
+
+def configure():
+    _quiet_absl()
+    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ.get("MUJOCO_GL", "egl"))

@@ -1,0 +1,21 @@
+//! radserve's simulator core: worker processes embedding CPython (the only crate that touches Python),
+//! environment adapters for dm_control, gymnasium and ProcGen, and vectorized sessions with frame
+//! stacking and same-step autoreset. No transport here: the service crate maps this onto gRPC.
+
+pub mod catalog;
+pub mod error;
+pub mod manager;
+pub mod pool;
+pub mod protocol;
+pub mod session;
+pub mod shm;
+pub mod space;
+pub mod worker;
+
+pub use catalog::{EnvId, EnvNames, Family, OptionValue, Options};
+pub use error::SimError;
+pub use manager::{CatalogEntry, Limits, SessionInfo, SessionManager};
+pub use pool::{WorkerLauncher, WorkerPool};
+pub use session::{EpisodeEnd, StepOutcome};
+pub use space::{DType, Space};
+pub use worker::{run_worker, GlBackend, WorkerArgs};

@@ -1,0 +1,297 @@
+//! The server's sessions: creation under explicit limits, lookup, close, and the environment catalog.
+
+use std::collections::HashMap;
+use std::hash::{BuildHasher, Hasher};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex as StdMutex};
+
+use serde::{Deserialize, Serialize};
+use tokio::sync::{Mutex, OnceCell};
+use tracing::info;
+
+use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
+use crate::error::SimError;
+use crate::pool::WorkerPool;
+use crate::protocol::{Request, Response};
+use crate::session::{check_seed, Session, SessionConfig};
+use crate::space::Space;
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Limits {
+    pub max_sessions: usize,
+    pub max_envs_per_session: usize,
+    /// Environments across all sessions of the server.
+    pub max_total_envs: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits { max_sessions: 64, max_envs_per_session: 256, max_total_envs: 1024 }
+    }
+}
+
+/// A catalog entry: an id with its default options and the spaces they give.
+#[derive(Clone, Debug)]
+pub struct CatalogEntry {
+    pub id: EnvId,
+    pub default_options: Options,
+    /// (stacked observation space, action space), or why the simulator could not build the env.
+    pub spaces: Result<(Space, Space), String>,
+}
+
+/// What a client learns about a session.
+#[derive(Clone, Debug)]
+pub struct SessionInfo {
+    pub session_id: String,
+    pub env_id: String,
+    pub num_envs: usize,
+    pub seed: u64,
+    pub options: Options,
+    pub observation_space: Space,
+    pub action_space: Space,
+    pub frame_stack: usize,
+    pub total_env_steps: u64,
+    pub episodes_completed: u64,
+}
+
+pub type SharedSession = Arc<Mutex<Session>>;
+
+pub struct SessionManager {
+    pool: WorkerPool,
+    limits: Limits,
+    names: OnceCell<EnvNames>,
+    catalog: OnceCell<Vec<CatalogEntry>>,
+    sessions: StdMutex<Registry>,
+    next_id: AtomicU64,
+    id_salt: std::collections::hash_map::RandomState,
+}
+
+#[derive(Default)]
+struct Registry {
+    sessions: HashMap<String, SharedSession>,
+    /// Environments of live sessions plus those being created.
+    reserved_envs: usize,
+    reserved_sessions: usize,
+    closing: bool,
+}
+
+impl SessionManager {
+    pub fn new(pool: WorkerPool, limits: Limits) -> SessionManager {
+        SessionManager {
+            pool,
+            limits,
+            names: OnceCell::new(),
+            catalog: OnceCell::new(),
+            sessions: StdMutex::new(Registry::default()),
+            next_id: AtomicU64::new(1),
+            id_salt: std::collections::hash_map::RandomState::new(),
+        }
+    }
+
+    pub fn pool(&self) -> &WorkerPool {
+        &self.pool
+    }
+
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    /// Every id the workers can host (asked once of a transient worker).
+    pub async fn names(&self) -> Result<&EnvNames, SimError> {
+        self.names
+            .get_or_try_init(|| async {
+                match self.transient_call(Request::ListNames).await? {
+                    Response::Names(names) => Ok(names),
+                    other => Err(SimError::Simulator(format!("unexpected catalog response {other:?}"))),
+                }
+            })
+            .await
+    }
+
+    /// Every id with its default options and spaces. Building each environment once takes seconds, so
+    /// this is computed once, in a transient worker, and kept.
+    pub async fn catalog(&self) -> Result<&[CatalogEntry], SimError> {
+        let entries = self
+            .catalog
+            .get_or_try_init(|| async {
+                let ids = self.names().await?.all_ids();
+                let defaults: Vec<Options> = ids.iter().map(catalog::default_options).collect();
+                let requests = ids
+                    .iter()
+                    .zip(&defaults)
+                    .map(|(id, options)| {
+                        let mut worker_options = options.clone();
+                        worker_options.remove(FRAME_STACK);
+                        (id.family, id.name.clone(), worker_options)
+                    })
+                    .collect();
+                let specs = match self.transient_call(Request::Specs { entries: requests }).await? {
+                    Response::Specs(specs) => specs,
+                    other => return Err(SimError::Simulator(format!("unexpected catalog response {other:?}"))),
+                };
+                Ok(ids
+                    .into_iter()
+                    .zip(defaults)
+                    .zip(specs)
+                    .map(|((id, default_options), spec)| {
+                        let frame_stack = default_options[FRAME_STACK].as_int().unwrap_or(1) as usize;
+                        let spaces = spec.map(|spec| (spec.observation.stacked(frame_stack), spec.action));
+                        CatalogEntry { id, default_options, spaces }
+                    })
+                    .collect())
+            })
+            .await?;
+        Ok(entries)
+    }
+
+    async fn transient_call(&self, request: Request) -> Result<Response, SimError> {
+        let mut worker = self
+            .pool
+            .spawn_transient()
+            .await
+            .map_err(|err| SimError::WorkersUnavailable(format!("cannot start a catalog worker: {err}")))?;
+        match worker.call(&request).await {
+            Ok(Response::Failed(message)) => Err(SimError::Simulator(message)),
+            Ok(response) => Ok(response),
+            Err(err) => Err(SimError::WorkersUnavailable(format!("catalog worker failed: {err}"))),
+        }
+    }
+
+    pub async fn create_session(
+        &self,
+        env_id: &str,
+        num_envs: usize,
+        seed: u64,
+        overrides: &Options,
+    ) -> Result<SessionInfo, SimError> {
+        if num_envs == 0 {
+            return Err(SimError::InvalidArgument("num_envs must be at least 1".into()));
+        }
+        if num_envs > self.limits.max_envs_per_session {
+            return Err(SimError::LimitExceeded(format!(
+                "num_envs {num_envs} exceeds this server's limit of {} environments per session",
+                self.limits.max_envs_per_session
+            )));
+        }
+        check_seed(seed, num_envs)?;
+        let env = self.names().await?.parse(env_id)?;
+        let options = catalog::resolve_options(&env, overrides)?;
+        let frame_stack = options[FRAME_STACK].as_int().unwrap_or(1) as usize;
+
+        self.reserve(num_envs)?;
+        let config = SessionConfig { env, num_envs, seed, options, frame_stack };
+        let session = match Session::create(&self.pool, config).await {
+            Ok(session) => session,
+            Err(error) => {
+                self.release(num_envs, 1);
+                return Err(error);
+            }
+        };
+        let session_id = self.new_session_id();
+        let info = describe(&session_id, &session);
+        let shared = Arc::new(Mutex::new(session));
+        let rejected = {
+            let mut registry = self.sessions.lock().expect("registry lock");
+            if registry.closing {
+                true
+            } else {
+                registry.sessions.insert(session_id.clone(), shared.clone());
+                false
+            }
+        };
+        if rejected {
+            shared.lock().await.close().await;
+            self.release(num_envs, 1);
+            return Err(SimError::ShuttingDown);
+        }
+        info!(session = %session_id, env = %info.env_id, envs = num_envs, seed, "session created");
+        Ok(info)
+    }
+
+    fn reserve(&self, num_envs: usize) -> Result<(), SimError> {
+        let mut registry = self.sessions.lock().expect("registry lock");
+        if registry.closing {
+            return Err(SimError::ShuttingDown);
+        }
+        if registry.reserved_sessions >= self.limits.max_sessions {
+            return Err(SimError::LimitExceeded(format!(
+                "this server already hosts {} sessions, its limit; close one first",
+                registry.reserved_sessions
+            )));
+        }
+        if registry.reserved_envs + num_envs > self.limits.max_total_envs {
+            return Err(SimError::LimitExceeded(format!(
+                "{num_envs} more environments would make {} on this server, above its limit of {}",
+                registry.reserved_envs + num_envs,
+                self.limits.max_total_envs
+            )));
+        }
+        registry.reserved_envs += num_envs;
+        registry.reserved_sessions += 1;
+        Ok(())
+    }
+
+    fn release(&self, num_envs: usize, sessions: usize) {
+        let mut registry = self.sessions.lock().expect("registry lock");
+        registry.reserved_envs -= num_envs;
+        registry.reserved_sessions -= sessions;
+    }
+
+    fn new_session_id(&self) -> String {
+        let counter = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let mut hasher = self.id_salt.build_hasher();
+        hasher.write_u64(counter);
+        format!("s{counter}-{:016x}", hasher.finish())
+    }
+
+    pub fn get(&self, session_id: &str) -> Result<SharedSession, SimError> {
+        let registry = self.sessions.lock().expect("registry lock");
+        registry.sessions.get(session_id).cloned().ok_or_else(|| SimError::UnknownSession(session_id.to_string()))
+    }
+
+    pub async fn describe(&self, session_id: &str) -> Result<SessionInfo, SimError> {
+        let session = self.get(session_id)?;
+        let session = session.lock().await;
+        Ok(describe(session_id, &session))
+    }
+
+    pub async fn close_session(&self, session_id: &str) -> Result<(), SimError> {
+        let session = {
+            let mut registry = self.sessions.lock().expect("registry lock");
+            registry.sessions.remove(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?
+        };
+        let mut session = session.lock().await;
+        session.close().await;
+        self.release(session.num_envs(), 1);
+        info!(session = %session_id, "session closed");
+        Ok(())
+    }
+
+    /// Refuses new sessions and closes every open one.
+    pub async fn shutdown(&self) {
+        let ids: Vec<String> = {
+            let mut registry = self.sessions.lock().expect("registry lock");
+            registry.closing = true;
+            registry.sessions.keys().cloned().collect()
+        };
+        for id in ids {
+            let _ = self.close_session(&id).await;
+        }
+    }
+}
+
+pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
+    SessionInfo {
+        session_id: session_id.to_string(),
+        env_id: session.config.env.full(),
+        num_envs: session.num_envs(),
+        seed: session.config.seed,
+        options: session.config.options.clone(),
+        observation_space: session.observation_space.clone(),
+        action_space: session.frame_spec.action.clone(),
+        frame_stack: session.config.frame_stack,
+        total_env_steps: session.total_env_steps,
+        episodes_completed: session.episodes_completed,
+    }
+}

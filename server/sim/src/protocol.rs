@@ -1,0 +1,131 @@
+//! Messages between the server and its worker processes: a little-endian u32 length, then a postcard
+//! body. Observations do not travel here; workers write them into shared memory (`shm`).
+
+use std::io::{self, Read, Write};
+
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+
+use crate::catalog::{EnvNames, Family, Options};
+use crate::space::Space;
+
+/// Largest message either side accepts (actions of a large session are well below this).
+pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EnvSpec {
+    /// One frame, before stacking.
+    pub observation: Space,
+    pub action: Space,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GroupConfig {
+    pub group: u64,
+    pub family: Family,
+    pub name: String,
+    /// Resolved options, minus the ones the server consumes itself.
+    pub options: Options,
+    /// One seed per environment of the group.
+    pub seeds: Vec<u64>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Request {
+    ListNames,
+    /// Specs of each (family, name, options), for the catalog.
+    Specs { entries: Vec<(Family, String, Options)> },
+    /// Builds the group's environments; the reply carries their spec, which sizes the shared memory.
+    CreateGroup(GroupConfig),
+    /// Maps the shared memory the group writes its frames into (see `shm::SharedFrames::child_path`).
+    Attach { group: u64, shm_path: String, shm_len: usize },
+    Reset { group: u64, seeds: Option<Vec<u64>> },
+    /// Actions of every environment of the group, raw little-endian bytes of the action dtype.
+    Step { group: u64, actions: Vec<u8> },
+    CloseGroup { group: u64 },
+    /// Exit abruptly, as a crashing simulator would (used to test recovery).
+    Abort,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StepResult {
+    pub rewards: Vec<f64>,
+    pub terminated: Vec<bool>,
+    pub truncated: Vec<bool>,
+    /// (index within the group, message) for each env whose simulator raised during this step.
+    pub errors: Vec<(u32, String)>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Response {
+    Names(EnvNames),
+    Specs(Vec<Result<EnvSpec, String>>),
+    Created(EnvSpec),
+    Attached,
+    Reset,
+    Stepped(StepResult),
+    Closed,
+    /// The request failed inside the worker; the worker itself is fine.
+    Failed(String),
+}
+
+pub fn encode<T: Serialize>(message: &T) -> io::Result<Vec<u8>> {
+    let body = postcard::to_stdvec(message).map_err(|err| io::Error::new(io::ErrorKind::InvalidData, err))?;
+    let mut framed = Vec::with_capacity(body.len() + 4);
+    framed.extend_from_slice(&(body.len() as u32).to_le_bytes());
+    framed.extend_from_slice(&body);
+    Ok(framed)
+}
+
+pub fn decode<T: DeserializeOwned>(body: &[u8]) -> io::Result<T> {
+    postcard::from_bytes(body).map_err(|err| io::Error::new(io::ErrorKind::InvalidData, err))
+}
+
+pub fn check_length(header: [u8; 4]) -> io::Result<usize> {
+    let length = u32::from_le_bytes(header) as usize;
+    if length > MAX_MESSAGE_BYTES {
+        return Err(io::Error::new(io::ErrorKind::InvalidData, format!("message of {length} bytes is too large")));
+    }
+    Ok(length)
+}
+
+/// Blocking read of one message (the worker side). `Ok(None)` on a clean end of stream.
+pub fn read_blocking<T: DeserializeOwned>(reader: &mut impl Read) -> io::Result<Option<T>> {
+    let mut header = [0u8; 4];
+    match reader.read_exact(&mut header) {
+        Ok(()) => {}
+        Err(err) if err.kind() == io::ErrorKind::UnexpectedEof => return Ok(None),
+        Err(err) => return Err(err),
+    }
+    let mut body = vec![0u8; check_length(header)?];
+    reader.read_exact(&mut body)?;
+    decode(&body).map(Some)
+}
+
+pub fn write_blocking<T: Serialize>(writer: &mut impl Write, message: &T) -> io::Result<()> {
+    writer.write_all(&encode(message)?)?;
+    writer.flush()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn messages_round_trip_through_the_framing() {
+        let step = Request::Step { group: 7, actions: vec![1, 2, 3, 4] };
+        let mut wire = Vec::new();
+        write_blocking(&mut wire, &step).unwrap();
+        write_blocking(&mut wire, &Request::ListNames).unwrap();
+        let mut reader = wire.as_slice();
+        assert_eq!(read_blocking::<Request>(&mut reader).unwrap(), Some(step));
+        assert_eq!(read_blocking::<Request>(&mut reader).unwrap(), Some(Request::ListNames));
+        assert_eq!(read_blocking::<Request>(&mut reader).unwrap(), None);
+    }
+
+    #[test]
+    fn oversized_lengths_are_refused() {
+        let header = ((MAX_MESSAGE_BYTES + 1) as u32).to_le_bytes();
+        assert!(check_length(header).is_err());
+    }
+}

@@ -1,0 +1,301 @@
+//! The worker process: one embedded CPython interpreter that owns a set of environment groups on its
+//! main thread for its whole life, and answers the server's requests one at a time.
+//!
+//! Measured on a 2-core host, two threads stepping dm_control in one interpreter are slower than one,
+//! while two processes are about twice as fast; hence processes, each holding the GIL across a whole
+//! group step.
+
+use std::collections::HashMap;
+use std::ffi::CString;
+use std::fs::File;
+use std::io::{self, BufReader, BufWriter};
+use std::mem::MaybeUninit;
+use std::os::fd::FromRawFd;
+use std::os::unix::ffi::OsStrExt;
+use std::path::{Path, PathBuf};
+
+use pyo3::exceptions::PyValueError;
+use pyo3::ffi;
+use pyo3::prelude::*;
+use pyo3::types::{PyBytes, PyDict};
+use serde::{Deserialize, Serialize};
+
+use crate::catalog::{EnvNames, Family, OptionValue, Options};
+use crate::protocol::{self, EnvSpec, GroupConfig, Request, Response, StepResult};
+use crate::shm::SharedFrames;
+use crate::space::{DType, Space};
+
+const ADAPTERS_SOURCE: &str = include_str!("../python/radserve_worker.py");
+
+/// Which OpenGL platform MuJoCo renders with. EGL is the default; OSMesa is pure software.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GlBackend {
+    #[default]
+    Egl,
+    Osmesa,
+}
+
+impl GlBackend {
+    pub fn name(self) -> &'static str {
+        match self {
+            GlBackend::Egl => "egl",
+            GlBackend::Osmesa => "osmesa",
+        }
+    }
+
+    pub fn parse(text: &str) -> Option<GlBackend> {
+        match text {
+            "egl" => Some(GlBackend::Egl),
+            "osmesa" => Some(GlBackend::Osmesa),
+            _ => None,
+        }
+    }
+}
+
+pub struct WorkerArgs {
+    /// The virtualenv whose interpreter and packages the worker uses.
+    pub venv: PathBuf,
+    pub gl: GlBackend,
+}
+
+/// Runs a worker until the server closes its end of the protocol stream.
+pub fn run_worker(args: &WorkerArgs) -> Result<(), String> {
+    let (mut input, mut output) = take_protocol_streams().map_err(|err| format!("protocol streams: {err}"))?;
+    // MuJoCo may write MUJOCO_LOG.TXT into the working directory; keep it out of the user's.
+    let workdir = std::env::temp_dir().join(format!("radserve-worker-{}", std::process::id()));
+    if std::fs::create_dir_all(&workdir).is_ok() {
+        let _ = std::env::set_current_dir(&workdir);
+    }
+    std::env::set_var("MUJOCO_GL", args.gl.name());
+    std::env::set_var("PYOPENGL_PLATFORM", args.gl.name());
+    std::env::set_var("TF_CPP_MIN_LOG_LEVEL", "3");
+    init_python(&args.venv)?;
+    // The interpreter is never finalized: simulators' native threads and GL contexts do not survive it.
+    let result = Python::attach(|py| serve(py, &mut input, &mut output));
+    let _ = std::fs::remove_dir_all(&workdir);
+    result
+}
+
+/// Keeps the protocol on private descriptors and points fd 1 at stderr, so that anything a simulator
+/// prints cannot corrupt the protocol stream.
+fn take_protocol_streams() -> io::Result<(BufReader<File>, BufWriter<File>)> {
+    // SAFETY: fds 0, 1 and 2 are open in a process the server spawned with pipes; `dup` returns fresh
+    // descriptors that the `File`s below own exclusively.
+    unsafe {
+        let input = libc::dup(0);
+        let output = libc::dup(1);
+        if input < 0 || output < 0 || libc::dup2(2, 1) < 0 {
+            return Err(io::Error::last_os_error());
+        }
+        let null = libc::open(c"/dev/null".as_ptr(), libc::O_RDONLY);
+        if null >= 0 {
+            libc::dup2(null, 0);
+            libc::close(null);
+        }
+        Ok((BufReader::new(File::from_raw_fd(input)), BufWriter::new(File::from_raw_fd(output))))
+    }
+}
+
+/// Starts CPython as if it were the virtualenv's own `bin/python`, so that `pyvenv.cfg` is honoured:
+/// the venv's site-packages are on the path and the base installation's are not.
+fn init_python(venv: &Path) -> Result<(), String> {
+    let executable = venv.join("bin").join("python");
+    if !executable.exists() {
+        return Err(format!(
+            "no Python interpreter at {}; run `make setup` or point sim.venv at a virtualenv",
+            executable.display()
+        ));
+    }
+    let executable = CString::new(executable.as_os_str().as_bytes()).map_err(|err| err.to_string())?;
+    // SAFETY: PyConfig is initialised by PyConfig_InitPythonConfig before any field is touched, cleared
+    // exactly once, and the interpreter is initialised once from this (only) thread.
+    unsafe {
+        let mut config = MaybeUninit::<ffi::PyConfig>::uninit();
+        ffi::PyConfig_InitPythonConfig(config.as_mut_ptr());
+        let config = config.as_mut_ptr();
+        (*config).install_signal_handlers = 0;
+        (*config).parse_argv = 0;
+        let status = ffi::PyConfig_SetBytesString(config, &raw mut (*config).executable, executable.as_ptr());
+        if ffi::PyStatus_Exception(status) != 0 {
+            ffi::PyConfig_Clear(config);
+            return Err(status_message("setting the interpreter path", &status));
+        }
+        let status = ffi::Py_InitializeFromConfig(config);
+        ffi::PyConfig_Clear(config);
+        if ffi::PyStatus_Exception(status) != 0 {
+            return Err(status_message("starting Python", &status));
+        }
+        // Hand the GIL back; `Python::attach` takes it for the worker loop.
+        ffi::PyEval_SaveThread();
+    }
+    Ok(())
+}
+
+fn status_message(what: &str, status: &ffi::PyStatus) -> String {
+    let detail = if status.err_msg.is_null() {
+        "unknown error".to_string()
+    } else {
+        // SAFETY: a non-null err_msg is a static C string set by CPython.
+        unsafe { std::ffi::CStr::from_ptr(status.err_msg) }.to_string_lossy().into_owned()
+    };
+    format!("{what}: {detail}")
+}
+
+struct HostedGroup {
+    object: Py<PyAny>,
+    /// The memoryview over `frames` handed to Python; released before `frames` is unmapped.
+    view: Option<Py<PyAny>>,
+    frames: Option<SharedFrames>,
+}
+
+fn serve(py: Python<'_>, input: &mut BufReader<File>, output: &mut BufWriter<File>) -> Result<(), String> {
+    let source = CString::new(ADAPTERS_SOURCE).map_err(|err| err.to_string())?;
+    let module = PyModule::from_code(py, &source, c"radserve_worker.py", c"radserve_worker")
+        .map_err(|err| format!("loading the environment adapters: {err}"))?;
+    module.call_method0("configure").map_err(|err| format!("configuring the adapters: {err}"))?;
+    let mut groups: HashMap<u64, HostedGroup> = HashMap::new();
+    loop {
+        let request: Request = match protocol::read_blocking(input) {
+            Ok(Some(request)) => request,
+            Ok(None) => return Ok(()),
+            Err(err) => return Err(format!("reading a request: {err}")),
+        };
+        let response = handle(py, &module, &mut groups, request).unwrap_or_else(|err| Response::Failed(err.to_string()));
+        protocol::write_blocking(output, &response).map_err(|err| format!("writing a response: {err}"))?;
+    }
+}
+
+fn handle(
+    py: Python<'_>,
+    module: &Bound<'_, PyModule>,
+    groups: &mut HashMap<u64, HostedGroup>,
+    request: Request,
+) -> PyResult<Response> {
+    match request {
+        Request::ListNames => {
+            let names: HashMap<String, Vec<String>> = module.call_method0("list_names")?.extract()?;
+            let mut env_names = EnvNames::default();
+            for family in Family::ALL {
+                let listed = names.get(family.prefix()).cloned().unwrap_or_default();
+                env_names.by_family.insert(family, listed);
+            }
+            Ok(Response::Names(env_names))
+        }
+        Request::Specs { entries } => {
+            let specs = entries
+                .iter()
+                .map(|(family, name, options)| {
+                    let spec = module.call_method1("spec", (family.prefix(), name, options_dict(py, options)?))?;
+                    extract_spec(&spec)
+                })
+                .map(|result| result.map_err(|err| err.to_string()))
+                .collect();
+            Ok(Response::Specs(specs))
+        }
+        Request::CreateGroup(GroupConfig { group, family, name, options, seeds }) => {
+            if let Some(previous) = groups.remove(&group) {
+                close_group(py, previous);
+            }
+            let object = module.getattr("Group")?.call1((family.prefix(), name, options_dict(py, &options)?, seeds))?;
+            let spec = extract_spec(&object.call_method0("spec")?)?;
+            groups.insert(group, HostedGroup { object: object.unbind(), view: None, frames: None });
+            Ok(Response::Created(spec))
+        }
+        Request::Attach { group, shm_path, shm_len } => {
+            let hosted = hosted_group(groups, group)?;
+            let mut frames = SharedFrames::open(&shm_path)
+                .map_err(|err| PyValueError::new_err(format!("mapping {shm_path}: {err}")))?;
+            if frames.len() < shm_len {
+                return Err(PyValueError::new_err(format!("shared memory holds {} bytes, expected {shm_len}", frames.len())));
+            }
+            // SAFETY: the mapping lives in `hosted.frames` for as long as the view exists; `close_group`
+            // releases the view before dropping the mapping.
+            let view = unsafe {
+                let pointer = ffi::PyMemoryView_FromMemory(
+                    frames.as_mut_ptr().cast(),
+                    shm_len as ffi::Py_ssize_t,
+                    ffi::PyBUF_WRITE,
+                );
+                Bound::from_owned_ptr_or_err(py, pointer)?
+            };
+            hosted.object.bind(py).call_method1("attach", (&view,))?;
+            hosted.view = Some(view.unbind());
+            hosted.frames = Some(frames);
+            Ok(Response::Attached)
+        }
+        Request::Reset { group, seeds } => {
+            hosted_group(groups, group)?.object.bind(py).call_method1("reset", (seeds,))?;
+            Ok(Response::Reset)
+        }
+        Request::Step { group, actions } => {
+            let hosted = hosted_group(groups, group)?;
+            let outcome = hosted.object.bind(py).call_method1("step", (PyBytes::new(py, &actions),))?;
+            let (rewards, terminated, truncated, errors): (Vec<f64>, Vec<bool>, Vec<bool>, Vec<(u32, String)>) =
+                outcome.extract()?;
+            Ok(Response::Stepped(StepResult { rewards, terminated, truncated, errors }))
+        }
+        Request::CloseGroup { group } => {
+            if let Some(hosted) = groups.remove(&group) {
+                close_group(py, hosted);
+            }
+            Ok(Response::Closed)
+        }
+        Request::Abort => std::process::abort(),
+    }
+}
+
+fn hosted_group(groups: &mut HashMap<u64, HostedGroup>, group: u64) -> PyResult<&mut HostedGroup> {
+    groups.get_mut(&group).ok_or_else(|| PyValueError::new_err(format!("no group {group} in this worker")))
+}
+
+fn close_group(py: Python<'_>, hosted: HostedGroup) {
+    let _ = hosted.object.bind(py).call_method0("close");
+    drop(hosted.object);
+    if let Some(view) = hosted.view {
+        // A view that Python still exports (an array leaked somewhere) cannot be released; then the
+        // mapping is leaked too rather than unmapped under Python's feet.
+        if view.bind(py).call_method0("release").is_err() {
+            std::mem::forget(hosted.frames);
+        }
+    }
+}
+
+fn options_dict<'py>(py: Python<'py>, options: &Options) -> PyResult<Bound<'py, PyDict>> {
+    let dict = PyDict::new(py);
+    for (name, value) in options {
+        match value {
+            OptionValue::Bool(value) => dict.set_item(name, value)?,
+            OptionValue::Int(value) => dict.set_item(name, value)?,
+            OptionValue::Float(value) => dict.set_item(name, value)?,
+            OptionValue::Str(value) => dict.set_item(name, value)?,
+        }
+    }
+    Ok(dict)
+}
+
+fn extract_spec(spec: &Bound<'_, PyAny>) -> PyResult<EnvSpec> {
+    Ok(EnvSpec {
+        observation: extract_space(&spec.get_item("observation")?)?,
+        action: extract_space(&spec.get_item("action")?)?,
+    })
+}
+
+fn extract_space(space: &Bound<'_, PyAny>) -> PyResult<Space> {
+    let kind: String = space.get_item("kind")?.extract()?;
+    match kind.as_str() {
+        "box" => {
+            let dtype_name: String = space.get_item("dtype")?.extract()?;
+            let dtype = DType::from_name(&dtype_name)
+                .ok_or_else(|| PyValueError::new_err(format!("unsupported dtype {dtype_name}")))?;
+            Ok(Space::Box {
+                dtype,
+                shape: space.get_item("shape")?.extract()?,
+                low: space.get_item("low")?.extract()?,
+                high: space.get_item("high")?.extract()?,
+            })
+        }
+        "discrete" => Ok(Space::Discrete { n: space.get_item("n")?.extract()? }),
+        other => Err(PyValueError::new_err(format!("unknown space kind {other}"))),
+    }
+}
