@@ -11,6 +11,8 @@ Each adapter turns one simulator into the same small contract:
     step(action) -> (frame, reward, terminated, truncated)
 """
 
+import contextlib
+import io
 import os
 import warnings
 
@@ -185,7 +187,9 @@ class ProcgenEnv:
         self._make(seed)
 
     def _make(self, seed):
-        from procgen import ProcgenGym3Env
+        # procgen imports the legacy gym package, which prints a deprecation banner on import.
+        with contextlib.redirect_stderr(io.StringIO()):
+            from procgen import ProcgenGym3Env
 
         self.env = ProcgenGym3Env(num=1, env_name=self.name, rand_seed=int(seed), **self.kwargs)
         self.fresh = True

@@ -1,0 +1,23 @@
+"""radserve: reinforcement-learning simulators served over gRPC.
+
+Public names only; the generated gRPC code lives in the private `radserve._proto` package.
+"""
+
+from .client import Client, EnvInfo, SessionInfo
+from .errors import (
+    FailedPreconditionError,
+    InternalError,
+    InvalidArgumentError,
+    NotFoundError,
+    RadServeError,
+    ResourceExhaustedError,
+    UnavailableError,
+)
+from .server import LocalServer
+from .vector import RemoteVectorEnv
+
+__all__ = [
+    "Client", "EnvInfo", "SessionInfo", "RemoteVectorEnv", "LocalServer",
+    "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
+    "ResourceExhaustedError", "UnavailableError", "InternalError",
+]

@@ -1,0 +1,131 @@
+"""The radserve client: environments listed, sessions created, vector environments handed out."""
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import grpc
+from gymnasium import spaces
+
+from . import _convert
+from ._proto import radserve_pb2 as pb
+from ._proto import radserve_pb2_grpc as pb_grpc
+from .errors import from_rpc_error
+
+# Large batches of frames must fit; the server bounds them itself.
+_CHANNEL_OPTIONS = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
+
+
+@dataclass(frozen=True)
+class EnvInfo:
+    """One environment id of the server's catalog, with its spaces under the default options."""
+
+    id: str
+    family: str
+    observation_space: "spaces.Space | None"
+    action_space: "spaces.Space | None"
+    default_options: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    session_id: str
+    env_id: str
+    num_envs: int
+    seed: int
+    options: dict
+    observation_space: spaces.Space
+    action_space: spaces.Space
+    frame_stack: int
+    autoreset_mode: str
+    total_env_steps: int
+    episodes_completed: int
+
+    @staticmethod
+    def from_proto(message: "pb.SessionInfo") -> "SessionInfo":
+        return SessionInfo(
+            session_id=message.session_id,
+            env_id=message.env_id,
+            num_envs=message.num_envs,
+            seed=message.seed,
+            options={k: _convert.from_option_value(v) for k, v in message.options.items()},
+            observation_space=_convert.to_space(message.observation_space),
+            action_space=_convert.to_space(message.action_space),
+            frame_stack=message.frame_stack,
+            autoreset_mode=message.autoreset_mode,
+            total_env_steps=message.total_env_steps,
+            episodes_completed=message.episodes_completed,
+        )
+
+
+class Client:
+    """A connection to one radserve server.
+
+    >>> client = radserve.Client("127.0.0.1:50051")
+    >>> envs = client.make_vec("dmc/cheetah-run", num_envs=8, seed=1)
+    """
+
+    def __init__(self, address: str, *, wait_ready: float = 10.0):
+        self.address = address
+        self._channel = grpc.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._stub = pb_grpc.RadServeStub(self._channel)
+        if wait_ready:
+            try:
+                grpc.channel_ready_future(self._channel).result(timeout=wait_ready)
+            except grpc.FutureTimeoutError:
+                self._channel.close()
+                from .errors import UnavailableError
+
+                raise UnavailableError(f"no radserve server answered at {address} within {wait_ready} s") from None
+
+    def _call(self, method: str, request, **kwargs):
+        try:
+            return getattr(self._stub, method)(request, **kwargs)
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from None
+
+    def list_envs(self, prefix: str = "") -> "list[EnvInfo]":
+        """Every environment id the server hosts (optionally those starting with `prefix`)."""
+        response = self._call("ListEnvs", pb.ListEnvsRequest(prefix=prefix))
+        return [
+            EnvInfo(
+                id=env.id,
+                family=env.family,
+                observation_space=_convert.to_space(env.observation_space) if env.HasField("observation_space") else None,
+                action_space=_convert.to_space(env.action_space) if env.HasField("action_space") else None,
+                default_options={k: _convert.from_option_value(v) for k, v in env.default_options.items()},
+            )
+            for env in response.envs
+        ]
+
+    def make_vec(self, env_id: str, num_envs: int = 1, seed: int = 0, *, stream: bool = False, **options: Any):
+        """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
+
+        Environment i is seeded with `seed + i`. `options` override the env's defaults (see
+        `list_envs()[...].default_options`), e.g. `pixels=False`, `frame_stack=3`, `num_levels=200`.
+        With `stream=True`, reset and step go over one bidirectional stream instead of unary calls.
+        """
+        from .vector import RemoteVectorEnv
+
+        request = pb.CreateSessionRequest(
+            env_id=env_id,
+            num_envs=num_envs,
+            seed=seed,
+            options={name: _convert.option_value(value) for name, value in options.items()},
+        )
+        info = SessionInfo.from_proto(self._call("CreateSession", request))
+        return RemoteVectorEnv(self, info, stream=stream)
+
+    def describe_session(self, session_id: str) -> SessionInfo:
+        return SessionInfo.from_proto(self._call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id)))
+
+    def close_session(self, session_id: str) -> None:
+        self._call("CloseSession", pb.CloseSessionRequest(session_id=session_id))
+
+    def close(self) -> None:
+        self._channel.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()

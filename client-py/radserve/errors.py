@@ -1,0 +1,53 @@
+"""Errors raised by the radserve client: one class per kind of server answer, all RadServeError."""
+
+import grpc
+
+
+class RadServeError(Exception):
+    """A call to a radserve server failed. `code` is the gRPC status code, `details` its message."""
+
+    def __init__(self, message: str, code: "grpc.StatusCode | None" = None):
+        super().__init__(message)
+        self.code = code
+        self.details = message
+
+
+class NotFoundError(RadServeError):
+    """Unknown environment id (the message names close matches) or unknown session."""
+
+
+class InvalidArgumentError(RadServeError):
+    """The request does not fit: action shape/dtype/bounds, option names or values, seeds."""
+
+
+class FailedPreconditionError(RadServeError):
+    """The session is not in a state to take the request (e.g. Step before Reset)."""
+
+
+class ResourceExhaustedError(RadServeError):
+    """A server limit would be exceeded (sessions, environments)."""
+
+
+class UnavailableError(RadServeError):
+    """The server or its simulator workers cannot be reached, or it is shutting down."""
+
+
+class InternalError(RadServeError):
+    """A simulator failed in a way that is not the caller's fault."""
+
+
+_BY_CODE = {
+    grpc.StatusCode.NOT_FOUND: NotFoundError,
+    grpc.StatusCode.INVALID_ARGUMENT: InvalidArgumentError,
+    grpc.StatusCode.FAILED_PRECONDITION: FailedPreconditionError,
+    grpc.StatusCode.RESOURCE_EXHAUSTED: ResourceExhaustedError,
+    grpc.StatusCode.UNAVAILABLE: UnavailableError,
+    grpc.StatusCode.INTERNAL: InternalError,
+}
+
+
+def from_rpc_error(error: grpc.RpcError) -> RadServeError:
+    code = error.code() if hasattr(error, "code") else None
+    details = error.details() if hasattr(error, "details") else str(error)
+    cls = _BY_CODE.get(code, RadServeError)
+    return cls(details or str(code), code)

@@ -1,0 +1,121 @@
+"""A radserve session as a gymnasium VectorEnv."""
+
+import queue
+from typing import Any
+
+import grpc
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from . import _convert
+from ._proto import radserve_pb2 as pb
+from .errors import from_rpc_error
+
+
+class RemoteVectorEnv(VectorEnv):
+    """`num_envs` environments living in a radserve server, stepped together.
+
+    Autoreset is same-step (`metadata["autoreset_mode"] == AutoresetMode.SAME_STEP`): when an
+    episode ends, the returned observation of that env already starts the next episode, and
+    `infos["final_obs"][i]` holds the last observation of the ended one (`infos["_final_obs"]` is
+    the mask). `infos["episode"]` carries the return `r` and length `l` of ended episodes, and
+    `infos["error"]` the simulator's message when it raised or its worker died.
+
+    Observations are read-only numpy arrays over the received message bytes; copy them to modify.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(self, client, info, *, stream: bool = False):
+        self._client = client
+        self.info = info
+        self.session_id = info.session_id
+        self.num_envs = info.num_envs
+        self.single_observation_space = info.observation_space
+        self.single_action_space = info.action_space
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._action_dtype = np.dtype(np.int64) if info.action_space.shape == () else info.action_space.dtype
+        self._requests: "queue.Queue | None" = None
+        self._responses = None
+        if stream:
+            self._requests = queue.Queue()
+            self._responses = client._stub.Act(iter(self._requests.get, None))
+        self.closed = False
+
+    def _act(self, request: "pb.ActRequest", kind: str):
+        if self._requests is None:
+            method = "Reset" if kind == "reset" else "Step"
+            return self._client._call(method, getattr(request, kind))
+        self._requests.put(request)
+        try:
+            return getattr(next(self._responses), kind)
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from None
+
+    def reset(self, *, seed: "int | None" = None, options: "dict[str, Any] | None" = None):
+        """Resets every environment; with `seed`, environment i is re-seeded with `seed + i`."""
+        request = pb.ResetRequest(session_id=self.session_id, seed=seed)
+        response = self._act(pb.ActRequest(reset=request), "reset")
+        return _convert.to_numpy(response.obs), {}
+
+    def step(self, actions):
+        actions = np.asarray(actions)
+        if actions.dtype != self._action_dtype and np.can_cast(actions.dtype, self._action_dtype, "same_kind"):
+            actions = actions.astype(self._action_dtype)
+        request = pb.StepRequest(session_id=self.session_id, actions=_convert.to_tensor(actions))
+        response = self._act(pb.ActRequest(step=request), "step")
+        obs = _convert.to_numpy(response.obs)
+        rewards = _convert.to_numpy(response.reward)
+        terminated = np.array(response.terminated, dtype=bool)
+        truncated = np.array(response.truncated, dtype=bool)
+        return obs, rewards, terminated, truncated, self._infos(response)
+
+    def _infos(self, response: "pb.StepResponse") -> dict:
+        if not response.episodes:
+            return {}
+        n = self.num_envs
+        mask = np.zeros(n, dtype=bool)
+        final_obs = np.full(n, None, dtype=object)
+        final_info = np.full(n, None, dtype=object)
+        returns = np.zeros(n, dtype=np.float64)
+        lengths = np.zeros(n, dtype=np.int64)
+        errors = np.full(n, None, dtype=object)
+        dense_final = _convert.to_numpy(response.final_obs)
+        for row, episode in enumerate(response.episodes):
+            i = episode.env_index
+            mask[i] = True
+            final_obs[i] = dense_final[row]
+            returns[i], lengths[i] = episode.episode_return, episode.episode_length
+            final_info[i] = {"episode": {"r": returns[i], "l": lengths[i]}}
+            if episode.error:
+                errors[i] = episode.error
+                final_info[i]["error"] = episode.error
+        infos = {
+            "final_obs": final_obs,
+            "_final_obs": mask,
+            "final_info": final_info,
+            "_final_info": mask.copy(),
+            "episode": {"r": returns, "l": lengths, "_r": mask.copy(), "_l": mask.copy()},
+            "_episode": mask.copy(),
+        }
+        if any(e is not None for e in errors):
+            infos["error"] = errors
+            infos["_error"] = np.array([e is not None for e in errors])
+        return infos
+
+    def describe(self):
+        """The session as the server sees it (steps taken, episodes completed, options)."""
+        return self._client.describe_session(self.session_id)
+
+    def close(self, **kwargs):
+        if self.closed:
+            return
+        self.closed = True
+        if self._requests is not None:
+            self._requests.put(None)
+        try:
+            self._client.close_session(self.session_id)
+        except Exception:  # the server may already be gone; closing must not raise
+            pass

@@ -1,0 +1,138 @@
+//! The real server on 127.0.0.1:0, real worker processes, talked to over gRPC.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use radserve::ServerSettings;
+use radserve_service::proto::{self, rad_serve_client::RadServeClient};
+use radserve_sim::{GlBackend, Limits, SessionManager};
+use tokio::net::TcpListener;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use tokio_stream::StreamExt;
+use tonic::transport::Channel;
+use tonic::Code;
+
+struct TestServer {
+    address: String,
+    manager: Arc<SessionManager>,
+    stop: oneshot::Sender<()>,
+    task: JoinHandle<anyhow::Result<()>>,
+}
+
+async fn start_server(limits: Limits) -> TestServer {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = format!("http://{}", listener.local_addr().unwrap());
+    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let manager = radserve::session_manager(ServerSettings {
+        worker_program: PathBuf::from(env!("CARGO_BIN_EXE_radserve")),
+        venv: repo.join(".venv"),
+        gl: GlBackend::Egl,
+        workers: 2,
+        limits,
+    });
+    let (stop, stopped) = oneshot::channel::<()>();
+    let task = tokio::spawn(radserve::serve(listener, manager.clone(), async {
+        let _ = stopped.await;
+    }));
+    TestServer { address, manager, stop, task }
+}
+
+async fn connect(address: &str) -> Channel {
+    Channel::from_shared(address.to_string()).unwrap().connect().await.unwrap()
+}
+
+fn f32_tensor(shape: &[i64], values: &[f32]) -> proto::Tensor {
+    proto::Tensor {
+        dtype: proto::DType::DtypeFloat32 as i32,
+        shape: shape.to_vec(),
+        data: values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>().into(),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serves_health_reflection_and_answers_bad_input() {
+    let server = start_server(Limits { max_sessions: 2, ..Limits::default() }).await;
+    let channel = connect(&server.address).await;
+
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel.clone());
+    let status = health
+        .check(tonic_health::pb::HealthCheckRequest { service: "radserve.v1.RadServe".into() })
+        .await
+        .unwrap()
+        .into_inner()
+        .status;
+    assert_eq!(status, tonic_health::pb::health_check_response::ServingStatus::Serving as i32);
+
+    use tonic_reflection::pb::v1::{
+        server_reflection_client::ServerReflectionClient, server_reflection_request::MessageRequest,
+        server_reflection_response::MessageResponse, ServerReflectionRequest,
+    };
+    let mut reflection = ServerReflectionClient::new(channel.clone());
+    let request = ServerReflectionRequest { host: String::new(), message_request: Some(MessageRequest::ListServices(String::new())) };
+    let mut replies = reflection.server_reflection_info(tokio_stream::iter(vec![request])).await.unwrap().into_inner();
+    let services = match replies.next().await.unwrap().unwrap().message_response {
+        Some(MessageResponse::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect::<Vec<_>>(),
+        other => panic!("unexpected reflection answer {other:?}"),
+    };
+    assert!(services.contains(&"radserve.v1.RadServe".to_string()), "{services:?}");
+    assert!(services.contains(&"grpc.health.v1.Health".to_string()), "{services:?}");
+
+    let mut client = RadServeClient::new(channel);
+    let unknown = client
+        .create_session(proto::CreateSessionRequest { env_id: "gym/CartPol-v1".into(), num_envs: 1, ..Default::default() })
+        .await
+        .unwrap_err();
+    assert_eq!(unknown.code(), Code::NotFound);
+    assert!(unknown.message().contains("did you mean gym/CartPole-v1"), "{}", unknown.message());
+
+    let session = client
+        .create_session(proto::CreateSessionRequest { env_id: "gym/Pendulum-v1".into(), num_envs: 2, seed: 7, ..Default::default() })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(session.frame_stack, 1);
+    assert_eq!(session.autoreset_mode, "same-step");
+    let session_id = session.session_id.clone();
+
+    let step = |actions: proto::Tensor| proto::StepRequest { session_id: session_id.clone(), actions: Some(actions) };
+    let early = client.step(step(f32_tensor(&[2, 1], &[0.0, 0.0]))).await.unwrap_err();
+    assert_eq!(early.code(), Code::FailedPrecondition);
+
+    let reset = client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: None }).await.unwrap().into_inner();
+    let obs = reset.obs.unwrap();
+    assert_eq!(obs.shape, vec![2, 3]);
+    assert_eq!(obs.dtype, proto::DType::DtypeFloat32 as i32);
+    assert_eq!(obs.data.len(), 2 * 3 * 4);
+
+    let out_of_bounds = client.step(step(f32_tensor(&[2, 1], &[0.0, 2.5]))).await.unwrap_err();
+    assert_eq!(out_of_bounds.code(), Code::InvalidArgument);
+    assert!(out_of_bounds.message().contains("env 1, element 0 is outside [-2, 2]"), "{}", out_of_bounds.message());
+    let mut lying = f32_tensor(&[2, 1], &[0.0, 0.0]);
+    lying.dtype = 42;
+    assert_eq!(client.step(step(lying)).await.unwrap_err().code(), Code::InvalidArgument);
+
+    let stepped = client.step(step(f32_tensor(&[2, 1], &[1.0, -1.0]))).await.unwrap().into_inner();
+    assert_eq!(stepped.reward.unwrap().data.len(), 2 * 8);
+    assert_eq!(stepped.terminated.len(), 2);
+
+    // The second session fits, the third does not: max_sessions is 2.
+    let second = client
+        .create_session(proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 1, ..Default::default() })
+        .await
+        .unwrap();
+    let third = client
+        .create_session(proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 1, ..Default::default() })
+        .await
+        .unwrap_err();
+    assert_eq!(third.code(), Code::ResourceExhausted);
+    client.close_session(proto::CloseSessionRequest { session_id: second.into_inner().session_id }).await.unwrap();
+
+    let info = server.manager.describe(&session_id).await.unwrap();
+    assert_eq!(info.total_env_steps, 2);
+
+    server.stop.send(()).unwrap();
+    server.task.await.unwrap().unwrap();
+    // Shutting down closed every session.
+    assert!(server.manager.describe(&session_id).await.is_err());
+}

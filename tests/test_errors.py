@@ -1,0 +1,114 @@
+"""Bad input is answered with a typed error that says what was expected; the server keeps serving."""
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+import radserve
+
+
+def test_unknown_env_names_close_matches(client):
+    with pytest.raises(radserve.NotFoundError, match="did you mean dmc/cheetah-run"):
+        client.make_vec("dmc/cheetah-runn")
+    with pytest.raises(radserve.NotFoundError, match="unknown environment id 'atari/pong'"):
+        client.make_vec("atari/pong")
+
+
+def test_bad_options_say_what_is_accepted(client):
+    with pytest.raises(radserve.InvalidArgumentError, match="accepted options: .*frame_stack"):
+        client.make_vec("gym/CartPole-v1", colour=True)
+    with pytest.raises(radserve.InvalidArgumentError, match=r"frame_stack.*\[1, 16\]"):
+        client.make_vec("gym/CartPole-v1", frame_stack=0)
+    with pytest.raises(radserve.InvalidArgumentError, match="one of easy, hard"):
+        client.make_vec("procgen/bigfish", distribution_mode="medium")
+    with pytest.raises(radserve.InvalidArgumentError, match="must be a bool"):
+        client.make_vec("dmc/cheetah-run", pixels="yes")
+
+
+def test_sizes_and_seeds_are_checked(client):
+    with pytest.raises(radserve.InvalidArgumentError, match="num_envs must be at least 1"):
+        client.make_vec("gym/CartPole-v1", num_envs=0)
+    with pytest.raises(radserve.ResourceExhaustedError, match="per session"):
+        client.make_vec("gym/CartPole-v1", num_envs=100_000)
+    with pytest.raises(radserve.InvalidArgumentError, match="32-bit seeds"):
+        client.make_vec("gym/CartPole-v1", seed=2**40)
+
+
+def test_unknown_sessions_and_step_before_reset(client):
+    with pytest.raises(radserve.NotFoundError, match="unknown session 'nope'"):
+        client.describe_session("nope")
+    envs = client.make_vec("gym/CartPole-v1", num_envs=2)
+    try:
+        with pytest.raises(radserve.FailedPreconditionError, match="Reset"):
+            envs.step(np.zeros(2, dtype=np.int64))
+        with pytest.raises(radserve.InvalidArgumentError, match="int64 of shape \\[2\\]"):
+            envs.reset()
+            envs.step(np.zeros((2, 3), dtype=np.float32))
+    finally:
+        envs.close()
+    with pytest.raises(radserve.NotFoundError):
+        client.close_session(envs.session_id)
+
+
+def test_act_stream_gives_the_same_results_as_unary_calls(client):
+    unary = client.make_vec("gym/Pendulum-v1", num_envs=3, seed=4)
+    streamed = client.make_vec("gym/Pendulum-v1", num_envs=3, seed=4, stream=True)
+    try:
+        np.testing.assert_array_equal(unary.reset()[0], streamed.reset()[0])
+        actions = np.random.default_rng(0).uniform(-2, 2, size=(20, 3, 1)).astype(np.float32)
+        for action in actions:
+            np.testing.assert_array_equal(unary.step(action)[0], streamed.step(action)[0])
+        with pytest.raises(radserve.InvalidArgumentError):
+            streamed.step(np.zeros((3, 2), dtype=np.float32))
+    finally:
+        unary.close()
+        streamed.close()
+
+
+def test_health_reports_serving(server):
+    with grpc.insecure_channel(server.address) as channel:
+        stub = health_pb2_grpc.HealthStub(channel)
+        reply = stub.Check(health_pb2.HealthCheckRequest(service="radserve.v1.RadServe"))
+        assert reply.status == health_pb2.HealthCheckResponse.SERVING
+
+
+def _worker_pids(server_pid):
+    # Workers are spawned from tokio's threads: each thread (task) lists its own children.
+    children = {int(pid) for task in Path(f"/proc/{server_pid}/task").iterdir()
+                for pid in (task / "children").read_text().split()}
+    return sorted(pid for pid in children if b"\0worker\0" in Path(f"/proc/{pid}/cmdline").read_bytes())
+
+
+def test_a_dead_worker_ends_its_episodes_and_is_replaced(server, client, catalog):
+    # `catalog` first: the transient worker that builds it must be gone before workers are counted.
+    victim_session = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0)
+    bystander = client.make_vec("gym/CartPole-v1", num_envs=1, seed=0)
+    try:
+        victim_session.reset()
+        bystander.reset()
+        before = _worker_pids(server.process.pid)
+        assert len(before) == 2
+        os.kill(before[0], signal.SIGKILL)
+        time.sleep(0.2)
+        actions = np.zeros((2, 6), dtype=np.float32)
+        _, _, _, truncated, infos = victim_session.step(actions)
+        # One env lived in the killed worker: its episode ended, reported with the reason.
+        assert truncated.sum() == 1
+        i = int(np.flatnonzero(truncated)[0])
+        assert "died" in infos["error"][i]
+        assert infos["final_obs"][i].shape == (17,)
+        after = _worker_pids(server.process.pid)
+        assert len(after) == 2 and before[0] not in after
+        # Everything keeps working afterwards, for this session and the others.
+        for _ in range(3):
+            victim_session.step(actions)
+            bystander.step(np.zeros(1, dtype=np.int64))
+    finally:
+        victim_session.close()
+        bystander.close()
