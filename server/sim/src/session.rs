@@ -125,10 +125,16 @@ impl Session {
         let layout = FrameLayout { frame_bytes: frame_spec.observation.num_bytes() };
 
         let mut groups = Vec::new();
-        for (worker, id, envs, seeds) in created {
-            let frames = SharedFrames::create(layout.segment_len(envs.len()))
-                .map_err(|err| SimError::Simulator(format!("allocating shared memory: {err}")))?;
-            groups.push(Group { worker, id, envs, seeds, frames });
+        for (worker, id, envs, seeds) in &created {
+            match SharedFrames::create(layout.segment_len(envs.len())) {
+                Ok(frames) => groups.push(Group { worker: worker.clone(), id: *id, envs: envs.clone(), seeds: seeds.clone(), frames }),
+                Err(err) => {
+                    for (worker, group, ..) in &created {
+                        let _ = worker.call(Request::CloseGroup { group: *group }).await;
+                    }
+                    return Err(SimError::Simulator(format!("allocating shared memory: {err}")));
+                }
+            }
         }
         let mut session = Session {
             observation_space: frame_spec.observation.stacked(config.frame_stack),

@@ -1,0 +1,152 @@
+"""Steps per second through radserve (a Python client, one session) against the same simulator driven
+directly in one Python process, measured in the same run; prints a markdown table with the ratio.
+
+    .venv/bin/python bench/sim_throughput.py [--seconds 8] [--workers 2]
+
+Targets on a 2-core machine: dmc pixels >= 1.5x one process; dmc state and gym >= 1.3x; ProcGen >=
+0.5x of procgen's own vectorized in-process rate.
+"""
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import radserve  # noqa: E402
+
+
+def timed(step_fn, steps_per_call, seconds, warmup=2):
+    for _ in range(warmup):
+        step_fn()
+    calls, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        step_fn()
+        calls += 1
+    return calls * steps_per_call / (time.perf_counter() - start)
+
+
+def dmc_direct(name, num_envs, fast, pixels, seconds):
+    from dm_control import suite
+
+    domain, task = name.split("-", 1)
+    envs = [suite.load(domain, task, task_kwargs={"random": i}) for i in range(num_envs)]
+    for env in envs:
+        if fast:
+            model = env.physics.model
+            model.vis.quality.shadowsize = 0
+            model.vis.quality.offsamples = 0
+            model.mat_reflectance[:] = 0
+            model.light_castshadow[:] = 0
+        env.reset()
+    shape = envs[0].action_spec().shape
+    rng = np.random.default_rng(0)
+    repeat = 4
+
+    def step():
+        for env in envs:
+            action = rng.uniform(-1, 1, shape)
+            for _ in range(repeat):
+                time_step = env.step(action)
+            if time_step.last():
+                env.reset()
+            if pixels:
+                env.physics.render(height=100, width=100, camera_id=0)
+            else:
+                np.concatenate([np.asarray(v, np.float32).reshape(-1) for v in time_step.observation.values()])
+
+    return timed(step, num_envs, seconds)
+
+
+def gym_direct(name, num_envs, seconds):
+    import gymnasium
+
+    envs = [gymnasium.make(name) for _ in range(num_envs)]
+    for i, env in enumerate(envs):
+        env.reset(seed=i)
+    rng = np.random.default_rng(0)
+    space = envs[0].action_space
+
+    def step():
+        for env in envs:
+            _, _, terminated, truncated, _ = env.step(rng.uniform(space.low, space.high).astype(np.float32))
+            if terminated or truncated:
+                env.reset()
+
+    return timed(step, num_envs, seconds)
+
+
+def procgen_direct(name, num_envs, seconds):
+    from procgen import ProcgenGym3Env
+
+    env = ProcgenGym3Env(num=num_envs, env_name=name, rand_seed=0)
+    rng = np.random.default_rng(0)
+
+    def step():
+        env.act(rng.integers(0, 15, num_envs).astype(np.int32))
+        env.observe()
+
+    return timed(step, num_envs, seconds)
+
+
+def served(client, env_id, num_envs, seconds, stream, **options):
+    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, stream=stream, **options)
+    envs.reset()
+    space = envs.single_action_space
+    rng = np.random.default_rng(0)
+    if hasattr(space, "n"):
+        actions = [rng.integers(0, space.n, num_envs) for _ in range(64)]
+    else:
+        actions = [rng.uniform(space.low, space.high, (num_envs,) + space.shape).astype(np.float32) for _ in range(64)]
+    counter = iter(range(1 << 62))
+
+    def step():
+        envs.step(actions[next(counter) % 64])
+
+    rate = timed(step, num_envs, seconds)
+    envs.close()
+    return rate
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=8.0, help="measuring time per row and side")
+    parser.add_argument("--workers", type=int, default=os.cpu_count())
+    parser.add_argument("--stream", action="store_true", help="act over the bidirectional stream")
+    args = parser.parse_args()
+    s = args.seconds
+    rows = [
+        # (label, env id, envs, server options, direct baseline, target ratio)
+        ("dmc pixels cheetah-run (default look)", "dmc/cheetah-run", 4, {"frame_stack": 1},
+         lambda: dmc_direct("cheetah-run", 4, False, True, s), 1.5),
+        ("dmc pixels cheetah-run (fast look)", "dmc/cheetah-run", 4, {"frame_stack": 1, "render_profile": "fast"},
+         lambda: dmc_direct("cheetah-run", 4, True, True, s), 1.5),
+        ("dmc state cheetah-run", "dmc/cheetah-run", 16, {"pixels": False},
+         lambda: dmc_direct("cheetah-run", 16, False, False, s), 1.3),
+        ("gym HalfCheetah-v5", "gym/HalfCheetah-v5", 16, {},
+         lambda: gym_direct("HalfCheetah-v5", 16, s), 1.3),
+        ("procgen bigfish", "procgen/bigfish", 64, {},
+         lambda: procgen_direct("bigfish", 64, s), 0.5),
+    ]
+    results = []
+    with radserve.LocalServer(workers=args.workers) as server:
+        client = radserve.Client(server.address)
+        for label, env_id, num_envs, options, direct, target in rows:
+            served_rate = served(client, env_id, num_envs, s, args.stream, **options)
+            direct_rate = direct()
+            results.append((label, num_envs, served_rate, direct_rate, target))
+            print(f"{label}: {served_rate:.0f} vs {direct_rate:.0f} steps/s", flush=True)
+    print(f"\nradserve with {args.workers} workers ({'stream' if args.stream else 'unary'} acting) vs one Python process,"
+          f" {os.cpu_count()} cores\n")
+    print("| workload | envs | radserve steps/s | one process steps/s | ratio | target |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for label, num_envs, served_rate, direct_rate, target in results:
+        ratio = served_rate / direct_rate
+        print(f"| {label} | {num_envs} | {served_rate:.0f} | {direct_rate:.0f} | {ratio:.2f}x | "
+              f"{'>=' if ratio >= target else 'below '}{target}x |")
+
+
+if __name__ == "__main__":
+    main()
