@@ -114,6 +114,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::result_large_err)] // figment::Jail's closure signature, not ours
     fn files_and_environment_override_defaults() {
         figment::Jail::expect_with(|jail| {
             jail.create_file("radserve.toml", "[sim]\nworkers = 3\n[limits]\nmax_sessions = 5\n")?;

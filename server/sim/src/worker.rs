@@ -142,6 +142,9 @@ fn status_message(what: &str, status: &ffi::PyStatus) -> String {
     format!("{what}: {detail}")
 }
 
+/// What `Group.step` returns: rewards, terminated, truncated, (env, message) for simulators that raised.
+type GroupStepTuple = (Vec<f64>, Vec<bool>, Vec<bool>, Vec<(u32, String)>);
+
 struct HostedGroup {
     object: Py<PyAny>,
     /// The memoryview over `frames` handed to Python; released before `frames` is unmapped.
@@ -231,8 +234,7 @@ fn handle(
         Request::Step { group, actions } => {
             let hosted = hosted_group(groups, group)?;
             let outcome = hosted.object.bind(py).call_method1("step", (PyBytes::new(py, &actions),))?;
-            let (rewards, terminated, truncated, errors): (Vec<f64>, Vec<bool>, Vec<bool>, Vec<(u32, String)>) =
-                outcome.extract()?;
+            let (rewards, terminated, truncated, errors): GroupStepTuple = outcome.extract()?;
             Ok(Response::Stepped(StepResult { rewards, terminated, truncated, errors }))
         }
         Request::CloseGroup { group } => {
