@@ -1,1 +1,69 @@
-fn main() {}
+//! Every kernel at the paper's batch (512 samples of 3 stacked RGB frames), next to a plain copy of
+//! the same output bytes (the memory-speed floor the targets are stated against).
+//! `cargo bench -p radserve-augment` (add `-- crop` to filter).
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline};
+
+const BATCH: usize = 512;
+
+fn random_bytes(len: usize) -> Vec<u8> {
+    let mut state = 0x2545_F491_4F6C_DD1Du64;
+    (0..len)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 32) as u8
+        })
+        .collect()
+}
+
+fn kernels(c: &mut Criterion) {
+    let cases: [(&str, usize); 14] = [
+        ("crop(84)", 100),
+        ("translate(108)", 100),
+        ("window(84)", 100),
+        ("center_crop(84)", 100),
+        ("center_translate(108)", 100),
+        ("flip(p=1)", 84),
+        ("rotate(p=1)", 84),
+        ("cutout", 84),
+        ("cutout_color", 84),
+        ("grayscale(p=1)", 84),
+        ("conv", 84),
+        ("color_jitter", 84),
+        ("flip", 84),
+        ("grayscale", 84),
+    ];
+    let mut group = c.benchmark_group("augment");
+    group.sample_size(10).measurement_time(std::time::Duration::from_secs(3));
+    for (text, side) in cases {
+        let plan = ImagePlan::new(&Pipeline::parse(text).unwrap(), FrameShape::new(3, 3, side, side)).unwrap();
+        let input = random_bytes(BATCH * plan.input_shape().sample_len());
+        let mut output = vec![0u8; BATCH * plan.output_shape().sample_len()];
+        group.throughput(Throughput::Bytes(output.len() as u64));
+        let mut seed = 0;
+        group.bench_function(BenchmarkId::new(text, format!("{side}px")), |b| {
+            b.iter(|| {
+                seed += 1;
+                plan.apply(&input, &mut output, &Draws::new(seed)).unwrap()
+            })
+        });
+        // The baseline: copying the output's bytes, in parallel like the kernels.
+        let source = random_bytes(output.len());
+        group.bench_function(BenchmarkId::new("copy", format!("{}B", output.len())), |b| {
+            b.iter(|| parallel_copy(&source, &mut output))
+        });
+    }
+    group.finish();
+}
+
+fn parallel_copy(source: &[u8], target: &mut [u8]) {
+    use rayon::prelude::*;
+    let chunk = source.len().div_ceil(BATCH);
+    target.par_chunks_mut(chunk).zip(source.par_chunks(chunk)).for_each(|(t, s)| t.copy_from_slice(s));
+}
+
+criterion_group!(benches, kernels);
+criterion_main!(benches);

@@ -24,6 +24,7 @@ mod parse;
 mod plan;
 pub mod reference;
 mod shape;
+pub mod speed;
 mod spec;
 
 pub use draw::{Draws, JitterOp, JitterParams, Sharing, StageParams, View, CONV_WEIGHT_STD};

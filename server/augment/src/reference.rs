@@ -93,7 +93,7 @@ pub fn apply_stage(
                     }
                 }
             }
-            (sum.clamp(0.0, 255.0) + 0.5) as u8
+            sum.clamp(0.0, 255.0).round_ties_even() as u8
         }),
         (Augmentation::ColorJitter { .. }, StageParams::Jitter(jitter)) => {
             for frame in 0..input.frames {
@@ -139,7 +139,7 @@ fn jitter_frame(src: &[u8], dst: &mut [u8], shape: &FrameShape, params: &JitterP
     }
     for (index, pixel) in pixels.iter().enumerate() {
         for channel in 0..3 {
-            dst[channel * plane + index] = (pixel[channel].clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+            dst[channel * plane + index] = (pixel[channel].clamp(0.0, 1.0) * 255.0).round_ties_even() as u8;
         }
     }
 }

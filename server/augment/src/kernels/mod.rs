@@ -1,7 +1,7 @@
 //! The fast kernels. Each one transforms one sample (a whole frame stack) out of place, from `src`
 //! in the stage's input shape to `dst` in its output shape, and writes every output byte.
 //! Hot loops are written over fixed-size chunks so that LLVM vectorizes them, and compiled twice:
-//! for the baseline target and, chosen at run time, for AVX2 (see [`Isa`]).
+//! for the baseline target and, chosen at run time, for AVX2 and AVX-512 (see [`Isa`]).
 
 mod color;
 pub(crate) use color::LUMA_FIXED;
@@ -21,6 +21,7 @@ pub struct Isa(IsaKind);
 enum IsaKind {
     Baseline,
     Avx2,
+    Avx512,
 }
 
 impl Isa {
@@ -38,20 +39,33 @@ impl Isa {
         None
     }
 
+    /// AVX-512 (F and BW, with AVX2), when this CPU has it.
+    pub fn avx512() -> Option<Self> {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::arch::is_x86_feature_detected!("avx2")
+        {
+            return Some(Self(IsaKind::Avx512));
+        }
+        None
+    }
+
     /// The best instruction set this CPU offers.
     pub fn detect() -> Self {
-        Self::avx2().unwrap_or(Self::baseline())
+        Self::avx512().or_else(Self::avx2).unwrap_or(Self::baseline())
     }
 
     /// Every instruction set this CPU offers (tests run each of them against the reference).
     pub fn available() -> Vec<Self> {
-        std::iter::once(Self::baseline()).chain(Self::avx2()).collect()
+        std::iter::once(Self::baseline()).chain(Self::avx2()).chain(Self::avx512()).collect()
     }
 
     pub fn name(&self) -> &'static str {
         match self.0 {
             IsaKind::Baseline => "baseline",
             IsaKind::Avx2 => "avx2",
+            IsaKind::Avx512 => "avx512",
         }
     }
 }
@@ -69,8 +83,16 @@ macro_rules! multiversion {
                 fn avx2($($arg: $ty),*) {
                     $body($($arg),*)
                 }
-                if isa == $crate::kernels::Isa::avx2_unchecked() {
-                    // SAFETY: an `Isa` naming AVX2 only exists after `is_x86_feature_detected!("avx2")`.
+                #[target_feature(enable = "avx2,avx512f,avx512bw")]
+                fn avx512($($arg: $ty),*) {
+                    $body($($arg),*)
+                }
+                // SAFETY: an `Isa` naming an instruction set only exists after run-time detection
+                // of it (`Isa::avx2`, `Isa::avx512`).
+                if isa == $crate::kernels::Isa::unchecked(true) {
+                    return unsafe { avx512($($arg),*) };
+                }
+                if isa == $crate::kernels::Isa::unchecked(false) {
                     return unsafe { avx2($($arg),*) };
                 }
             }
@@ -83,9 +105,8 @@ pub(crate) use multiversion;
 
 impl Isa {
     /// For comparisons in [`multiversion`] only; never handed out.
-    #[doc(hidden)]
-    pub(crate) const fn avx2_unchecked() -> Self {
-        Self(IsaKind::Avx2)
+    pub(crate) const fn unchecked(avx512: bool) -> Self {
+        Self(if avx512 { IsaKind::Avx512 } else { IsaKind::Avx2 })
     }
 }
 
@@ -130,12 +151,12 @@ pub(crate) fn run_stage(
         }
         (Augmentation::Flip { .. }, StageParams::Apply(fires)) => {
             if *fires {
-                geometry::flip(src, input, dst)
+                geometry::flip(isa, src, input, dst)
             } else {
                 dst.copy_from_slice(src)
             }
         }
-        (Augmentation::Rotate { .. }, StageParams::Quarters(quarters)) => geometry::rotate(src, input, dst, *quarters),
+        (Augmentation::Rotate { .. }, StageParams::Quarters(quarters)) => geometry::rotate(isa, src, input, dst, *quarters),
         (Augmentation::Cutout { .. } | Augmentation::CutoutColor { .. }, StageParams::Rect { top, left, height, width, fill }) => {
             geometry::cutout(src, input, dst, [*top, *left, *height, *width], *fill)
         }
