@@ -1,6 +1,7 @@
 //! The radserve server, assembled: the simulator core behind the gRPC service, with health checking,
 //! reflection and graceful shutdown. `main.rs` is the command line around it.
 
+pub mod augment_cli;
 pub mod config;
 
 use std::future::Future;

@@ -39,6 +39,39 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// Time every augmentation at the paper's batch size against a plain copy of the output bytes.
+    AugmentBench {
+        /// Samples per batch.
+        #[arg(long, default_value_t = 512)]
+        batch: usize,
+        /// Batches timed per case (the median is reported).
+        #[arg(long, default_value_t = 20)]
+        repeats: usize,
+        /// Threads (0: one per core).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Only pipelines containing this text.
+        #[arg(long, default_value = "")]
+        filter: String,
+        /// One JSON object per line instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Write a PNG grid of a rendered frame under every augmentation (rows) and several draws (columns).
+    AugmentPreview {
+        /// A pixel environment to render the frame with.
+        #[arg(long, default_value = "dmc/cheetah-run")]
+        env: String,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Draws per augmentation.
+        #[arg(long, default_value_t = 6)]
+        columns: usize,
+        #[arg(long, default_value = "augment-preview.png")]
+        out: PathBuf,
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
     /// Internal: run as a simulator worker process (started by the server).
     #[command(hide = true)]
     Worker {
@@ -128,6 +161,17 @@ async fn run(command: Command) -> anyhow::Result<()> {
                 }
             }
             Ok(())
+        }
+        Command::AugmentBench { batch, repeats, threads, filter, json } => {
+            radserve::augment_cli::bench(batch, repeats, threads, &filter, json)
+        }
+        Command::AugmentPreview { env, seed, columns, out, config } => {
+            let mut config = Config::load(config.as_deref())?;
+            config.sim.workers = 1;
+            let manager = radserve::session_manager(settings(&config)?);
+            let result = radserve::augment_cli::preview(&manager, &env, seed, columns.max(1), &out).await;
+            manager.shutdown().await;
+            result
         }
         Command::Worker { .. } => unreachable!("handled before the runtime starts"),
     }
