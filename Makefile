@@ -3,10 +3,11 @@ SHELL := /bin/bash
 VENV := .venv
 PYTHON := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+TORCH_STAMP := $(VENV)/.installed-torch
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build demo test test-rust test-python bench lock proto clean
+.PHONY: setup system-libs build demo test test-rust test-python bench bench-sim bench-augment preview torch lock proto clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -40,8 +41,25 @@ test-rust:
 test-python:
 	$(PYTHON) -m pytest -q tests client-py/tests
 
-bench: setup
+## torch: PyTorch in .venv, only for the learners and the benchmarks (never for the tests)
+torch: $(TORCH_STAMP)
+
+$(TORCH_STAMP): requirements-torch.lock $(STAMP)
+	$(PYTHON) -m pip install -q -r requirements-torch.lock
+	touch $(TORCH_STAMP)
+
+## bench: every benchmark table (simulator throughput, augmentation kernels vs PyTorch)
+bench: bench-sim bench-augment
+
+bench-sim: setup
 	$(PYTHON) bench/sim_throughput.py
+
+bench-augment: setup torch
+	$(PYTHON) bench/augment_speed.py
+
+## preview: a PNG grid of a dm_control frame under every augmentation
+preview: setup
+	$(BIN) augment-preview --out augment-preview.png
 
 ## lock: re-pin requirements.lock from requirements.in
 lock: | $(PYTHON)

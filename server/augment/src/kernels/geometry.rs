@@ -107,16 +107,105 @@ fn rotate_body(src: &[u8], shape: &FrameShape, dst: &mut [u8], quarters: u8) {
                     }
                 }
             }
+            #[cfg(target_arch = "x86_64")]
+            1 | 3 if side >= 16 => sse2::rotate_blocks_16(plane_src, plane_dst, side, quarters == 1),
             1 | 3 => rotate_blocks(plane_src, plane_dst, side, quarters == 1),
             _ => unreachable!("quarters are drawn in 0..=3"),
         }
     }
 }
 
-/// Starts of 8-wide blocks covering `0..side` (side >= 8); the last one overlaps its neighbour
-/// when `side` is not a multiple of 8, rewriting a few bytes with the same values.
+/// Starts of `width`-wide blocks covering `0..side` (side >= width); the last one overlaps its
+/// neighbour when `side` is not a multiple, rewriting a few bytes with the same values.
+#[inline(always)]
+fn block_starts_of(side: usize, width: usize) -> impl Iterator<Item = usize> + Clone {
+    (0..side / width).map(move |block| block * width).chain((side % width != 0).then_some(side - width))
+}
+
+#[inline(always)]
 fn block_starts(side: usize) -> impl Iterator<Item = usize> + Clone {
-    (0..side / 8).map(|block| block * 8).chain((side % 8 != 0).then_some(side - 8))
+    block_starts_of(side, 8)
+}
+
+/// Quarter turns 16x16 bytes at a time in SSE2 registers (part of every x86-64 CPU).
+#[cfg(target_arch = "x86_64")]
+mod sse2 {
+    use std::arch::x86_64::{
+        __m128i, _mm_loadu_si128, _mm_storeu_si128, _mm_unpackhi_epi16, _mm_unpackhi_epi32, _mm_unpackhi_epi64,
+        _mm_unpackhi_epi8, _mm_unpacklo_epi16, _mm_unpacklo_epi32, _mm_unpacklo_epi64, _mm_unpacklo_epi8,
+    };
+
+    /// Transpose 16 rows of 16 bytes: four rounds interleave row pairs at 1, 2, 4 and 8 bytes.
+    /// Tracking the index bits through the rounds, register `n` ends up holding column
+    /// `bit_reverse4(n)`, so column `c` is `rows[bit_reverse4(c)]`.
+    #[inline(always)]
+    fn transpose_16x16(rows: [__m128i; 16]) -> [__m128i; 16] {
+        macro_rules! round {
+            ($rows:expr, $low:ident, $high:ident) => {{
+                let rows: [__m128i; 16] = $rows;
+                let mut next = rows;
+                for pair in 0..8 {
+                    let (a, b) = (rows[2 * pair], rows[2 * pair + 1]);
+                    // SAFETY: SSE2 is part of the x86-64 baseline, so these intrinsics are always available.
+                    unsafe {
+                        next[pair] = $low(a, b);
+                        next[pair + 8] = $high(a, b);
+                    }
+                }
+                next
+            }};
+        }
+        let rows = round!(rows, _mm_unpacklo_epi8, _mm_unpackhi_epi8);
+        let rows = round!(rows, _mm_unpacklo_epi16, _mm_unpackhi_epi16);
+        let rows = round!(rows, _mm_unpacklo_epi32, _mm_unpackhi_epi32);
+        round!(rows, _mm_unpacklo_epi64, _mm_unpackhi_epi64)
+    }
+
+    /// `bit_reverse4(column)`: the register of [`transpose_16x16`]'s result holding each column.
+    const REGISTER_OF_COLUMN: [usize; 16] = [0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15];
+
+    /// As `super::rotate_blocks`, with 16x16 blocks (side >= 16).
+    #[inline(always)]
+    pub(super) fn rotate_blocks_16(src: &[u8], dst: &mut [u8], side: usize, ccw: bool) {
+        assert!(side >= 16 && src.len() >= side * side && dst.len() >= side * side);
+        #[inline(always)]
+        fn load_at(src: &[u8], offset: usize) -> __m128i {
+            let bytes = &src[offset..offset + 16];
+            // SAFETY: `bytes` is 16 readable bytes; the load is unaligned.
+            unsafe { _mm_loadu_si128(bytes.as_ptr().cast()) }
+        }
+        let load = |offset: usize| load_at(src, offset);
+        for block_y in super::block_starts_of(side, 16) {
+            for block_x in super::block_starts_of(side, 16) {
+                // Row j of the block is 16 contiguous input bytes (see super::rotate_blocks).
+                let mut rows = [load(0); 16];
+                for (j, row) in rows.iter_mut().enumerate() {
+                    *row = if ccw {
+                        load((block_x + j) * side + (side - 16 - block_y))
+                    } else {
+                        load((side - 1 - block_x - j) * side + block_y)
+                    };
+                }
+                let columns = transpose_16x16(rows);
+                let mut store = |i: usize, register: __m128i| {
+                    let offset = (block_y + i) * side + block_x;
+                    let out = &mut dst[offset..offset + 16];
+                    // SAFETY: `out` is 16 writable bytes; the store is unaligned.
+                    unsafe { _mm_storeu_si128(out.as_mut_ptr().cast(), register) };
+                };
+                // Output row i is column 15 - i (counter-clockwise) or column i (clockwise).
+                if ccw {
+                    for i in 0..16 {
+                        store(i, columns[REGISTER_OF_COLUMN[15 - i]]);
+                    }
+                } else {
+                    for i in 0..16 {
+                        store(i, columns[REGISTER_OF_COLUMN[i]]);
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// Transpose an 8x8 byte matrix held as eight little-endian rows: three rounds of swapping
