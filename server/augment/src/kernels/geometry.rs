@@ -119,7 +119,7 @@ fn rotate_body(src: &[u8], shape: &FrameShape, dst: &mut [u8], quarters: u8) {
 /// neighbour when `side` is not a multiple, rewriting a few bytes with the same values.
 #[inline(always)]
 fn block_starts_of(side: usize, width: usize) -> impl Iterator<Item = usize> + Clone {
-    (0..side / width).map(move |block| block * width).chain((side % width != 0).then_some(side - width))
+    (0..side / width).map(move |block| block * width).chain((!side.is_multiple_of(width)).then_some(side - width))
 }
 
 #[inline(always)]
