@@ -1,0 +1,318 @@
+//! A replay buffer that stores every frame once.
+//!
+//! Each environment owns a ring of slots. A slot holds one frame and, unless the frame is the first
+//! of an episode, the transition that led into it (action, reward, terminated, truncated). The
+//! transition into slot `i` has the observation stack ending at frame `i - 1` and the next
+//! observation stack ending at frame `i`; a stack never reaches before its episode's first frame,
+//! which pads it instead, exactly as the session's stacking does at reset. RAD's reference buffer
+//! keeps obs and next_obs stacks separately, `2k` frames per transition; this one keeps slightly
+//! more than one (one extra frame per episode, plus `k` per environment for the oldest stacks).
+
+use rand::Rng;
+
+use crate::error::{ReplayError, Result};
+
+/// What a replay buffer stores, fixed at creation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ReplayLayout {
+    /// Transitions kept, over all environments (the oldest are overwritten).
+    pub capacity: usize,
+    pub num_envs: usize,
+    /// Frames per observation stack.
+    pub frame_stack: usize,
+    /// Bytes of one frame (uint8 pixels, or float32 state bytes).
+    pub frame_bytes: usize,
+    /// Bytes of one environment's action.
+    pub action_bytes: usize,
+}
+
+impl ReplayLayout {
+    /// Slots in each environment's ring: its share of the capacity, plus the `frame_stack` frames
+    /// the oldest transition's observation reaches back to.
+    pub fn slots_per_env(&self) -> usize {
+        self.capacity.div_ceil(self.num_envs) + self.frame_stack
+    }
+
+    /// Bytes of one slot: the frame and its transition's metadata.
+    pub fn slot_bytes(&self) -> usize {
+        self.frame_bytes + self.action_bytes + SLOT_METADATA_BYTES
+    }
+
+    /// Everything the buffer allocates, computed before allocating it.
+    pub fn memory_bytes(&self) -> usize {
+        self.num_envs * self.slots_per_env() * self.slot_bytes()
+    }
+
+    /// Frames stored per transition when full (frames over transitions, before episode starts).
+    pub fn frames_per_transition(&self) -> f64 {
+        (self.num_envs * self.slots_per_env()) as f64 / self.capacity as f64
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        let invalid = |message: String| Err(ReplayError::InvalidArgument(message));
+        if self.capacity == 0 {
+            return invalid("replay capacity must be at least 1 transition".into());
+        }
+        if self.num_envs == 0 || self.frame_stack == 0 || self.frame_bytes == 0 {
+            return invalid(format!("replay layout has an empty dimension: {self:?}"));
+        }
+        if self.capacity < self.num_envs {
+            return invalid(format!(
+                "replay capacity {} is below the number of environments {}; each needs room for one transition",
+                self.capacity, self.num_envs
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// reward (f32), flags (u8), episode start (u64), step index (u64).
+const SLOT_METADATA_BYTES: usize = 4 + 1 + 8 + 8;
+
+const FIRST_OF_EPISODE: u8 = 1;
+const TERMINATED: u8 = 2;
+const TRUNCATED: u8 = 4;
+
+/// Where a sampled transition lives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct TransitionRef {
+    pub env: usize,
+    /// The absolute index (frames written to this env before it) of the transition's next frame.
+    pub frame: u64,
+}
+
+/// Counters for the statistics RPC and the rate limiter.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ReplayCounters {
+    /// Transitions recorded since creation.
+    pub inserts: u64,
+    /// Transitions handed out by samplers since creation.
+    pub samples: u64,
+}
+
+pub struct ReplayBuffer {
+    layout: ReplayLayout,
+    slots: usize,
+    frames: Vec<u8>,
+    actions: Vec<u8>,
+    rewards: Vec<f32>,
+    flags: Vec<u8>,
+    episode_starts: Vec<u64>,
+    step_indices: Vec<u64>,
+    /// Per env: frames written so far (the absolute index of the next one).
+    written: Vec<u64>,
+    /// Per env: whether an episode is in progress (a first frame was recorded and it has not ended).
+    in_episode: Vec<bool>,
+    counters: ReplayCounters,
+}
+
+/// One env's outcome of a step, as the session records it.
+#[derive(Clone, Copy, Debug)]
+pub struct RecordedStep<'a> {
+    pub action: &'a [u8],
+    pub reward: f64,
+    pub terminated: bool,
+    pub truncated: bool,
+    /// The frame the action led to: for an episode that ended, its last frame.
+    pub next_frame: &'a [u8],
+    /// The session's step counter for this step (the index of the Step call).
+    pub step_index: u64,
+}
+
+impl ReplayBuffer {
+    /// Allocate the buffer (zero pages: the memory is committed as it fills).
+    pub fn new(layout: ReplayLayout) -> Result<Self> {
+        layout.validate()?;
+        let slots = layout.slots_per_env();
+        let total = layout.num_envs * slots;
+        Ok(Self {
+            layout,
+            slots,
+            frames: vec![0; total * layout.frame_bytes],
+            actions: vec![0; total * layout.action_bytes],
+            rewards: vec![0.0; total],
+            flags: vec![0; total],
+            episode_starts: vec![0; total],
+            step_indices: vec![0; total],
+            written: vec![0; layout.num_envs],
+            in_episode: vec![false; layout.num_envs],
+            counters: ReplayCounters::default(),
+        })
+    }
+
+    pub fn layout(&self) -> &ReplayLayout {
+        &self.layout
+    }
+
+    pub fn counters(&self) -> ReplayCounters {
+        self.counters
+    }
+
+    /// Transitions that can be sampled now.
+    pub fn len(&self) -> usize {
+        (0..self.layout.num_envs).map(|env| self.transitions_in(env)).sum()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    fn slot(&self, env: usize, frame: u64) -> usize {
+        env * self.slots + (frame % self.slots as u64) as usize
+    }
+
+    /// The oldest absolute frame index whose transition's stacks are still whole.
+    fn oldest_sampleable(&self, env: usize) -> u64 {
+        let written = self.written[env];
+        // The obs stack of the transition into frame i reaches back to frame i - frame_stack.
+        (written + self.layout.frame_stack as u64).saturating_sub(self.slots as u64).max(1)
+    }
+
+    fn transitions_in(&self, env: usize) -> usize {
+        let (oldest, written) = (self.oldest_sampleable(env), self.written[env]);
+        (oldest..written).filter(|frame| self.flags[self.slot(env, *frame)] & FIRST_OF_EPISODE == 0).count()
+    }
+
+    /// An episode starts in `env` with `frame` (a Reset, or the autoreset after an episode ended).
+    pub fn record_first_frame(&mut self, env: usize, frame: &[u8], step_index: u64) {
+        let index = self.written[env];
+        let slot = self.write_frame(env, frame);
+        self.flags[slot] = FIRST_OF_EPISODE;
+        self.rewards[slot] = 0.0;
+        self.episode_starts[slot] = index;
+        self.step_indices[slot] = step_index;
+        self.in_episode[env] = true;
+    }
+
+    /// `env` took a step. Steps of an env with no episode in progress are ignored (nothing to
+    /// stack them on).
+    pub fn record_step(&mut self, env: usize, step: &RecordedStep<'_>) {
+        if !self.in_episode[env] {
+            return;
+        }
+        debug_assert_eq!(step.action.len(), self.layout.action_bytes);
+        let previous = self.slot(env, self.written[env] - 1);
+        let episode_start = self.episode_starts[previous];
+        let slot = self.write_frame(env, step.next_frame);
+        let action_bytes = self.layout.action_bytes;
+        self.actions[slot * action_bytes..(slot + 1) * action_bytes].copy_from_slice(step.action);
+        self.rewards[slot] = step.reward as f32;
+        self.flags[slot] = (u8::from(step.terminated) * TERMINATED) | (u8::from(step.truncated) * TRUNCATED);
+        self.episode_starts[slot] = episode_start;
+        self.step_indices[slot] = step.step_index;
+        self.counters.inserts += 1;
+        if step.terminated || step.truncated {
+            self.in_episode[env] = false;
+        }
+    }
+
+    /// The episode in progress in `env` ends without a frame to show for it (its worker died): the
+    /// next frame recorded must be a first frame.
+    pub fn abandon_episode(&mut self, env: usize) {
+        self.in_episode[env] = false;
+    }
+
+    fn write_frame(&mut self, env: usize, frame: &[u8]) -> usize {
+        debug_assert_eq!(frame.len(), self.layout.frame_bytes);
+        let slot = self.slot(env, self.written[env]);
+        let frame_bytes = self.layout.frame_bytes;
+        self.frames[slot * frame_bytes..(slot + 1) * frame_bytes].copy_from_slice(frame);
+        self.written[env] += 1;
+        slot
+    }
+
+    /// Draw `count` transitions uniformly with replacement.
+    pub fn sample(&mut self, count: usize, rng: &mut impl Rng, out: &mut Vec<TransitionRef>) -> Result<()> {
+        out.clear();
+        let ranges: Vec<(u64, u64)> =
+            (0..self.layout.num_envs).map(|env| (self.oldest_sampleable(env), self.written[env])).collect();
+        let candidates: u64 = ranges.iter().map(|(oldest, written)| written.saturating_sub(*oldest)).sum();
+        let no_transitions = || ReplayError::FailedPrecondition("the replay buffer holds no transitions yet".into());
+        if candidates == 0 || self.counters.inserts == 0 {
+            return Err(no_transitions());
+        }
+        let mut attempts = 0usize;
+        while out.len() < count {
+            attempts += 1;
+            if attempts > 64 * count + 1024 && out.is_empty() {
+                return Err(no_transitions());
+            }
+            // Uniform over (env, frame) candidates; episode-first frames are not transitions: draw again.
+            let mut pick = rng.random_range(0..candidates);
+            let mut env = 0;
+            while pick >= ranges[env].1.saturating_sub(ranges[env].0) {
+                pick -= ranges[env].1.saturating_sub(ranges[env].0);
+                env += 1;
+            }
+            let frame = ranges[env].0 + pick;
+            if self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0 {
+                out.push(TransitionRef { env, frame });
+            }
+        }
+        self.counters.samples += count as u64;
+        Ok(())
+    }
+
+    /// Copy the observation (`next == false`) or next observation stack of a sampled transition
+    /// into `out` (`frame_stack * frame_bytes`).
+    pub fn copy_observation(&self, transition: TransitionRef, next: bool, out: &mut [u8]) {
+        let episode_start = self.episode_starts[self.slot(transition.env, transition.frame)];
+        let last = if next { transition.frame } else { transition.frame - 1 };
+        self.copy_stack(transition.env, last, episode_start, out);
+    }
+
+    /// Copy the stack of frames ending at absolute frame `last` of `env` into `out`
+    /// (`frame_stack * frame_bytes`), padding with the episode's first frame.
+    fn copy_stack(&self, env: usize, last: u64, episode_start: u64, out: &mut [u8]) {
+        let stack = self.layout.frame_stack as u64;
+        let frame_bytes = self.layout.frame_bytes;
+        for (position, target) in out.chunks_exact_mut(frame_bytes).enumerate() {
+            let frame = (last + 1 + position as u64).saturating_sub(stack).max(episode_start);
+            let slot = self.slot(env, frame);
+            target.copy_from_slice(&self.frames[slot * frame_bytes..(slot + 1) * frame_bytes]);
+        }
+    }
+
+    /// Gather everything but the observations of sampled transitions.
+    pub fn gather_metadata(&self, refs: &[TransitionRef], batch: &mut TransitionMetadata) {
+        batch.resize(refs.len(), self.layout.action_bytes);
+        let action_bytes = self.layout.action_bytes;
+        for (index, transition) in refs.iter().enumerate() {
+            let slot = self.slot(transition.env, transition.frame);
+            batch.actions[index * action_bytes..(index + 1) * action_bytes]
+                .copy_from_slice(&self.actions[slot * action_bytes..(slot + 1) * action_bytes]);
+            batch.rewards[index] = self.rewards[slot];
+            batch.terminated[index] = u8::from(self.flags[slot] & TERMINATED != 0);
+            batch.truncated[index] = u8::from(self.flags[slot] & TRUNCATED != 0);
+            batch.env_indices[index] = transition.env as u32;
+            batch.step_indices[index] = self.step_indices[slot];
+        }
+    }
+}
+
+/// Everything of sampled transitions but their observations.
+#[derive(Clone, Debug, Default)]
+pub struct TransitionMetadata {
+    pub len: usize,
+    /// [len, action_bytes]
+    pub actions: Vec<u8>,
+    pub rewards: Vec<f32>,
+    pub terminated: Vec<u8>,
+    pub truncated: Vec<u8>,
+    /// Which environment each transition came from.
+    pub env_indices: Vec<u32>,
+    /// The session step (Step call index) that produced each transition.
+    pub step_indices: Vec<u64>,
+}
+
+impl TransitionMetadata {
+    fn resize(&mut self, len: usize, action_bytes: usize) {
+        self.len = len;
+        self.actions.resize(len * action_bytes, 0);
+        self.rewards.resize(len, 0.0);
+        self.terminated.resize(len, 0);
+        self.truncated.resize(len, 0);
+        self.env_indices.resize(len, 0);
+        self.step_indices.resize(len, 0);
+    }
+}

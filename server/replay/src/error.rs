@@ -1,0 +1,19 @@
+use radserve_augment::AugmentError;
+use thiserror::Error;
+
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum ReplayError {
+    /// A request that can never be served as asked (batch size zero or above capacity...).
+    #[error("{0}")]
+    InvalidArgument(String),
+    /// The session has no buffer of the kind asked for.
+    #[error("{0}")]
+    FailedPrecondition(String),
+    /// The buffer would not fit in the server's memory budget.
+    #[error("{0}")]
+    OverBudget(String),
+    #[error(transparent)]
+    Augment(#[from] AugmentError),
+}
+
+pub type Result<T> = std::result::Result<T, ReplayError>;

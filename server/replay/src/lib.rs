@@ -1,0 +1,13 @@
+//! radserve's replay buffers and minibatch producer: no tonic, no Python.
+//!
+//! Sessions record every step into a [`ReplayBuffer`] that stores each frame once; a [`Producer`]
+//! samples it, rebuilds the frame stacks and augments them with `radserve-augment`, ahead of the
+//! learner, into reused buffers.
+
+mod buffer;
+mod error;
+mod producer;
+
+pub use buffer::{RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata, TransitionRef};
+pub use error::{ReplayError, Result};
+pub use producer::{Batch, ObservationFormat, Producer, SampleSpec};

@@ -1,0 +1,252 @@
+//! The replay buffer and the producer against an independent model: every frame encodes (env,
+//! episode, t), every transition the model saw is remembered with the stacks it must come back with.
+
+use std::collections::HashMap;
+use std::sync::{Arc, RwLock};
+
+use radserve_augment::{FrameShape, Pipeline, Sharing};
+use radserve_replay::{ObservationFormat, Producer, RecordedStep, ReplayBuffer, ReplayLayout, SampleSpec, TransitionRef};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+const SHAPE: FrameShape = FrameShape::new(3, 3, 4, 4); // k = 3 RGB 4x4 frames
+const FRAME_BYTES: usize = 3 * 4 * 4;
+
+fn frame(env: usize, episode: u32, t: u32) -> Vec<u8> {
+    let mut bytes = vec![0u8; FRAME_BYTES];
+    bytes[0] = env as u8;
+    bytes[1] = episode as u8;
+    bytes[2] = t as u8;
+    bytes[3] = (t >> 8) as u8;
+    for (index, byte) in bytes.iter_mut().enumerate().skip(4) {
+        *byte = (index as u32 * 7 + t * 13 + episode * 29) as u8;
+    }
+    bytes
+}
+
+#[derive(Clone, Debug)]
+struct Expected {
+    obs: Vec<u8>,
+    next_obs: Vec<u8>,
+    action: Vec<u8>,
+    reward: f32,
+    terminated: bool,
+    truncated: bool,
+}
+
+/// Drive `num_envs` envs for `steps` steps with random episode ends; returns the buffer and, keyed
+/// by (env, step index), every transition with the stacks a correct buffer must rebuild.
+fn simulate(num_envs: usize, capacity: usize, steps: u64, seed: u64) -> (ReplayBuffer, HashMap<(u32, u64), Expected>) {
+    let layout = ReplayLayout { capacity, num_envs, frame_stack: 3, frame_bytes: FRAME_BYTES, action_bytes: 2 };
+    let mut buffer = ReplayBuffer::new(layout).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut episode = vec![0u32; num_envs];
+    let mut t = vec![0u32; num_envs];
+    // The session's stacking: the first frame fills the stack.
+    let mut stacks: Vec<Vec<Vec<u8>>> = (0..num_envs).map(|env| vec![frame(env, 0, 0); 3]).collect();
+    for env in 0..num_envs {
+        buffer.record_first_frame(env, &frame(env, 0, 0), 0);
+    }
+    let mut expected = HashMap::new();
+    for step in 0..steps {
+        for env in 0..num_envs {
+            let action = [rng.random::<u8>(), env as u8];
+            let reward = rng.random_range(-1.0..1.0f64);
+            let ends = rng.random_bool(0.08);
+            let terminated = ends && rng.random_bool(0.5);
+            let truncated = ends && !terminated;
+            t[env] += 1;
+            let next = frame(env, episode[env], t[env]);
+            let obs = stacks[env].concat();
+            stacks[env].remove(0);
+            stacks[env].push(next.clone());
+            let next_obs = stacks[env].concat();
+            buffer.record_step(env, &RecordedStep { action: &action, reward, terminated, truncated, next_frame: &next, step_index: step });
+            expected.insert(
+                (env as u32, step),
+                Expected { obs, next_obs, action: action.to_vec(), reward: reward as f32, terminated, truncated },
+            );
+            if ends {
+                episode[env] += 1;
+                t[env] = 0;
+                let first = frame(env, episode[env], 0);
+                stacks[env] = vec![first.clone(); 3];
+                buffer.record_first_frame(env, &first, step + 1);
+            }
+        }
+    }
+    (buffer, expected)
+}
+
+#[test]
+fn sampled_transitions_are_the_ones_the_envs_produced() {
+    for (num_envs, capacity, steps) in [(1, 40, 30), (1, 40, 500), (3, 60, 400), (4, 1000, 100)] {
+        let (mut buffer, expected) = simulate(num_envs, capacity, steps, 7);
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut refs = Vec::new();
+        buffer.sample(2000, &mut rng, &mut refs).unwrap();
+        let mut metadata = Default::default();
+        buffer.gather_metadata(&refs, &mut metadata);
+        let oldest_step = steps.saturating_sub((capacity / num_envs) as u64);
+        let mut stack = vec![0u8; 3 * FRAME_BYTES];
+        for (index, transition) in refs.iter().enumerate() {
+            let key = (metadata.env_indices[index], metadata.step_indices[index]);
+            let want = &expected[&key];
+            buffer.copy_observation(*transition, false, &mut stack);
+            assert_eq!(stack, want.obs, "obs of {key:?}");
+            buffer.copy_observation(*transition, true, &mut stack);
+            assert_eq!(stack, want.next_obs, "next_obs of {key:?}");
+            assert_eq!(&metadata.actions[index * 2..index * 2 + 2], want.action.as_slice());
+            assert_eq!(metadata.rewards[index], want.reward);
+            assert_eq!(metadata.terminated[index] == 1, want.terminated);
+            assert_eq!(metadata.truncated[index] == 1, want.truncated);
+            // Only recent transitions survive: the ring holds about capacity / num_envs per env.
+            assert!(key.1 + 3 >= oldest_step, "{key:?} should have been overwritten (oldest {oldest_step})");
+        }
+        let len = buffer.len();
+        assert!(len <= capacity && len >= capacity.min(steps as usize * num_envs) * 8 / 10, "len {len} of {capacity}");
+    }
+}
+
+#[test]
+fn sampling_is_uniform_over_stored_transitions() {
+    let (mut buffer, _) = simulate(2, 200, 2000, 3);
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let mut refs = Vec::new();
+    let draws = 200_000;
+    buffer.sample(draws, &mut rng, &mut refs).unwrap();
+    let mut counts: HashMap<TransitionRef, usize> = HashMap::new();
+    for transition in &refs {
+        *counts.entry(*transition).or_default() += 1;
+    }
+    let stored = buffer.len();
+    assert_eq!(counts.len(), stored, "every stored transition is drawn");
+    let mean = draws as f64 / stored as f64;
+    let worst = counts.values().map(|c| (*c as f64 - mean).abs()).fold(0.0, f64::max);
+    assert!(worst < 6.0 * mean.sqrt(), "counts deviate by {worst} around {mean}");
+    assert_eq!(buffer.counters().samples, draws as u64);
+}
+
+#[test]
+fn memory_is_computed_up_front_and_frames_are_stored_about_once() {
+    let layout = ReplayLayout { capacity: 100_000, num_envs: 1, frame_stack: 3, frame_bytes: 3 * 100 * 100, action_bytes: 24 };
+    assert!(layout.frames_per_transition() < 1.001);
+    assert_eq!(layout.memory_bytes(), 100_003 * (30_000 + 24 + 21));
+    let many = ReplayLayout { num_envs: 16, ..layout };
+    assert!(many.frames_per_transition() < 1.001);
+    // With episodes of 250 steps (cheetah at action repeat 4) one more frame per episode: 1.004.
+    let (buffer, _) = simulate(2, 100, 10, 1);
+    assert_eq!(buffer.layout().slots_per_env(), 53);
+    assert!(ReplayLayout { capacity: 0, ..layout }.validate().is_err());
+}
+
+#[test]
+fn an_empty_buffer_refuses_to_sample() {
+    let layout = ReplayLayout { capacity: 10, num_envs: 1, frame_stack: 3, frame_bytes: 4, action_bytes: 1 };
+    let mut buffer = ReplayBuffer::new(layout).unwrap();
+    let mut refs = Vec::new();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    assert!(buffer.sample(1, &mut rng, &mut refs).is_err());
+    buffer.record_first_frame(0, &[1; 4], 0);
+    assert!(buffer.sample(1, &mut rng, &mut refs).is_err(), "a first frame is not a transition");
+    buffer.record_step(0, &RecordedStep { action: &[3], reward: 1.0, terminated: false, truncated: false, next_frame: &[2; 4], step_index: 0 });
+    buffer.sample(5, &mut rng, &mut refs).unwrap();
+    assert_eq!(refs.len(), 5);
+}
+
+fn producer(buffer: ReplayBuffer, text: &str, batch_size: usize) -> (Producer, Arc<RwLock<ReplayBuffer>>) {
+    let shared = Arc::new(RwLock::new(buffer));
+    let spec = SampleSpec {
+        batch_size,
+        pipeline: Pipeline::parse(text).unwrap(),
+        sharing: Sharing::Reference,
+        seed: 11,
+        prefetch: 2,
+        min_size: 1,
+        samples_per_insert: None,
+        error_buffer: 0.0,
+        max_batches: Some(3),
+    };
+    (Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap(), shared)
+}
+
+#[test]
+fn the_producer_delivers_batches_in_order_with_real_stacks() {
+    let (buffer, expected) = simulate(2, 100, 200, 5);
+    let (producer, _) = producer(buffer, "none", 64);
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
+    let (mut ready, recycle) = producer.start(pool);
+    let mut seen = 0;
+    while let Some(batch) = ready.blocking_recv() {
+        let batch = batch.unwrap();
+        assert_eq!(batch.index, seen);
+        assert_eq!(batch.obs_shape, vec![9, 4, 4]);
+        for sample in 0..batch.len {
+            let key = (batch.metadata.env_indices[sample], batch.metadata.step_indices[sample]);
+            let stack = 3 * FRAME_BYTES;
+            assert_eq!(batch.obs[sample * stack..(sample + 1) * stack], expected[&key].obs);
+            assert_eq!(batch.next_obs[sample * stack..(sample + 1) * stack], expected[&key].next_obs);
+        }
+        seen += 1;
+        let _ = recycle.send(batch); // fails once the producer has finished, which is fine
+    }
+    assert_eq!(seen, 3, "max_batches ends the stream");
+}
+
+#[test]
+fn the_producer_augments_and_checks_the_request_first() {
+    let (buffer, _) = simulate(1, 50, 100, 6);
+    let (producer, shared) = producer(buffer, "crop(3)|flip(p=0.5)", 8);
+    assert_eq!(producer.obs_shape(), &[9, 3, 3]);
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
+    let (mut ready, _recycle) = producer.start(pool);
+    let batch = ready.blocking_recv().unwrap().unwrap();
+    assert_eq!(batch.obs.len(), 8 * 9 * 3 * 3);
+    let spec = |batch_size, text: &str, prefetch| SampleSpec {
+        batch_size,
+        pipeline: Pipeline::parse(text).unwrap(),
+        sharing: Sharing::Reference,
+        seed: 0,
+        prefetch,
+        min_size: 0,
+        samples_per_insert: None,
+        error_buffer: 0.0,
+        max_batches: None,
+    };
+    let refuse = |spec: SampleSpec, format| Producer::new(shared.clone(), format, spec).err().unwrap().to_string();
+    let image = ObservationFormat::Image(SHAPE);
+    assert!(refuse(spec(0, "none", 1), image).contains("batch_size must be between 1 and the replay capacity (50), got 0"));
+    assert!(refuse(spec(51, "none", 1), image).contains("got 51"));
+    assert!(refuse(spec(8, "crop(5)", 1), image).contains("needs frames of at least 5x5"));
+    assert!(refuse(spec(8, "none", 0), image).contains("prefetch must be between 1 and 64"));
+    assert!(refuse(spec(8, "crop(3)", 1), ObservationFormat::State(17)).contains("applies to images, not state vectors"));
+}
+
+#[test]
+fn the_rate_limiter_holds_sampling_to_its_ratio() {
+    let (buffer, _) = simulate(1, 500, 100, 8);
+    let inserts = buffer.counters().inserts;
+    let shared = Arc::new(RwLock::new(buffer));
+    let spec = SampleSpec {
+        batch_size: 10,
+        pipeline: Pipeline::identity(),
+        sharing: Sharing::Reference,
+        seed: 0,
+        prefetch: 1,
+        min_size: 1,
+        samples_per_insert: Some(2.0),
+        error_buffer: 10.0,
+        max_batches: None,
+    };
+    let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
+    let (mut ready, _recycle) = producer.start(pool);
+    // 2 samples per insert + 10 of slack: floor((2 * inserts + 10) / 10) batches, then it waits.
+    let allowed = (2 * inserts + 10) / 10;
+    for _ in 0..allowed {
+        ready.blocking_recv().unwrap().unwrap();
+    }
+    std::thread::sleep(std::time::Duration::from_millis(100));
+    assert!(ready.try_recv().is_err(), "no batch beyond the ratio");
+    assert_eq!(shared.read().unwrap().counters().samples, allowed * 10);
+}
