@@ -3,6 +3,7 @@
 Public names only; the generated gRPC code lives in the private `radserve._proto` package.
 """
 
+from .batches import Batch, BatchStream
 from .client import Client, EnvInfo, SessionInfo
 from .errors import (
     FailedPreconditionError,
@@ -17,7 +18,7 @@ from .server import LocalServer
 from .vector import RemoteVectorEnv
 
 __all__ = [
-    "Client", "EnvInfo", "SessionInfo", "RemoteVectorEnv", "LocalServer",
+    "Client", "EnvInfo", "SessionInfo", "Batch", "BatchStream", "RemoteVectorEnv", "LocalServer",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError",
 ]

@@ -39,6 +39,7 @@ class SessionInfo:
     autoreset_mode: str
     total_env_steps: int
     episodes_completed: int
+    replay: "dict | None" = None
 
     @staticmethod
     def from_proto(message: "pb.SessionInfo") -> "SessionInfo":
@@ -54,6 +55,16 @@ class SessionInfo:
             autoreset_mode=message.autoreset_mode,
             total_env_steps=message.total_env_steps,
             episodes_completed=message.episodes_completed,
+            replay={
+                "capacity": message.replay.capacity,
+                "size": message.replay.size,
+                "inserts": message.replay.inserts,
+                "samples": message.replay.samples,
+                "memory_bytes": message.replay.memory_bytes,
+                "frames_per_transition": message.replay.frames_per_transition,
+            }
+            if message.HasField("replay")
+            else None,
         )
 
 
@@ -97,12 +108,23 @@ class Client:
             for env in response.envs
         ]
 
-    def make_vec(self, env_id: str, num_envs: int = 1, seed: int = 0, *, stream: bool = False, **options: Any):
+    def make_vec(
+        self,
+        env_id: str,
+        num_envs: int = 1,
+        seed: int = 0,
+        *,
+        stream: bool = False,
+        replay_capacity: "int | None" = None,
+        **options: Any,
+    ):
         """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
 
         Environment i is seeded with `seed + i`. `options` override the env's defaults (see
         `list_envs()[...].default_options`), e.g. `pixels=False`, `frame_stack=3`, `num_levels=200`.
         With `stream=True`, reset and step go over one bidirectional stream instead of unary calls.
+        With `replay_capacity`, the server records every transition into a replay buffer of that many
+        transitions, to be sampled with `sample_batches(envs.session_id, ...)`.
         """
         from .vector import RemoteVectorEnv
 
@@ -111,9 +133,65 @@ class Client:
             num_envs=num_envs,
             seed=seed,
             options={name: _convert.option_value(value) for name, value in options.items()},
+            replay=pb.ReplayOptions(capacity=replay_capacity) if replay_capacity else None,
         )
         info = SessionInfo.from_proto(self._call("CreateSession", request))
         return RemoteVectorEnv(self, info, stream=stream)
+
+    def sample_batches(
+        self,
+        session_id: str,
+        batch_size: int,
+        *,
+        augment: str = "none",
+        sharing: str = "reference",
+        prefetch: int = 2,
+        seed: int = 0,
+        min_size: "int | None" = None,
+        samples_per_insert: "float | None" = None,
+        error_buffer: float = 0.0,
+        max_batches: "int | None" = None,
+        chunk_bytes: int = 0,
+    ):
+        """Stream minibatches sampled uniformly from the session's replay buffer and augmented on
+        the server: an iterator of `radserve.Batch` (numpy arrays), produced `prefetch` ahead.
+
+        `augment` is a pipeline in text form (`"crop(84)"`, `"translate(108)|grayscale"`, `"none"`;
+        see docs/augmentations.md); `sharing` says whether obs and next_obs share draws
+        (`"reference"`: as RAD's code, `"shared"`, `"independent"`). Sampling waits for `min_size`
+        transitions (default: one batch) and, with `samples_per_insert`, for acting to keep up.
+        Errors in the request are raised before the first batch. `close()` the stream (or use it in a
+        `with` block) to stop it early.
+        """
+        from .batches import SHARING, BatchStream
+
+        if sharing not in SHARING:
+            raise ValueError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
+        request = pb.SampleBatchesRequest(
+            session_id=session_id,
+            batch_size=batch_size,
+            pipeline_text=augment,
+            sharing=SHARING[sharing],
+            prefetch=prefetch,
+            seed=seed,
+            min_size=min_size,
+            samples_per_insert=samples_per_insert,
+            error_buffer=error_buffer,
+            max_batches=max_batches,
+            chunk_bytes=chunk_bytes,
+        )
+        method = self._channel.unary_stream(
+            "/radserve.v1.RadServe/SampleBatches",
+            request_serializer=pb.SampleBatchesRequest.SerializeToString,
+            response_deserializer=None,  # raw bytes: radserve.batches parses them without copies
+        )
+        call = method(request)
+        # The server checks the whole request before its stream starts: a refusal arrives instead of
+        # the response headers, and ends the call at once.
+        call.initial_metadata()
+        if call.done() and call.code() != grpc.StatusCode.OK:
+            raise from_rpc_error(call) from None
+        return BatchStream(call)
 
     def describe_session(self, session_id: str) -> SessionInfo:
         return SessionInfo.from_proto(self._call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id)))

@@ -9,6 +9,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     tonic_prost_build::configure()
         .file_descriptor_set_path(&descriptor)
         .bytes(".radserve.v1.Tensor.data")
+        .bytes(".radserve.v1.BatchChunk.data")
         .compile_protos(&[&proto], &[&proto_root])?;
     println!("cargo:rerun-if-changed={}", proto.display());
     Ok(())

@@ -16,6 +16,12 @@ class DType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     DTYPE_FLOAT32: _ClassVar[DType]
     DTYPE_FLOAT64: _ClassVar[DType]
     DTYPE_BOOL: _ClassVar[DType]
+
+class DrawSharing(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    DRAW_SHARING_REFERENCE: _ClassVar[DrawSharing]
+    DRAW_SHARING_SHARED: _ClassVar[DrawSharing]
+    DRAW_SHARING_INDEPENDENT: _ClassVar[DrawSharing]
 DTYPE_UNSPECIFIED: DType
 DTYPE_UINT8: DType
 DTYPE_INT32: DType
@@ -23,6 +29,9 @@ DTYPE_INT64: DType
 DTYPE_FLOAT32: DType
 DTYPE_FLOAT64: DType
 DTYPE_BOOL: DType
+DRAW_SHARING_REFERENCE: DrawSharing
+DRAW_SHARING_SHARED: DrawSharing
+DRAW_SHARING_INDEPENDENT: DrawSharing
 
 class Tensor(_message.Message):
     __slots__ = ("dtype", "shape", "data")
@@ -106,7 +115,7 @@ class ListEnvsResponse(_message.Message):
     def __init__(self, envs: _Optional[_Iterable[_Union[EnvInfo, _Mapping]]] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("env_id", "num_envs", "seed", "options")
+    __slots__ = ("env_id", "num_envs", "seed", "options", "replay")
     class OptionsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -118,14 +127,38 @@ class CreateSessionRequest(_message.Message):
     NUM_ENVS_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     OPTIONS_FIELD_NUMBER: _ClassVar[int]
+    REPLAY_FIELD_NUMBER: _ClassVar[int]
     env_id: str
     num_envs: int
     seed: int
     options: _containers.MessageMap[str, OptionValue]
-    def __init__(self, env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ...) -> None: ...
+    replay: ReplayOptions
+    def __init__(self, env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., replay: _Optional[_Union[ReplayOptions, _Mapping]] = ...) -> None: ...
+
+class ReplayOptions(_message.Message):
+    __slots__ = ("capacity",)
+    CAPACITY_FIELD_NUMBER: _ClassVar[int]
+    capacity: int
+    def __init__(self, capacity: _Optional[int] = ...) -> None: ...
+
+class ReplayInfo(_message.Message):
+    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition")
+    CAPACITY_FIELD_NUMBER: _ClassVar[int]
+    SIZE_FIELD_NUMBER: _ClassVar[int]
+    INSERTS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    MEMORY_BYTES_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_PER_TRANSITION_FIELD_NUMBER: _ClassVar[int]
+    capacity: int
+    size: int
+    inserts: int
+    samples: int
+    memory_bytes: int
+    frames_per_transition: float
+    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed")
+    __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay")
     class OptionsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -144,6 +177,7 @@ class SessionInfo(_message.Message):
     AUTORESET_MODE_FIELD_NUMBER: _ClassVar[int]
     TOTAL_ENV_STEPS_FIELD_NUMBER: _ClassVar[int]
     EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
+    REPLAY_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     env_id: str
     num_envs: int
@@ -155,7 +189,8 @@ class SessionInfo(_message.Message):
     autoreset_mode: str
     total_env_steps: int
     episodes_completed: int
-    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., frame_stack: _Optional[int] = ..., autoreset_mode: _Optional[str] = ..., total_env_steps: _Optional[int] = ..., episodes_completed: _Optional[int] = ...) -> None: ...
+    replay: ReplayInfo
+    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., frame_stack: _Optional[int] = ..., autoreset_mode: _Optional[str] = ..., total_env_steps: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., replay: _Optional[_Union[ReplayInfo, _Mapping]] = ...) -> None: ...
 
 class DescribeSessionRequest(_message.Message):
     __slots__ = ("session_id",)
@@ -242,3 +277,72 @@ class ActResponse(_message.Message):
     reset: ResetResponse
     step: StepResponse
     def __init__(self, reset: _Optional[_Union[ResetResponse, _Mapping]] = ..., step: _Optional[_Union[StepResponse, _Mapping]] = ...) -> None: ...
+
+class AugmentationStage(_message.Message):
+    __slots__ = ("name", "args")
+    class ArgsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    ARGS_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    args: _containers.ScalarMap[str, float]
+    def __init__(self, name: _Optional[str] = ..., args: _Optional[_Mapping[str, float]] = ...) -> None: ...
+
+class AugmentationPipeline(_message.Message):
+    __slots__ = ("stages",)
+    STAGES_FIELD_NUMBER: _ClassVar[int]
+    stages: _containers.RepeatedCompositeFieldContainer[AugmentationStage]
+    def __init__(self, stages: _Optional[_Iterable[_Union[AugmentationStage, _Mapping]]] = ...) -> None: ...
+
+class SampleBatchesRequest(_message.Message):
+    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
+    PIPELINE_FIELD_NUMBER: _ClassVar[int]
+    PIPELINE_TEXT_FIELD_NUMBER: _ClassVar[int]
+    SHARING_FIELD_NUMBER: _ClassVar[int]
+    PREFETCH_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    MIN_SIZE_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_PER_INSERT_FIELD_NUMBER: _ClassVar[int]
+    ERROR_BUFFER_FIELD_NUMBER: _ClassVar[int]
+    MAX_BATCHES_FIELD_NUMBER: _ClassVar[int]
+    CHUNK_BYTES_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    batch_size: int
+    pipeline: AugmentationPipeline
+    pipeline_text: str
+    sharing: DrawSharing
+    prefetch: int
+    seed: int
+    min_size: int
+    samples_per_insert: float
+    error_buffer: float
+    max_batches: int
+    chunk_bytes: int
+    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ...) -> None: ...
+
+class BatchChunk(_message.Message):
+    __slots__ = ("batch_index", "field", "dtype", "shape", "offset", "field_bytes", "last", "data")
+    BATCH_INDEX_FIELD_NUMBER: _ClassVar[int]
+    FIELD_FIELD_NUMBER: _ClassVar[int]
+    DTYPE_FIELD_NUMBER: _ClassVar[int]
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_FIELD_NUMBER: _ClassVar[int]
+    FIELD_BYTES_FIELD_NUMBER: _ClassVar[int]
+    LAST_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    batch_index: int
+    field: str
+    dtype: DType
+    shape: _containers.RepeatedScalarFieldContainer[int]
+    offset: int
+    field_bytes: int
+    last: bool
+    data: bytes
+    def __init__(self, batch_index: _Optional[int] = ..., field: _Optional[str] = ..., dtype: _Optional[_Union[DType, str]] = ..., shape: _Optional[_Iterable[int]] = ..., offset: _Optional[int] = ..., field_bytes: _Optional[int] = ..., last: _Optional[bool] = ..., data: _Optional[bytes] = ...) -> None: ...

@@ -69,6 +69,11 @@ class RadServeStub:
                 request_serializer=radserve__pb2.ActRequest.SerializeToString,
                 response_deserializer=radserve__pb2.ActResponse.FromString,
                 _registered_method=True)
+        self.SampleBatches = channel.unary_stream(
+                '/radserve.v1.RadServe/SampleBatches',
+                request_serializer=radserve__pb2.SampleBatchesRequest.SerializeToString,
+                response_deserializer=radserve__pb2.BatchChunk.FromString,
+                _registered_method=True)
 
 
 class RadServeServicer:
@@ -120,6 +125,16 @@ class RadServeServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def SampleBatches(self, request, context):
+        """Minibatches sampled from a session's replay buffer and augmented on the server, produced ahead
+        of the learner. Each batch arrives as a sequence of BatchChunk messages (1-4 MB each) ending with
+        one whose `last` is set; batches arrive in order. The stream ends after `max_batches`, or when
+        the client cancels it (the server frees its producer at once).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_RadServeServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -157,6 +172,11 @@ def add_RadServeServicer_to_server(servicer, server):
                     servicer.Act,
                     request_deserializer=radserve__pb2.ActRequest.FromString,
                     response_serializer=radserve__pb2.ActResponse.SerializeToString,
+            ),
+            'SampleBatches': grpc.unary_stream_rpc_method_handler(
+                    servicer.SampleBatches,
+                    request_deserializer=radserve__pb2.SampleBatchesRequest.FromString,
+                    response_serializer=radserve__pb2.BatchChunk.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -348,6 +368,33 @@ class RadServe:
             '/radserve.v1.RadServe/Act',
             radserve__pb2.ActRequest.SerializeToString,
             radserve__pb2.ActResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def SampleBatches(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/radserve.v1.RadServe/SampleBatches',
+            radserve__pb2.SampleBatchesRequest.SerializeToString,
+            radserve__pb2.BatchChunk.FromString,
             options,
             channel_credentials,
             insecure,

@@ -35,15 +35,23 @@ pub fn session_manager(settings: ServerSettings) -> Arc<SessionManager> {
 pub async fn serve(
     listener: TcpListener,
     manager: Arc<SessionManager>,
+    augment_threads: usize,
     shutdown: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
+    // Minibatch augmentation runs here, never on tokio's workers; 0 threads: one per core.
+    let augment_pool = Arc::new(
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(augment_threads)
+            .thread_name(|index| format!("radserve-augment-{index}"))
+            .build()?,
+    );
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
     health_reporter.set_serving::<RadServeServer<RadServeService>>().await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let service = RadServeServer::new(RadServeService::new(manager.clone()))
+    let service = RadServeServer::new(RadServeService::new(manager.clone(), augment_pool))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
 

@@ -144,7 +144,7 @@ async fn run(command: Command) -> anyhow::Result<()> {
             // The one line on stdout: launchers (the Python client's, the tests') read the port here.
             println!("radserve listening on {bound}");
             let manager = radserve::session_manager(settings);
-            radserve::serve(listener, manager, shutdown_signal()).await
+            radserve::serve(listener, manager, config.augment.threads, shutdown_signal()).await
         }
         Command::Envs { prefix, config } => {
             let mut config = Config::load(config.as_deref())?;

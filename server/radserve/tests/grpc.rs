@@ -32,7 +32,7 @@ async fn start_server(limits: Limits) -> TestServer {
         limits,
     });
     let (stop, stopped) = oneshot::channel::<()>();
-    let task = tokio::spawn(radserve::serve(listener, manager.clone(), async {
+    let task = tokio::spawn(radserve::serve(listener, manager.clone(), 1, async {
         let _ = stopped.await;
     }));
     TestServer { address, manager, stop, task }

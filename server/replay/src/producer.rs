@@ -1,9 +1,9 @@
-//! Produces augmented minibatches ahead of the learner, on a thread of its own, into buffers that
-//! are handed back and reused. Each sample's stacks are gathered from the frame store into
-//! per-thread scratch and augmented straight into the batch, in parallel over the batch.
+//! Produces augmented minibatches ahead of the learner, on a thread of its own. Each sample's stacks
+//! are gathered from the frame store into per-thread scratch (reused) and augmented straight into
+//! the batch, in parallel over the batch. A batch's buffers then move to the transport, which sends
+//! them without copying, so each batch is a fresh allocation made on this thread.
 
 use std::cell::RefCell;
-use std::sync::mpsc;
 use std::sync::{Arc, RwLock};
 use std::time::Duration;
 
@@ -52,6 +52,8 @@ pub struct Batch {
     pub len: usize,
     /// Shape of one augmented observation.
     pub obs_shape: Vec<usize>,
+    /// Observations are float32 state vectors (little-endian bytes), not uint8 images.
+    pub obs_float32: bool,
     /// `uint8` for images, float32 bytes (little-endian) for states.
     pub obs: Vec<u8>,
     pub next_obs: Vec<u8>,
@@ -125,27 +127,25 @@ impl Producer {
     }
 
     /// Start producing on a thread of its own, augmenting on `pool`. Batches arrive on the returned
-    /// receiver in order, at most `prefetch` ahead; send each back on the returned sender once sent
-    /// so its buffers are reused. Dropping the receiver stops the thread at its next batch.
-    pub fn start(self, pool: Arc<rayon::ThreadPool>) -> (tokio::sync::mpsc::Receiver<Result<Batch>>, mpsc::Sender<Batch>) {
+    /// receiver in order, at most `prefetch` ahead. Dropping the receiver stops the thread before
+    /// its next batch.
+    pub fn start(self, pool: Arc<rayon::ThreadPool>) -> tokio::sync::mpsc::Receiver<Result<Batch>> {
         let (ready_tx, ready_rx) = tokio::sync::mpsc::channel(self.spec.prefetch);
-        let (recycle_tx, recycle_rx) = mpsc::channel::<Batch>();
         std::thread::Builder::new()
             .name("radserve-sampler".into())
-            .spawn(move || self.run(&pool, ready_tx, recycle_rx))
+            .spawn(move || self.run(&pool, ready_tx))
             .expect("spawning a sampler thread");
-        (ready_rx, recycle_tx)
+        ready_rx
     }
 
-    fn run(self, pool: &rayon::ThreadPool, ready: tokio::sync::mpsc::Sender<Result<Batch>>, recycled: mpsc::Receiver<Batch>) {
+    fn run(self, pool: &rayon::ThreadPool, ready: tokio::sync::mpsc::Sender<Result<Batch>>) {
         let mut rng = ChaCha8Rng::seed_from_u64(self.spec.seed);
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {
             if !self.wait_until_allowed(&ready) {
                 return;
             }
-            let mut batch = recycled.try_recv().unwrap_or_default();
-            batch.index = index;
+            let mut batch = Batch { index, ..Batch::default() };
             if let Err(error) = self.fill(pool, &mut rng, &mut batch) {
                 let _ = ready.blocking_send(Err(error));
                 return;
@@ -183,6 +183,7 @@ impl Producer {
         let size = self.spec.batch_size;
         batch.len = size;
         batch.obs_shape.clone_from(&self.obs_shape);
+        batch.obs_float32 = matches!(self.plan, Plan::State(_));
         batch.obs.resize(size * self.obs_bytes, 0);
         batch.next_obs.resize(size * self.obs_bytes, 0);
         // Sampling bumps the counters, so it takes the write lock, briefly; the copies take the read lock.

@@ -175,7 +175,7 @@ fn the_producer_delivers_batches_in_order_with_real_stacks() {
     let (buffer, expected) = simulate(2, 100, 200, 5);
     let (producer, _) = producer(buffer, "none", 64);
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
-    let (mut ready, recycle) = producer.start(pool);
+    let mut ready = producer.start(pool);
     let mut seen = 0;
     while let Some(batch) = ready.blocking_recv() {
         let batch = batch.unwrap();
@@ -188,7 +188,6 @@ fn the_producer_delivers_batches_in_order_with_real_stacks() {
             assert_eq!(batch.next_obs[sample * stack..(sample + 1) * stack], expected[&key].next_obs);
         }
         seen += 1;
-        let _ = recycle.send(batch); // fails once the producer has finished, which is fine
     }
     assert_eq!(seen, 3, "max_batches ends the stream");
 }
@@ -199,7 +198,7 @@ fn the_producer_augments_and_checks_the_request_first() {
     let (producer, shared) = producer(buffer, "crop(3)|flip(p=0.5)", 8);
     assert_eq!(producer.obs_shape(), &[9, 3, 3]);
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
-    let (mut ready, _recycle) = producer.start(pool);
+    let mut ready = producer.start(pool);
     let batch = ready.blocking_recv().unwrap().unwrap();
     assert_eq!(batch.obs.len(), 8 * 9 * 3 * 3);
     let spec = |batch_size, text: &str, prefetch| SampleSpec {
@@ -240,7 +239,7 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
     };
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
-    let (mut ready, _recycle) = producer.start(pool);
+    let mut ready = producer.start(pool);
     // 2 samples per insert + 10 of slack: floor((2 * inserts + 10) / 10) batches, then it waits.
     let allowed = (2 * inserts + 10) / 10;
     for _ in 0..allowed {

@@ -2,6 +2,8 @@
 
 use std::collections::HashMap;
 
+use radserve_augment::{Pipeline, Sharing};
+use radserve_replay::{Batch, SampleSpec};
 use radserve_sim::{CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, Space, StepOutcome};
 use tonic::Status;
 
@@ -104,7 +106,115 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
         autoreset_mode: "same-step".to_string(),
         total_env_steps: info.total_env_steps,
         episodes_completed: info.episodes_completed,
+        replay: info.replay.as_ref().map(|replay| proto::ReplayInfo {
+            capacity: replay.capacity as u64,
+            size: replay.size as u64,
+            inserts: replay.inserts,
+            samples: replay.samples,
+            memory_bytes: replay.memory_bytes,
+            frames_per_transition: replay.frames_per_transition,
+        }),
     }
+}
+
+/// Default largest chunk of tensor bytes per BatchChunk: a Python client takes 1-4 MB messages
+/// fastest (measured; one 32 MB message is ~40% slower).
+pub const DEFAULT_CHUNK_BYTES: usize = 2 << 20;
+
+/// A SampleBatches request as the producer's spec, every field checked.
+pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<SampleSpec, Status> {
+    use proto::sample_batches_request::Augmentation as Choice;
+    let pipeline = match &request.augmentation {
+        None => Pipeline::identity(),
+        Some(Choice::PipelineText(text)) => Pipeline::parse(text).map_err(|e| Status::invalid_argument(e.to_string()))?,
+        Some(Choice::Pipeline(typed)) => {
+            // The typed form goes through the text form's parser, so both are checked the same way.
+            let stages: Vec<String> = typed
+                .stages
+                .iter()
+                .map(|stage| {
+                    let mut args: Vec<_> = stage.args.iter().collect();
+                    args.sort_by(|a, b| a.0.cmp(b.0));
+                    let args: Vec<String> = args.iter().map(|(key, value)| format!("{key}={value}")).collect();
+                    format!("{}({})", stage.name, args.join(","))
+                })
+                .collect();
+            if let Some(stage) = typed.stages.iter().find(|stage| !stage.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')) {
+                return Err(Status::invalid_argument(format!(
+                    "augmentation stage names are plain names such as \"crop\", got {:?}",
+                    stage.name
+                )));
+            }
+            Pipeline::parse(&stages.join("|")).map_err(|e| Status::invalid_argument(e.to_string()))?
+        }
+    };
+    let sharing = match proto::DrawSharing::try_from(request.sharing) {
+        Ok(proto::DrawSharing::Reference) => Sharing::Reference,
+        Ok(proto::DrawSharing::Shared) => Sharing::Shared,
+        Ok(proto::DrawSharing::Independent) => Sharing::Independent,
+        Err(_) => return Err(Status::invalid_argument(format!("unknown DrawSharing value {}", request.sharing))),
+    };
+    let batch_size = request.batch_size as usize;
+    Ok(SampleSpec {
+        batch_size,
+        pipeline,
+        sharing,
+        seed: request.seed,
+        prefetch: if request.prefetch == 0 { 2 } else { request.prefetch as usize },
+        min_size: request.min_size.map_or(batch_size, |size| size as usize),
+        samples_per_insert: request.samples_per_insert,
+        error_buffer: request.error_buffer,
+        max_batches: request.max_batches,
+    })
+}
+
+/// Split a batch into BatchChunk messages of at most `chunk_bytes` of tensor data each; the
+/// observation buffers move into `Bytes` and are sliced, never copied.
+pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> Vec<proto::BatchChunk> {
+    let len = batch.len;
+    let obs_dtype = if batch.obs_float32 { proto::DType::DtypeFloat32 } else { proto::DType::DtypeUint8 };
+    let with_batch = |shape: &[usize]| -> Vec<i64> { std::iter::once(len).chain(shape.iter().copied()).map(|d| d as i64).collect() };
+    let metadata = batch.metadata;
+    let int32_bytes: Vec<u8> = metadata.env_indices.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect();
+    let int64_bytes: Vec<u8> = metadata.step_indices.iter().flat_map(|v| (*v as i64).to_le_bytes()).collect();
+    let reward_bytes: Vec<u8> = metadata.rewards.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let fields: [(&str, proto::DType, Vec<i64>, Vec<u8>); 8] = [
+        ("obs", obs_dtype, with_batch(&batch.obs_shape), batch.obs),
+        ("next_obs", obs_dtype, with_batch(&batch.obs_shape), batch.next_obs),
+        ("action", dtype_to_proto(action.dtype()), with_batch(action.shape()), metadata.actions),
+        ("reward", proto::DType::DtypeFloat32, vec![len as i64], reward_bytes),
+        ("terminated", proto::DType::DtypeUint8, vec![len as i64], metadata.terminated),
+        ("truncated", proto::DType::DtypeUint8, vec![len as i64], metadata.truncated),
+        ("env_index", proto::DType::DtypeInt32, vec![len as i64], int32_bytes),
+        ("step_index", proto::DType::DtypeInt64, vec![len as i64], int64_bytes),
+    ];
+    let mut chunks = Vec::new();
+    for (name, dtype, shape, data) in fields {
+        let data = prost::bytes::Bytes::from(data);
+        let total = data.len();
+        let mut offset = 0;
+        loop {
+            let end = (offset + chunk_bytes.max(1)).min(total);
+            chunks.push(proto::BatchChunk {
+                batch_index: batch.index,
+                field: name.to_string(),
+                dtype: dtype as i32,
+                shape: shape.clone(),
+                offset: offset as u64,
+                field_bytes: total as u64,
+                last: false,
+                data: data.slice(offset..end),
+            });
+            offset = end;
+            if offset >= total {
+                break;
+            }
+        }
+    }
+    if let Some(last) = chunks.last_mut() {
+        last.last = true;
+    }
+    chunks
 }
 
 pub fn tensor(dtype: DType, shape: Vec<usize>, data: Vec<u8>) -> proto::Tensor {

@@ -1,3 +1,4 @@
+use radserve_replay::ReplayError;
 use radserve_sim::SimError;
 use tonic::{Code, Status};
 
@@ -17,6 +18,16 @@ pub fn to_status(error: SimError) -> Status {
     Status::new(code, error.to_string())
 }
 
+/// The replay crate's errors, placed the same way.
+pub fn replay_status(error: ReplayError) -> Status {
+    let code = match &error {
+        ReplayError::InvalidArgument(_) | ReplayError::Augment(_) => Code::InvalidArgument,
+        ReplayError::FailedPrecondition(_) => Code::FailedPrecondition,
+        ReplayError::OverBudget(_) => Code::ResourceExhausted,
+    };
+    Status::new(code, error.to_string())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -30,5 +41,9 @@ mod tests {
         assert_eq!(to_status(SimError::InvalidArgument("bad".into())).code(), Code::InvalidArgument);
         assert_eq!(to_status(SimError::LimitExceeded("full".into())).code(), Code::ResourceExhausted);
         assert_eq!(to_status(SimError::ShuttingDown).code(), Code::Unavailable);
+        let augment = radserve_augment::Pipeline::parse("crpo").unwrap_err();
+        let status = replay_status(ReplayError::Augment(augment));
+        assert_eq!(status.code(), Code::InvalidArgument);
+        assert!(status.message().contains("did you mean \"crop\""), "{}", status.message());
     }
 }

@@ -9,20 +9,27 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::debug;
 
 use crate::convert::{self, observation_tensor};
-use crate::error::to_status;
+use radserve_replay::Producer;
+
+use crate::error::{replay_status, to_status};
 use crate::proto::{self, act_request, act_response, rad_serve_server::RadServe};
 
 /// Responses of an `Act` stream that may wait for the client to read them.
 const ACT_STREAM_BUFFER: usize = 2;
 
+/// Chunk messages of a SampleBatches stream that may wait for the client to read them.
+const SAMPLE_STREAM_BUFFER: usize = 4;
+
 #[derive(Clone)]
 pub struct RadServeService {
     manager: Arc<SessionManager>,
+    /// Threads that augment minibatches (never a tokio worker).
+    augment_pool: Arc<rayon::ThreadPool>,
 }
 
 impl RadServeService {
-    pub fn new(manager: Arc<SessionManager>) -> RadServeService {
-        RadServeService { manager }
+    pub fn new(manager: Arc<SessionManager>, augment_pool: Arc<rayon::ThreadPool>) -> RadServeService {
+        RadServeService { manager, augment_pool }
     }
 
     async fn reset(&self, request: proto::ResetRequest) -> Result<proto::ResetResponse, Status> {
@@ -52,6 +59,7 @@ impl RadServeService {
 }
 
 type ActStream = Pin<Box<dyn Stream<Item = Result<proto::ActResponse, Status>> + Send>>;
+type SampleStream = Pin<Box<dyn Stream<Item = Result<proto::BatchChunk, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl RadServe for RadServeService {
@@ -74,7 +82,13 @@ impl RadServe for RadServeService {
         let options = convert::options_from_proto(&request.options)?;
         let info = self
             .manager
-            .create_session(&request.env_id, request.num_envs as usize, request.seed, &options)
+            .create_session(
+                &request.env_id,
+                request.num_envs as usize,
+                request.seed,
+                &options,
+                request.replay.map_or(0, |replay| replay.capacity as usize),
+            )
             .await
             .map_err(to_status)?;
         Ok(Response::new(convert::session_info_to_proto(&info)))
@@ -123,6 +137,43 @@ impl RadServe for RadServeService {
                 }
             }
             debug!("act stream ended");
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
+    }
+
+    type SampleBatchesStream = SampleStream;
+
+    async fn sample_batches(
+        &self,
+        request: Request<proto::SampleBatchesRequest>,
+    ) -> Result<Response<SampleStream>, Status> {
+        let request = request.into_inner();
+        let spec = convert::sample_spec_from_proto(&request)?;
+        let source = self.manager.replay_source(&request.session_id).await.map_err(to_status)?;
+        // Everything is checked here, before the stream starts.
+        let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?;
+        let chunk_bytes = if request.chunk_bytes == 0 { convert::DEFAULT_CHUNK_BYTES } else { request.chunk_bytes as usize };
+        let mut ready = producer.start(self.augment_pool.clone());
+        let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
+        let session_id = request.session_id;
+        tokio::spawn(async move {
+            while let Some(batch) = ready.recv().await {
+                let batch = match batch {
+                    Ok(batch) => batch,
+                    Err(error) => {
+                        let _ = sender.send(Err(replay_status(error))).await;
+                        break;
+                    }
+                };
+                for chunk in convert::batch_to_chunks(batch, &source.action_space, chunk_bytes) {
+                    // A failed send means the client left: dropping `ready` stops the producer.
+                    if sender.send(Ok(chunk)).await.is_err() {
+                        debug!(session = %session_id, "sample stream cancelled");
+                        return;
+                    }
+                }
+            }
+            debug!(session = %session_id, "sample stream ended");
         });
         Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
     }

@@ -3,7 +3,9 @@
 use std::collections::HashMap;
 use std::hash::{BuildHasher, Hasher};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex as StdMutex};
+use std::sync::{Arc, Mutex as StdMutex, RwLock};
+
+use radserve_replay::{ObservationFormat, ReplayBuffer, ReplayLayout};
 
 use serde::{Deserialize, Serialize};
 use tokio::sync::{Mutex, OnceCell};
@@ -14,7 +16,7 @@ use crate::error::SimError;
 use crate::pool::WorkerPool;
 use crate::protocol::{Request, Response};
 use crate::session::{check_seed, Session, SessionConfig};
-use crate::space::Space;
+use crate::space::{DType, Space};
 
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -23,12 +25,34 @@ pub struct Limits {
     pub max_envs_per_session: usize,
     /// Environments across all sessions of the server.
     pub max_total_envs: usize,
+    /// Bytes all sessions' replay buffers may take together (computed up front at creation).
+    pub replay_memory_bytes: u64,
 }
 
 impl Default for Limits {
     fn default() -> Self {
-        Limits { max_sessions: 64, max_envs_per_session: 256, max_total_envs: 1024 }
+        Limits { max_sessions: 64, max_envs_per_session: 256, max_total_envs: 1024, replay_memory_bytes: 8 << 30 }
     }
+}
+
+/// A session's replay buffer, as a client sees it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReplayInfo {
+    pub capacity: usize,
+    /// Transitions that can be sampled now.
+    pub size: usize,
+    pub inserts: u64,
+    pub samples: u64,
+    pub memory_bytes: u64,
+    pub frames_per_transition: f64,
+}
+
+/// What a sampler needs of a session: its buffer and what its observations and actions are.
+#[derive(Clone)]
+pub struct ReplaySource {
+    pub buffer: Arc<RwLock<ReplayBuffer>>,
+    pub format: ObservationFormat,
+    pub action_space: Space,
 }
 
 /// A catalog entry: an id with its default options and the spaces they give.
@@ -53,6 +77,7 @@ pub struct SessionInfo {
     pub frame_stack: usize,
     pub total_env_steps: u64,
     pub episodes_completed: u64,
+    pub replay: Option<ReplayInfo>,
 }
 
 pub type SharedSession = Arc<Mutex<Session>>;
@@ -73,6 +98,7 @@ struct Registry {
     /// Environments of live sessions plus those being created.
     reserved_envs: usize,
     reserved_sessions: usize,
+    reserved_replay_bytes: u64,
     closing: bool,
 }
 
@@ -164,6 +190,7 @@ impl SessionManager {
         num_envs: usize,
         seed: u64,
         overrides: &Options,
+        replay_capacity: usize,
     ) -> Result<SessionInfo, SimError> {
         if num_envs == 0 {
             return Err(SimError::InvalidArgument("num_envs must be at least 1".into()));
@@ -181,13 +208,20 @@ impl SessionManager {
 
         self.reserve(num_envs)?;
         let config = SessionConfig { env, num_envs, seed, options, frame_stack };
-        let session = match Session::create(&self.pool, config).await {
+        let mut session = match Session::create(&self.pool, config).await {
             Ok(session) => session,
             Err(error) => {
                 self.release(num_envs, 1);
                 return Err(error);
             }
         };
+        if replay_capacity > 0 {
+            if let Err(error) = self.attach_replay(&mut session, replay_capacity) {
+                session.close().await;
+                self.release(num_envs, 1);
+                return Err(error);
+            }
+        }
         let session_id = self.new_session_id();
         let info = describe(&session_id, &session);
         let shared = Arc::new(Mutex::new(session));
@@ -201,8 +235,10 @@ impl SessionManager {
             }
         };
         if rejected {
-            shared.lock().await.close().await;
+            let mut session = shared.lock().await;
+            session.close().await;
             self.release(num_envs, 1);
+            self.release_replay(&session);
             return Err(SimError::ShuttingDown);
         }
         info!(session = %session_id, env = %info.env_id, envs = num_envs, seed, "session created");
@@ -230,6 +266,80 @@ impl SessionManager {
         registry.reserved_envs += num_envs;
         registry.reserved_sessions += 1;
         Ok(())
+    }
+
+    /// Give `session` a replay buffer of `capacity` transitions if the server's budget allows it.
+    fn attach_replay(&self, session: &mut Session, capacity: usize) -> Result<(), SimError> {
+        let frame = &session.frame_spec.observation;
+        if !matches!(frame.dtype(), DType::Uint8 | DType::Float32) {
+            return Err(SimError::InvalidArgument(format!(
+                "replay keeps uint8 images or float32 vectors; {} observes {}",
+                session.config.env.full(),
+                frame.describe()
+            )));
+        }
+        let layout = ReplayLayout {
+            capacity,
+            num_envs: session.num_envs(),
+            frame_stack: session.config.frame_stack,
+            frame_bytes: frame.num_bytes(),
+            action_bytes: session.frame_spec.action.num_bytes(),
+        };
+        layout.validate().map_err(|error| SimError::InvalidArgument(error.to_string()))?;
+        let bytes = layout.memory_bytes() as u64;
+        {
+            let mut registry = self.sessions.lock().expect("registry lock");
+            let budget = self.limits.replay_memory_bytes;
+            if registry.reserved_replay_bytes + bytes > budget {
+                return Err(SimError::LimitExceeded(format!(
+                    "a replay buffer of {capacity} transitions for {} envs of {} takes {:.2} GiB ({} bytes per frame,                      {:.3} frames per transition); with the {:.2} GiB already reserved it would exceed this server's                      replay budget of {:.2} GiB (limits.replay_memory_bytes)",
+                    layout.num_envs,
+                    session.config.env.full(),
+                    gib(bytes),
+                    layout.frame_bytes,
+                    layout.frames_per_transition(),
+                    gib(registry.reserved_replay_bytes),
+                    gib(budget)
+                )));
+            }
+            registry.reserved_replay_bytes += bytes;
+        }
+        match ReplayBuffer::new(layout) {
+            Ok(buffer) => {
+                session.attach_replay(Arc::new(RwLock::new(buffer)));
+                Ok(())
+            }
+            Err(error) => {
+                self.sessions.lock().expect("registry lock").reserved_replay_bytes -= bytes;
+                Err(SimError::InvalidArgument(error.to_string()))
+            }
+        }
+    }
+
+    fn release_replay(&self, session: &Session) {
+        if let Some(replay) = session.replay() {
+            let bytes = replay.read().expect("replay lock").layout().memory_bytes() as u64;
+            self.sessions.lock().expect("registry lock").reserved_replay_bytes -= bytes;
+        }
+    }
+
+    /// The replay buffer of a session, with what a sampler needs to know about it.
+    pub async fn replay_source(&self, session_id: &str) -> Result<ReplaySource, SimError> {
+        let session = self.get(session_id)?;
+        let session = session.lock().await;
+        let Some(buffer) = session.replay() else {
+            return Err(SimError::FailedPrecondition(format!(
+                "session {session_id} keeps no replay buffer; create it with a replay capacity"
+            )));
+        };
+        let frame = &session.frame_spec.observation;
+        let format = match (frame.dtype(), frame.shape()) {
+            (DType::Uint8, &[channels, height, width]) => {
+                ObservationFormat::Image(radserve_augment::FrameShape::new(session.config.frame_stack, channels, height, width))
+            }
+            _ => ObservationFormat::State(session.config.frame_stack * frame.num_elements()),
+        };
+        Ok(ReplaySource { buffer: buffer.clone(), format, action_space: session.frame_spec.action.clone() })
     }
 
     fn release(&self, num_envs: usize, sessions: usize) {
@@ -264,6 +374,7 @@ impl SessionManager {
         let mut session = session.lock().await;
         session.close().await;
         self.release(session.num_envs(), 1);
+        self.release_replay(&session);
         info!(session = %session_id, "session closed");
         Ok(())
     }
@@ -293,5 +404,21 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
         frame_stack: session.config.frame_stack,
         total_env_steps: session.total_env_steps,
         episodes_completed: session.episodes_completed,
+        replay: session.replay().map(|replay| {
+            let replay = replay.read().expect("replay lock");
+            let layout = replay.layout();
+            ReplayInfo {
+                capacity: layout.capacity,
+                size: replay.len(),
+                inserts: replay.counters().inserts,
+                samples: replay.counters().samples,
+                memory_bytes: layout.memory_bytes() as u64,
+                frames_per_transition: layout.frames_per_transition(),
+            }
+        }),
     }
+}
+
+fn gib(bytes: u64) -> f64 {
+    bytes as f64 / (1u64 << 30) as f64
 }

@@ -7,6 +7,9 @@
 
 use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+
+use radserve_replay::{RecordedStep, ReplayBuffer};
 
 use crate::catalog::{EnvId, Options};
 use crate::error::SimError;
@@ -75,6 +78,10 @@ pub struct Session {
     needs_reset: bool,
     pub total_env_steps: u64,
     pub episodes_completed: u64,
+    /// Step calls so far: the step index recorded with each transition.
+    pub step_calls: u64,
+    /// Where every frame and transition is recorded, when the session keeps a replay buffer.
+    replay: Option<Arc<RwLock<ReplayBuffer>>>,
 }
 
 impl Session {
@@ -148,6 +155,8 @@ impl Session {
             needs_reset: true,
             total_env_steps: 0,
             episodes_completed: 0,
+            step_calls: 0,
+            replay: None,
         };
         let attached = session.attach_all().await;
         for group in &session.groups {
@@ -180,6 +189,27 @@ impl Session {
         self.config.num_envs
     }
 
+    /// Record every frame and transition from now on into `replay` (from the next reset).
+    pub fn attach_replay(&mut self, replay: Arc<RwLock<ReplayBuffer>>) {
+        self.replay = Some(replay);
+    }
+
+    pub fn replay(&self) -> Option<&Arc<RwLock<ReplayBuffer>>> {
+        self.replay.as_ref()
+    }
+
+    /// Record each env of group `index` starting an episode at its current frame, before the
+    /// Step call `step_index`.
+    fn record_first_frames(&self, index: usize, step_index: u64) {
+        let Some(replay) = &self.replay else { return };
+        let mut replay = replay.write().expect("replay lock");
+        let group = &self.groups[index];
+        for (local, env) in group.envs.clone().enumerate() {
+            replay.abandon_episode(env);
+            replay.record_first_frame(env, &group.frames.as_slice()[self.layout.frame(local)], step_index);
+        }
+    }
+
     fn stack_bytes(&self) -> usize {
         self.config.frame_stack * self.layout.frame_bytes
     }
@@ -209,6 +239,7 @@ impl Session {
         }
         for index in 0..self.groups.len() {
             self.fill_stacks_from_current(index);
+            self.record_first_frames(index, self.step_calls);
         }
         self.episode_returns.iter_mut().for_each(|value| *value = 0.0);
         self.episode_lengths.iter_mut().for_each(|value| *value = 0);
@@ -269,6 +300,30 @@ impl Session {
                 }
             };
             let group_envs = self.groups[index].envs.clone();
+            if let Some(replay) = &self.replay {
+                // Recorded before the stacks move on; sync, so no lock is held across an await.
+                let mut replay = replay.write().expect("replay lock");
+                let group = &self.groups[index];
+                for (local, env) in group_envs.clone().enumerate() {
+                    let ended = result.terminated[local] || result.truncated[local];
+                    let next = if ended { self.layout.final_frame(local) } else { self.layout.frame(local) };
+                    replay.record_step(
+                        env,
+                        &RecordedStep {
+                            action: &actions[env * action_bytes..(env + 1) * action_bytes],
+                            reward: result.rewards[local],
+                            terminated: result.terminated[local],
+                            truncated: result.truncated[local],
+                            next_frame: &group.frames.as_slice()[next],
+                            step_index: self.step_calls,
+                        },
+                    );
+                    if ended {
+                        let first = &group.frames.as_slice()[self.layout.frame(local)];
+                        replay.record_first_frame(env, first, self.step_calls + 1);
+                    }
+                }
+            }
             for (local, env) in group_envs.enumerate() {
                 let (reward, terminated, truncated) =
                     (result.rewards[local], result.terminated[local], result.truncated[local]);
@@ -296,6 +351,7 @@ impl Session {
             }
         }
         self.total_env_steps += num_envs as u64;
+        self.step_calls += 1;
         outcome.obs = self.stacks.clone();
         Ok(outcome)
     }
@@ -320,6 +376,8 @@ impl Session {
             outcome.episodes.push(self.end_episode(env, false, true, Some(message.to_string())));
         }
         self.fill_stacks_from_current(index);
+        // The crashed step has no next frame to record; the episodes restart from the new frames.
+        self.record_first_frames(index, self.step_calls + 1);
         Ok(())
     }
 

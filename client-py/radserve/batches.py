@@ -1,0 +1,156 @@
+"""Augmented minibatches streamed from a session's replay buffer, decoded without protobuf objects.
+
+Generated protobuf classes copy a `bytes` field on every access; a 32 MB observation would be copied
+twice before numpy saw it. The stream is therefore read as raw message bytes, and each BatchChunk is
+parsed here with a few lines of protobuf wire format: the tensor bytes are copied once, straight into
+the batch's numpy arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import grpc
+import numpy as np
+
+from ._convert import _NUMPY_DTYPES
+from ._proto import radserve_pb2 as pb
+from .errors import from_rpc_error
+
+FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index")
+
+SHARING = {
+    "reference": pb.DRAW_SHARING_REFERENCE,
+    "shared": pb.DRAW_SHARING_SHARED,
+    "independent": pb.DRAW_SHARING_INDEPENDENT,
+}
+
+
+@dataclass
+class Batch:
+    """One minibatch of transitions; every array has the batch as its first dimension.
+
+    `obs` and `next_obs` are augmented (uint8 frame stacks, or float32 states); `terminated` and
+    `truncated` are bools (bootstrap through truncations: `not_done = ~terminated`); `env_index` and
+    `step_index` say which environment and which Step call of the session produced each transition.
+    """
+
+    index: int
+    obs: np.ndarray
+    next_obs: np.ndarray
+    action: np.ndarray
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    env_index: np.ndarray
+    step_index: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.reward)
+
+
+def _varint(data: memoryview, position: int) -> "tuple[int, int]":
+    result = shift = 0
+    while True:
+        byte = data[position]
+        position += 1
+        result |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return result, position
+        shift += 7
+
+
+class _Chunk:
+    __slots__ = ("batch_index", "field", "dtype", "shape", "offset", "field_bytes", "last", "data")
+
+    def __init__(self, message: bytes):
+        view = memoryview(message)
+        self.batch_index = self.dtype = self.offset = self.field_bytes = 0
+        self.field, self.shape, self.last, self.data = "", [], False, view[0:0]
+        position, end = 0, len(view)
+        while position < end:
+            key, position = _varint(view, position)
+            number, wire = key >> 3, key & 7
+            if wire == 0:
+                value, position = _varint(view, position)
+                if number == 1:
+                    self.batch_index = value
+                elif number == 3:
+                    self.dtype = value
+                elif number == 4:
+                    self.shape.append(value)
+                elif number == 5:
+                    self.offset = value
+                elif number == 6:
+                    self.field_bytes = value
+                elif number == 7:
+                    self.last = bool(value)
+            elif wire == 2:
+                length, position = _varint(view, position)
+                payload = view[position : position + length]
+                position += length
+                if number == 2:
+                    self.field = bytes(payload).decode()
+                elif number == 4:  # packed shape
+                    inner = 0
+                    while inner < length:
+                        value, inner = _varint(payload, inner)
+                        self.shape.append(value)
+                elif number == 15:
+                    self.data = payload
+            elif wire == 1:
+                position += 8
+            elif wire == 5:
+                position += 4
+            else:
+                raise ValueError(f"unexpected protobuf wire type {wire} in a BatchChunk")
+
+
+def iterate_batches(stream) -> Iterator[Batch]:
+    """Assemble Batch objects from a stream of raw BatchChunk messages."""
+    buffers: "dict[str, tuple[np.ndarray, int, list]]" = {}
+    try:
+        for message in stream:
+            chunk = _Chunk(message)
+            entry = buffers.get(chunk.field)
+            if entry is None or chunk.offset == 0:
+                entry = (np.empty(chunk.field_bytes, dtype=np.uint8), chunk.dtype, chunk.shape)
+                buffers[chunk.field] = entry
+            target = entry[0]
+            target[chunk.offset : chunk.offset + len(chunk.data)] = np.frombuffer(chunk.data, dtype=np.uint8)
+            if chunk.last:
+                arrays = {}
+                for name in FIELDS:
+                    raw, dtype, shape = buffers[name]
+                    arrays[name] = raw.view(_NUMPY_DTYPES[dtype]).reshape(shape)
+                arrays["terminated"] = arrays["terminated"].astype(bool)
+                arrays["truncated"] = arrays["truncated"].astype(bool)
+                buffers = {}
+                yield Batch(index=chunk.batch_index, **arrays)
+    except grpc.RpcError as error:
+        raise from_rpc_error(error) from None
+
+
+class BatchStream:
+    """An iterator of Batch objects; `close()` (or leaving a `with` block) cancels the stream and the
+    server frees its producer."""
+
+    def __init__(self, call):
+        self._call = call
+        self._batches = iterate_batches(call)
+
+    def __iter__(self) -> "BatchStream":
+        return self
+
+    def __next__(self) -> Batch:
+        return next(self._batches)
+
+    def close(self) -> None:
+        self._call.cancel()
+
+    def __enter__(self) -> "BatchStream":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
