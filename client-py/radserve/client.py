@@ -62,6 +62,7 @@ class SessionInfo:
                 "samples": message.replay.samples,
                 "memory_bytes": message.replay.memory_bytes,
                 "frames_per_transition": message.replay.frames_per_transition,
+                "active_streams": message.replay.active_streams,
             }
             if message.HasField("replay")
             else None,

@@ -142,20 +142,22 @@ class ReplayOptions(_message.Message):
     def __init__(self, capacity: _Optional[int] = ...) -> None: ...
 
 class ReplayInfo(_message.Message):
-    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition")
+    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition", "active_streams")
     CAPACITY_FIELD_NUMBER: _ClassVar[int]
     SIZE_FIELD_NUMBER: _ClassVar[int]
     INSERTS_FIELD_NUMBER: _ClassVar[int]
     SAMPLES_FIELD_NUMBER: _ClassVar[int]
     MEMORY_BYTES_FIELD_NUMBER: _ClassVar[int]
     FRAMES_PER_TRANSITION_FIELD_NUMBER: _ClassVar[int]
+    ACTIVE_STREAMS_FIELD_NUMBER: _ClassVar[int]
     capacity: int
     size: int
     inserts: int
     samples: int
     memory_bytes: int
     frames_per_transition: float
-    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ...) -> None: ...
+    active_streams: int
+    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ..., active_streams: _Optional[int] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
     __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay")

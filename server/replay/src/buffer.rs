@@ -8,6 +8,9 @@
 //! keeps obs and next_obs stacks separately, `2k` frames per transition; this one keeps slightly
 //! more than one (one extra frame per episode, plus `k` per environment for the oldest stacks).
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
 use rand::Rng;
 
 use crate::error::{ReplayError, Result};
@@ -104,6 +107,8 @@ pub struct ReplayBuffer {
     /// Per env: whether an episode is in progress (a first frame was recorded and it has not ended).
     in_episode: Vec<bool>,
     counters: ReplayCounters,
+    /// Producers (sample streams) running on this buffer.
+    active_producers: Arc<AtomicUsize>,
 }
 
 /// One env's outcome of a step, as the session records it.
@@ -137,6 +142,7 @@ impl ReplayBuffer {
             written: vec![0; layout.num_envs],
             in_episode: vec![false; layout.num_envs],
             counters: ReplayCounters::default(),
+            active_producers: Arc::default(),
         })
     }
 
@@ -146,6 +152,15 @@ impl ReplayBuffer {
 
     pub fn counters(&self) -> ReplayCounters {
         self.counters
+    }
+
+    /// Sample streams producing from this buffer now.
+    pub fn active_producers(&self) -> usize {
+        self.active_producers.load(Ordering::Relaxed)
+    }
+
+    pub(crate) fn producer_counter(&self) -> Arc<AtomicUsize> {
+        self.active_producers.clone()
     }
 
     /// Transitions that can be sampled now.

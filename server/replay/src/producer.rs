@@ -139,6 +139,16 @@ impl Producer {
     }
 
     fn run(self, pool: &rayon::ThreadPool, ready: tokio::sync::mpsc::Sender<Result<Batch>>) {
+        /// Counts this producer among the buffer's active ones until the thread ends.
+        struct Active(Arc<std::sync::atomic::AtomicUsize>);
+        impl Drop for Active {
+            fn drop(&mut self) {
+                self.0.fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+        let counter = self.buffer.read().expect("replay lock").producer_counter();
+        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let _active = Active(counter);
         let mut rng = ChaCha8Rng::seed_from_u64(self.spec.seed);
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {

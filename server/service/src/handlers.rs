@@ -157,7 +157,16 @@ impl RadServe for RadServeService {
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
         let session_id = request.session_id;
         tokio::spawn(async move {
-            while let Some(batch) = ready.recv().await {
+            loop {
+                // A client that leaves while the producer waits for data must still free it.
+                let batch = tokio::select! {
+                    batch = ready.recv() => batch,
+                    () = sender.closed() => {
+                        debug!(session = %session_id, "sample stream cancelled while waiting");
+                        return;
+                    }
+                };
+                let Some(batch) = batch else { break };
                 let batch = match batch {
                     Ok(batch) => batch,
                     Err(error) => {

@@ -45,6 +45,8 @@ pub struct ReplayInfo {
     pub samples: u64,
     pub memory_bytes: u64,
     pub frames_per_transition: f64,
+    /// SampleBatches streams producing from it now.
+    pub active_streams: usize,
 }
 
 /// What a sampler needs of a session: its buffer and what its observations and actions are.
@@ -414,6 +416,7 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
                 samples: replay.counters().samples,
                 memory_bytes: layout.memory_bytes() as u64,
                 frames_per_transition: layout.frames_per_transition(),
+                active_streams: replay.active_producers(),
             }
         }),
     }

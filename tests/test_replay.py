@@ -1,0 +1,204 @@
+"""Replay buffers and augmented minibatch streams, end to end: act with random actions through the
+real server, then check every sampled transition against what the acting client saw."""
+
+import time
+
+import numpy as np
+import pytest
+
+import radserve
+
+
+def act(envs, steps, seed=0):
+    """Step `envs` with random actions; returns {(env, step index): the transition the client saw}."""
+    envs.action_space.seed(seed)
+    obs, _ = envs.reset(seed=seed)
+    seen = {}
+    for step in range(steps):
+        actions = envs.action_space.sample()
+        next_obs, rewards, terminated, truncated, infos = envs.step(actions)
+        for env in range(envs.num_envs):
+            ended = terminated[env] or truncated[env]
+            true_next = infos["final_obs"][env] if ended else next_obs[env]
+            seen[(env, step)] = dict(
+                obs=np.array(obs[env]), action=np.array(actions[env]), reward=np.float32(rewards[env]),
+                terminated=bool(terminated[env]), truncated=bool(truncated[env]), next_obs=np.array(true_next),
+            )
+        obs = next_obs
+    return seen
+
+
+def samples(batch):
+    for i in range(len(batch)):
+        yield i, (int(batch.env_index[i]), int(batch.step_index[i]))
+
+
+@pytest.fixture(scope="module")
+def cartpole(client):
+    """CartPole with stacks of 3: short random episodes, so stacks cross many episode starts."""
+    envs = client.make_vec("gym/CartPole-v1", num_envs=3, seed=5, replay_capacity=5000, frame_stack=3)
+    seen = act(envs, 150, seed=5)
+    yield envs, seen
+    envs.close()
+
+
+@pytest.fixture(scope="module")
+def cheetah(client):
+    envs = client.make_vec("dmc/cheetah-run", num_envs=2, seed=3, replay_capacity=1000, render_profile="fast")
+    seen = act(envs, 40, seed=3)
+    yield envs, seen
+    envs.close()
+
+
+def test_sampled_transitions_are_the_ones_the_client_saw(client, cartpole):
+    envs, seen = cartpole
+    episodes = sum(t["terminated"] or t["truncated"] for t in seen.values())
+    assert episodes >= 10, "random CartPole episodes end often"
+    with client.sample_batches(envs.session_id, 256, max_batches=4, seed=1) as stream:
+        batches = list(stream)
+    assert [b.index for b in batches] == [0, 1, 2, 3]
+    checked = set()
+    for batch in batches:
+        assert batch.obs.shape == (256, 12) and batch.obs.dtype == np.float32
+        for i, key in samples(batch):
+            want = seen[key]
+            # Stacks never leak a frame of another episode: they equal the client's own stacks,
+            # which the server padded with the episode's first frame at every reset.
+            np.testing.assert_array_equal(batch.obs[i], want["obs"])
+            np.testing.assert_array_equal(batch.next_obs[i], want["next_obs"])
+            assert batch.action[i] == want["action"] and batch.reward[i] == want["reward"]
+            assert batch.terminated[i] == want["terminated"] and batch.truncated[i] == want["truncated"]
+            # next_obs continues obs: the newest frames of obs are the oldest of next_obs.
+            np.testing.assert_array_equal(batch.next_obs[i][:8], batch.obs[i][4:])
+            checked.add(key)
+    assert len(checked) > 300, "samples spread over the buffer"
+    assert any(seen[key]["terminated"] for key in checked)
+
+
+def test_replay_statistics(client, cartpole):
+    envs, seen = cartpole
+    replay = client.describe_session(envs.session_id).replay
+    assert replay["capacity"] == 5000 and replay["inserts"] == len(seen) == replay["size"]
+    assert replay["frames_per_transition"] <= 1.1
+    assert replay["samples"] >= 4 * 256
+
+
+def test_pixel_transitions_and_crop(client, cheetah):
+    envs, seen = cheetah
+    with client.sample_batches(envs.session_id, 32, max_batches=1) as stream:
+        (plain,) = list(stream)
+    assert plain.obs.shape == (32, 9, 100, 100) and plain.action.shape == (32, 6)
+    for i, key in samples(plain):
+        np.testing.assert_array_equal(plain.obs[i], seen[key]["obs"])
+        np.testing.assert_array_equal(plain.next_obs[i], seen[key]["next_obs"])
+        np.testing.assert_array_equal(plain.action[i], seen[key]["action"].astype(np.float32))
+
+    with client.sample_batches(envs.session_id, 32, augment="crop(84)", max_batches=2, seed=4) as stream:
+        batches = list(stream)
+    offsets = set()
+    for batch in batches:
+        assert batch.obs.shape == (32, 9, 84, 84)
+        for i, key in samples(batch):
+            for name in ("obs", "next_obs"):
+                full, cropped = seen[key][name], getattr(batch, name)[i]
+                found = [(y, x) for y in range(17) for x in range(17)
+                         if np.array_equal(full[:, y:y + 84, x:x + 84], cropped)]
+                assert found, f"{name} of {key} is a window of the real observation"
+                offsets.add(found[0])
+    assert len(offsets) > 10, "crop offsets differ across samples"
+
+
+def translate_offset(full, translated):
+    """Where the 100x100 observation sits in the 108x108 canvas, checking the zeros around it."""
+    for y in range(9):
+        for x in range(9):
+            if np.array_equal(translated[:, y:y + 100, x:x + 100], full):
+                rest = translated.copy()
+                rest[:, y:y + 100, x:x + 100] = 0
+                assert not rest.any(), "zeros around the observation"
+                return y, x
+    raise AssertionError("the observation is not inside the canvas")
+
+
+def test_translate_and_draw_sharing(client, cheetah):
+    envs, seen = cheetah
+    for sharing, same in [("reference", True), ("independent", False)]:
+        with client.sample_batches(envs.session_id, 16, augment="translate(108)", sharing=sharing, max_batches=1) as s:
+            (batch,) = list(s)
+        assert batch.obs.shape == (16, 9, 108, 108)
+        pairs = [(translate_offset(seen[key]["obs"], batch.obs[i]), translate_offset(seen[key]["next_obs"], batch.next_obs[i]))
+                 for i, key in samples(batch)]
+        if same:
+            assert all(a == b for a, b in pairs), "RAD shares translate draws between obs and next_obs"
+        else:
+            assert any(a != b for a, b in pairs)
+    with client.sample_batches(envs.session_id, 16, augment="crop(84)", sharing="shared", max_batches=1) as s:
+        (batch,) = list(s)
+    for i, key in samples(batch):
+        # A shared crop cuts obs and next_obs at one offset: their common frames agree.
+        np.testing.assert_array_equal(batch.next_obs[i][:6], batch.obs[i][3:])
+
+
+def test_state_amplitude_scaling_is_shared_by_obs_and_next_obs(client, cartpole):
+    envs, seen = cartpole
+    with client.sample_batches(envs.session_id, 64, augment="ras_s(0.5, 1.5)", max_batches=1) as stream:
+        (batch,) = list(stream)
+    for i, key in samples(batch):
+        obs, next_obs = seen[key]["obs"], seen[key]["next_obs"]
+        nonzero = np.abs(obs) > 1e-3
+        factor = (batch.obs[i][nonzero] / obs[nonzero])[0]
+        assert 0.5 <= factor <= 1.5
+        np.testing.assert_allclose(batch.obs[i], obs * factor, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(batch.next_obs[i], next_obs * factor, rtol=1e-5, atol=1e-6)
+
+
+def test_bad_requests_are_refused_before_the_stream(client, cartpole, cheetah):
+    cart, _ = cartpole
+    pixels, _ = cheetah
+    cases = [
+        (dict(session_id=cart.session_id, batch_size=0), radserve.InvalidArgumentError, "batch_size must be between 1"),
+        (dict(session_id=cart.session_id, batch_size=6000), radserve.InvalidArgumentError, "replay capacity (5000)"),
+        (dict(session_id=cart.session_id, batch_size=8, augment="crop(84)"), radserve.InvalidArgumentError,
+         "applies to images, not state vectors"),
+        (dict(session_id=pixels.session_id, batch_size=8, augment="crop(120)"), radserve.InvalidArgumentError,
+         "needs frames of at least 120x120"),
+        (dict(session_id=pixels.session_id, batch_size=8, augment="grayscale(p=2)"), radserve.InvalidArgumentError,
+         "p must be a probability"),
+        (dict(session_id=pixels.session_id, batch_size=8, prefetch=100), radserve.InvalidArgumentError, "prefetch"),
+        (dict(session_id="s0-nope", batch_size=8), radserve.NotFoundError, "s0-nope"),
+    ]
+    for kwargs, error, message in cases:
+        with pytest.raises(error, match=message.replace("(", r"\(").replace(")", r"\)")):
+            client.sample_batches(**kwargs)
+
+
+def test_sessions_without_replay_and_over_budget(client):
+    envs = client.make_vec("gym/CartPole-v1", num_envs=1)
+    try:
+        with pytest.raises(radserve.FailedPreconditionError, match="keeps no replay buffer"):
+            client.sample_batches(envs.session_id, 8)
+    finally:
+        envs.close()
+    with pytest.raises(radserve.ResourceExhaustedError, match="replay budget"):
+        client.make_vec("dmc/cheetah-run", num_envs=1, replay_capacity=10**7)
+
+
+def wait_for_streams(client, session_id, count, timeout=1.0):
+    deadline = time.monotonic() + timeout
+    while client.describe_session(session_id).replay["active_streams"] != count:
+        assert time.monotonic() < deadline, f"expected {count} active sample streams within {timeout} s"
+        time.sleep(0.02)
+
+
+def test_a_client_that_leaves_releases_its_producer(client, cartpole):
+    envs, _ = cartpole
+    stream = client.sample_batches(envs.session_id, 16, prefetch=2)
+    next(stream)
+    wait_for_streams(client, envs.session_id, 1)
+    stream.close()
+    wait_for_streams(client, envs.session_id, 0)
+    # Also while the producer waits for data that never comes (min_size above what acting inserted).
+    waiting = client.sample_batches(envs.session_id, 16, min_size=4000)
+    wait_for_streams(client, envs.session_id, 1)
+    waiting.close()
+    wait_for_streams(client, envs.session_id, 0)
