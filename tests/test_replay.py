@@ -202,3 +202,36 @@ def test_a_client_that_leaves_releases_its_producer(client, cartpole):
     wait_for_streams(client, envs.session_id, 1)
     waiting.close()
     wait_for_streams(client, envs.session_id, 0)
+
+
+def test_rollout_minibatches_cover_every_step_and_env_once_per_epoch(client):
+    steps, num_envs = 32, 4
+    envs = client.make_vec("procgen/bigfish", num_envs=num_envs, seed=2, rollout_steps=steps)
+    try:
+        with pytest.raises(radserve.FailedPreconditionError, match="needs 32 steps"):
+            client.sample_batches(envs.session_id, 16, source="rollout")
+        seen = act(envs, steps + 5)  # the rollout is the last 32 of the 37 steps
+        assert client.describe_session(envs.session_id).replay["rollout_steps"] == steps
+        with pytest.raises(radserve.FailedPreconditionError, match="not a replay buffer"):
+            client.sample_batches(envs.session_id, 16)
+        stream = client.sample_batches(envs.session_id, 16, source="rollout", epochs=2, augment="crop(56)",
+                                       per_env_augmentation=True)
+        visits, offsets = [], {}
+        for batch in stream:
+            assert batch.next_obs is None and batch.obs.shape == (16, 3, 56, 56)
+            for i, key in samples(batch):
+                assert batch.step_index[i] == 5 + batch.t[i]
+                full = seen[key]["obs"]
+                found = [(y, x) for y in range(9) for x in range(9) if np.array_equal(full[:, y:y + 56, x:x + 56], batch.obs[i])]
+                assert found, "a window of the observation the client saw"
+                offsets.setdefault(int(batch.env_index[i]), set()).update(found[:1])
+                visits.append((int(batch.t[i]), int(batch.env_index[i])))
+        every = sorted((t, e) for t in range(steps) for e in range(num_envs))
+        assert len(visits) == 2 * steps * num_envs
+        assert sorted(visits[: steps * num_envs]) == every and sorted(visits[steps * num_envs:]) == every
+        assert visits[: steps * num_envs] != visits[steps * num_envs:], "a fresh order each epoch"
+        # Held per env for the whole rollout: one crop offset per env (ProcGen frames are rarely
+        # ambiguous; the first match is the offset).
+        assert all(len(found) == 1 for found in offsets.values()), offsets
+    finally:
+        envs.close()

@@ -18,7 +18,8 @@ from ._convert import _NUMPY_DTYPES
 from ._proto import radserve_pb2 as pb
 from .errors import from_rpc_error
 
-FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index")
+FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index", "t")
+OPTIONAL_FIELDS = ("next_obs", "t")
 
 SHARING = {
     "reference": pb.DRAW_SHARING_REFERENCE,
@@ -34,17 +35,20 @@ class Batch:
     `obs` and `next_obs` are augmented (uint8 frame stacks, or float32 states); `terminated` and
     `truncated` are bools (bootstrap through truncations: `not_done = ~terminated`); `env_index` and
     `step_index` say which environment and which Step call of the session produced each transition.
+    Rollout batches carry `t`, each transition's step within the rollout (0 the oldest), and no
+    `next_obs` unless asked for.
     """
 
     index: int
     obs: np.ndarray
-    next_obs: np.ndarray
     action: np.ndarray
     reward: np.ndarray
     terminated: np.ndarray
     truncated: np.ndarray
     env_index: np.ndarray
     step_index: np.ndarray
+    next_obs: "np.ndarray | None" = None
+    t: "np.ndarray | None" = None
 
     def __len__(self) -> int:
         return len(self.reward)
@@ -122,6 +126,8 @@ def iterate_batches(stream) -> Iterator[Batch]:
             if chunk.last:
                 arrays = {}
                 for name in FIELDS:
+                    if name not in buffers and name in OPTIONAL_FIELDS:
+                        continue
                     raw, dtype, shape = buffers[name]
                     arrays[name] = raw.view(_NUMPY_DTYPES[dtype]).reshape(shape)
                 arrays["terminated"] = arrays["terminated"].astype(bool)

@@ -63,6 +63,7 @@ class SessionInfo:
                 "memory_bytes": message.replay.memory_bytes,
                 "frames_per_transition": message.replay.frames_per_transition,
                 "active_streams": message.replay.active_streams,
+                "rollout_steps": message.replay.rollout_steps or None,
             }
             if message.HasField("replay")
             else None,
@@ -117,6 +118,7 @@ class Client:
         *,
         stream: bool = False,
         replay_capacity: "int | None" = None,
+        rollout_steps: "int | None" = None,
         **options: Any,
     ):
         """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
@@ -125,7 +127,8 @@ class Client:
         `list_envs()[...].default_options`), e.g. `pixels=False`, `frame_stack=3`, `num_levels=200`.
         With `stream=True`, reset and step go over one bidirectional stream instead of unary calls.
         With `replay_capacity`, the server records every transition into a replay buffer of that many
-        transitions, to be sampled with `sample_batches(envs.session_id, ...)`.
+        transitions, to be sampled with `sample_batches(envs.session_id, ...)`; with `rollout_steps`,
+        it keeps the last that many steps of every env as a rollout (`source="rollout"`).
         """
         from .vector import RemoteVectorEnv
 
@@ -134,7 +137,9 @@ class Client:
             num_envs=num_envs,
             seed=seed,
             options={name: _convert.option_value(value) for name, value in options.items()},
-            replay=pb.ReplayOptions(capacity=replay_capacity) if replay_capacity else None,
+            replay=pb.ReplayOptions(capacity=replay_capacity or 0, rollout_steps=rollout_steps or 0)
+            if replay_capacity or rollout_steps
+            else None,
         )
         info = SessionInfo.from_proto(self._call("CreateSession", request))
         return RemoteVectorEnv(self, info, stream=stream)
@@ -153,6 +158,10 @@ class Client:
         error_buffer: float = 0.0,
         max_batches: "int | None" = None,
         chunk_bytes: int = 0,
+        source: str = "replay",
+        epochs: int = 1,
+        per_env_augmentation: bool = False,
+        include_next_obs: "bool | None" = None,
     ):
         """Stream minibatches sampled uniformly from the session's replay buffer and augmented on
         the server: an iterator of `radserve.Batch` (numpy arrays), produced `prefetch` ahead.
@@ -161,6 +170,11 @@ class Client:
         see docs/augmentations.md); `sharing` says whether obs and next_obs share draws
         (`"reference"`: as RAD's code, `"shared"`, `"independent"`). Sampling waits for `min_size`
         transitions (default: one batch) and, with `samples_per_insert`, for acting to keep up.
+
+        `source="rollout"` serves a rollout session's last rollout instead: `epochs` passes, each
+        visiting every (t, env) once in a fresh random order (batches carry `t` and `env_index` to
+        pair with the values and advantages the learner computed), augmentation drawn per sample or,
+        with `per_env_augmentation`, once per env for the whole rollout; the stream then ends.
         Errors in the request are raised before the first batch. `close()` the stream (or use it in a
         `with` block) to stop it early.
         """
@@ -168,6 +182,9 @@ class Client:
 
         if sharing not in SHARING:
             raise ValueError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
+        sources = {"replay": pb.SOURCE_REPLAY, "rollout": pb.SOURCE_ROLLOUT}
+        if source not in sources:
+            raise ValueError(f"source must be one of {sorted(sources)}, got {source!r}")
         request = pb.SampleBatchesRequest(
             session_id=session_id,
             batch_size=batch_size,
@@ -180,6 +197,10 @@ class Client:
             error_buffer=error_buffer,
             max_batches=max_batches,
             chunk_bytes=chunk_bytes,
+            source=sources[source],
+            epochs=epochs,
+            per_env_augmentation=per_env_augmentation,
+            include_next_obs=include_next_obs,
         )
         method = self._channel.unary_stream(
             "/radserve.v1.RadServe/SampleBatches",

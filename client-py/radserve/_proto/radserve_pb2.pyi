@@ -22,6 +22,11 @@ class DrawSharing(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     DRAW_SHARING_REFERENCE: _ClassVar[DrawSharing]
     DRAW_SHARING_SHARED: _ClassVar[DrawSharing]
     DRAW_SHARING_INDEPENDENT: _ClassVar[DrawSharing]
+
+class BatchSource(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    SOURCE_REPLAY: _ClassVar[BatchSource]
+    SOURCE_ROLLOUT: _ClassVar[BatchSource]
 DTYPE_UNSPECIFIED: DType
 DTYPE_UINT8: DType
 DTYPE_INT32: DType
@@ -32,6 +37,8 @@ DTYPE_BOOL: DType
 DRAW_SHARING_REFERENCE: DrawSharing
 DRAW_SHARING_SHARED: DrawSharing
 DRAW_SHARING_INDEPENDENT: DrawSharing
+SOURCE_REPLAY: BatchSource
+SOURCE_ROLLOUT: BatchSource
 
 class Tensor(_message.Message):
     __slots__ = ("dtype", "shape", "data")
@@ -136,13 +143,15 @@ class CreateSessionRequest(_message.Message):
     def __init__(self, env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., replay: _Optional[_Union[ReplayOptions, _Mapping]] = ...) -> None: ...
 
 class ReplayOptions(_message.Message):
-    __slots__ = ("capacity",)
+    __slots__ = ("capacity", "rollout_steps")
     CAPACITY_FIELD_NUMBER: _ClassVar[int]
+    ROLLOUT_STEPS_FIELD_NUMBER: _ClassVar[int]
     capacity: int
-    def __init__(self, capacity: _Optional[int] = ...) -> None: ...
+    rollout_steps: int
+    def __init__(self, capacity: _Optional[int] = ..., rollout_steps: _Optional[int] = ...) -> None: ...
 
 class ReplayInfo(_message.Message):
-    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition", "active_streams")
+    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition", "active_streams", "rollout_steps")
     CAPACITY_FIELD_NUMBER: _ClassVar[int]
     SIZE_FIELD_NUMBER: _ClassVar[int]
     INSERTS_FIELD_NUMBER: _ClassVar[int]
@@ -150,6 +159,7 @@ class ReplayInfo(_message.Message):
     MEMORY_BYTES_FIELD_NUMBER: _ClassVar[int]
     FRAMES_PER_TRANSITION_FIELD_NUMBER: _ClassVar[int]
     ACTIVE_STREAMS_FIELD_NUMBER: _ClassVar[int]
+    ROLLOUT_STEPS_FIELD_NUMBER: _ClassVar[int]
     capacity: int
     size: int
     inserts: int
@@ -157,7 +167,8 @@ class ReplayInfo(_message.Message):
     memory_bytes: int
     frames_per_transition: float
     active_streams: int
-    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ..., active_streams: _Optional[int] = ...) -> None: ...
+    rollout_steps: int
+    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ..., active_streams: _Optional[int] = ..., rollout_steps: _Optional[int] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
     __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay")
@@ -302,7 +313,7 @@ class AugmentationPipeline(_message.Message):
     def __init__(self, stages: _Optional[_Iterable[_Union[AugmentationStage, _Mapping]]] = ...) -> None: ...
 
 class SampleBatchesRequest(_message.Message):
-    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes")
+    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     PIPELINE_FIELD_NUMBER: _ClassVar[int]
@@ -315,6 +326,10 @@ class SampleBatchesRequest(_message.Message):
     ERROR_BUFFER_FIELD_NUMBER: _ClassVar[int]
     MAX_BATCHES_FIELD_NUMBER: _ClassVar[int]
     CHUNK_BYTES_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    EPOCHS_FIELD_NUMBER: _ClassVar[int]
+    PER_ENV_AUGMENTATION_FIELD_NUMBER: _ClassVar[int]
+    INCLUDE_NEXT_OBS_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     batch_size: int
     pipeline: AugmentationPipeline
@@ -327,7 +342,11 @@ class SampleBatchesRequest(_message.Message):
     error_buffer: float
     max_batches: int
     chunk_bytes: int
-    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ...) -> None: ...
+    source: BatchSource
+    epochs: int
+    per_env_augmentation: bool
+    include_next_obs: bool
+    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ...) -> None: ...
 
 class BatchChunk(_message.Message):
     __slots__ = ("batch_index", "field", "dtype", "shape", "offset", "field_bytes", "last", "data")

@@ -100,7 +100,7 @@ fn preview_pipelines(side: usize) -> Vec<String> {
 async fn render_frame(manager: &SessionManager, env: &str, seed: u64) -> anyhow::Result<(Vec<u8>, usize)> {
     let mut overrides = Options::new();
     overrides.insert("frame_stack".into(), OptionValue::Int(1));
-    let info = manager.create_session(env, 1, seed, &overrides, 0).await?;
+    let info = manager.create_session(env, 1, seed, &overrides, None).await?;
     let Space::Box { dtype: DType::Uint8, shape, .. } = &info.observation_space else {
         bail!("{env} does not observe images ({}); pick a pixel environment", info.observation_space.describe());
     };

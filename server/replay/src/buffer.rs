@@ -15,10 +15,22 @@ use rand::Rng;
 
 use crate::error::{ReplayError, Result};
 
+/// Whether a buffer serves uniform replay or the last rollout.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum BufferKind {
+    /// Off-policy replay: uniform sampling with replacement over the last `capacity` transitions.
+    #[default]
+    Replay,
+    /// On-policy rollouts: the last `steps` steps of every environment, served in permuted epochs.
+    Rollout { steps: usize },
+}
+
 /// What a replay buffer stores, fixed at creation.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ReplayLayout {
-    /// Transitions kept, over all environments (the oldest are overwritten).
+    pub kind: BufferKind,
+    /// Transitions kept, over all environments (the oldest are overwritten). For a rollout,
+    /// `steps * num_envs`.
     pub capacity: usize,
     pub num_envs: usize,
     /// Frames per observation stack.
@@ -33,7 +45,16 @@ impl ReplayLayout {
     /// Slots in each environment's ring: its share of the capacity, plus the `frame_stack` frames
     /// the oldest transition's observation reaches back to.
     pub fn slots_per_env(&self) -> usize {
-        self.capacity.div_ceil(self.num_envs) + self.frame_stack
+        match self.kind {
+            BufferKind::Replay => self.capacity.div_ceil(self.num_envs) + self.frame_stack,
+            // Every step may end an episode and add a first frame: room for two frames a step.
+            BufferKind::Rollout { steps } => 2 * steps + self.frame_stack,
+        }
+    }
+
+    /// A rollout buffer for the last `steps` steps of `num_envs` environments.
+    pub fn rollout(steps: usize, num_envs: usize, frame_stack: usize, frame_bytes: usize, action_bytes: usize) -> Self {
+        Self { kind: BufferKind::Rollout { steps }, capacity: steps * num_envs, num_envs, frame_stack, frame_bytes, action_bytes }
     }
 
     /// Bytes of one slot: the frame and its transition's metadata.
@@ -106,6 +127,8 @@ pub struct ReplayBuffer {
     written: Vec<u64>,
     /// Per env: whether an episode is in progress (a first frame was recorded and it has not ended).
     in_episode: Vec<bool>,
+    /// One past the largest step index recorded.
+    steps_recorded: u64,
     counters: ReplayCounters,
     /// Producers (sample streams) running on this buffer.
     active_producers: Arc<AtomicUsize>,
@@ -141,6 +164,7 @@ impl ReplayBuffer {
             step_indices: vec![0; total],
             written: vec![0; layout.num_envs],
             in_episode: vec![false; layout.num_envs],
+            steps_recorded: 0,
             counters: ReplayCounters::default(),
             active_producers: Arc::default(),
         })
@@ -216,6 +240,7 @@ impl ReplayBuffer {
         self.episode_starts[slot] = episode_start;
         self.step_indices[slot] = step.step_index;
         self.counters.inserts += 1;
+        self.steps_recorded = self.steps_recorded.max(step.step_index + 1);
         if step.terminated || step.truncated {
             self.in_episode[env] = false;
         }
@@ -266,6 +291,43 @@ impl ReplayBuffer {
         }
         self.counters.samples += count as u64;
         Ok(())
+    }
+
+    /// The transitions of the last `steps` steps of every env, `[t][env]` (t = 0 the oldest),
+    /// and the step index of t = 0; refused while fewer steps were recorded.
+    pub fn rollout(&self, steps: usize) -> Result<(Vec<TransitionRef>, u64)> {
+        let end = self.steps_recorded;
+        let num_envs = self.layout.num_envs;
+        if end < steps as u64 {
+            return Err(ReplayError::FailedPrecondition(format!(
+                "the rollout needs {steps} steps of every env; only {end} were taken since the session was created"
+            )));
+        }
+        let start = end - steps as u64;
+        let mut table: Vec<Option<TransitionRef>> = vec![None; steps * num_envs];
+        for env in 0..num_envs {
+            for frame in self.oldest_sampleable(env)..self.written[env] {
+                let slot = self.slot(env, frame);
+                let step = self.step_indices[slot];
+                if self.flags[slot] & FIRST_OF_EPISODE == 0 && (start..end).contains(&step) {
+                    table[(step - start) as usize * num_envs + env] = Some(TransitionRef { env, frame });
+                }
+            }
+        }
+        let missing = table.iter().filter(|entry| entry.is_none()).count();
+        if missing > 0 {
+            return Err(ReplayError::FailedPrecondition(format!(
+                "{missing} of the {} transitions of steps {start}..{end} are not in the rollout (a reset or a \
+                 crashed worker interrupted it); take {steps} more steps",
+                table.len()
+            )));
+        }
+        Ok((table.into_iter().map(|entry| entry.expect("checked above")).collect(), start))
+    }
+
+    /// Count transitions handed out by a sampler that did not draw them through `sample`.
+    pub fn count_samples(&mut self, count: usize) {
+        self.counters.samples += count as u64;
     }
 
     /// Copy the observation (`next == false`) or next observation stack of a sampled transition

@@ -8,6 +8,6 @@ mod buffer;
 mod error;
 mod producer;
 
-pub use buffer::{RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata, TransitionRef};
+pub use buffer::{BufferKind, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata, TransitionRef};
 pub use error::{ReplayError, Result};
-pub use producer::{Batch, ObservationFormat, Producer, SampleSpec};
+pub use producer::{Batch, ObservationFormat, Producer, SampleSpec, Source};

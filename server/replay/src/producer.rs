@@ -8,11 +8,12 @@ use std::sync::{Arc, RwLock};
 use std::time::Duration;
 
 use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline, Sharing, StatePlan, View};
+use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::buffer::{ReplayBuffer, TransitionMetadata, TransitionRef};
+use crate::buffer::{BufferKind, ReplayBuffer, TransitionMetadata, TransitionRef};
 use crate::error::{ReplayError, Result};
 
 /// What one observation is, for choosing the augmentation plan.
@@ -24,10 +25,25 @@ pub enum ObservationFormat {
     State(usize),
 }
 
+/// Where a stream's transitions come from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Source {
+    /// Uniform with replacement from a replay buffer.
+    #[default]
+    Replay,
+    /// Every transition of the last rollout once per epoch, in a fresh random order each epoch.
+    /// With `per_env_draws`, augmentation parameters are drawn once per environment and held for
+    /// the whole rollout (the paper's PPO); otherwise once per sample.
+    Rollout { epochs: usize, per_env_draws: bool },
+}
+
 /// How a stream samples and augments.
 #[derive(Clone, Debug)]
 pub struct SampleSpec {
+    pub source: Source,
     pub batch_size: usize,
+    /// Send next_obs too (off-policy learners need it; PPO does not).
+    pub include_next_obs: bool,
     pub pipeline: Pipeline,
     pub sharing: Sharing,
     pub seed: u64,
@@ -56,8 +72,11 @@ pub struct Batch {
     pub obs_float32: bool,
     /// `uint8` for images, float32 bytes (little-endian) for states.
     pub obs: Vec<u8>,
+    /// Empty when the stream does not include next observations.
     pub next_obs: Vec<u8>,
     pub metadata: TransitionMetadata,
+    /// For rollouts: each transition's step within the rollout (0 the oldest).
+    pub rollout_t: Option<Vec<u32>>,
     refs: Vec<TransitionRef>,
 }
 
@@ -98,6 +117,27 @@ impl Producer {
                 "min_size {} can never be reached: the replay capacity is {capacity}",
                 spec.min_size
             ));
+        }
+        let kind = buffer.read().expect("replay lock").layout().kind;
+        match (spec.source, kind) {
+            (Source::Replay, BufferKind::Replay) => {}
+            (Source::Rollout { epochs, .. }, BufferKind::Rollout { steps }) => {
+                if epochs == 0 {
+                    return invalid("epochs must be at least 1".into());
+                }
+                // Refused now, before the stream starts, if the rollout is not complete.
+                buffer.read().expect("replay lock").rollout(steps)?;
+            }
+            (Source::Rollout { .. }, BufferKind::Replay) => {
+                return Err(ReplayError::FailedPrecondition(
+                    "this session keeps a replay buffer, not a rollout: sample it with the replay source".into(),
+                ))
+            }
+            (Source::Replay, BufferKind::Rollout { .. }) => {
+                return Err(ReplayError::FailedPrecondition(
+                    "this session keeps a rollout, not a replay buffer: sample it with the rollout source".into(),
+                ))
+            }
         }
         if let Some(ratio) = spec.samples_per_insert {
             if !(ratio.is_finite() && ratio > 0.0 && spec.error_buffer.is_finite() && spec.error_buffer >= 0.0) {
@@ -150,13 +190,22 @@ impl Producer {
         counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let _active = Active(counter);
         let mut rng = ChaCha8Rng::seed_from_u64(self.spec.seed);
+        match self.spec.source {
+            Source::Replay => self.run_replay(pool, &ready, &mut rng),
+            Source::Rollout { epochs, per_env_draws } => self.run_rollout(pool, &ready, &mut rng, epochs, per_env_draws),
+        }
+    }
+
+    fn run_replay(&self, pool: &rayon::ThreadPool, ready: &tokio::sync::mpsc::Sender<Result<Batch>>, rng: &mut ChaCha8Rng) {
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {
-            if !self.wait_until_allowed(&ready) {
+            if !self.wait_until_allowed(ready) {
                 return;
             }
             let mut batch = Batch { index, ..Batch::default() };
-            if let Err(error) = self.fill(pool, &mut rng, &mut batch) {
+            let sampled = self.buffer.write().expect("replay lock").sample(self.spec.batch_size, rng, &mut batch.refs);
+            let seed = self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+            if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None)) {
                 let _ = ready.blocking_send(Err(error));
                 return;
             }
@@ -164,6 +213,55 @@ impl Producer {
                 return; // the client left
             }
             index += 1;
+        }
+    }
+
+    fn run_rollout(
+        &self,
+        pool: &rayon::ThreadPool,
+        ready: &tokio::sync::mpsc::Sender<Result<Batch>>,
+        rng: &mut ChaCha8Rng,
+        epochs: usize,
+        per_env_draws: bool,
+    ) {
+        let BufferKind::Rollout { steps } = self.buffer.read().expect("replay lock").layout().kind else {
+            unreachable!("checked in Producer::new")
+        };
+        let table = match self.buffer.read().expect("replay lock").rollout(steps) {
+            Ok((table, _start)) => table,
+            Err(error) => {
+                let _ = ready.blocking_send(Err(error));
+                return;
+            }
+        };
+        let num_envs = table.len() / steps;
+        let mut index = 0u64;
+        for _ in 0..epochs {
+            let mut order: Vec<usize> = (0..table.len()).collect();
+            order.shuffle(rng);
+            for chunk in order.chunks(self.spec.batch_size) {
+                if self.spec.max_batches.is_some_and(|max| index >= max) || ready.is_closed() {
+                    return;
+                }
+                let mut batch = Batch { index, ..Batch::default() };
+                batch.refs = chunk.iter().map(|&position| table[position]).collect();
+                batch.rollout_t = Some(chunk.iter().map(|&position| (position / num_envs) as u32).collect());
+                self.buffer.write().expect("replay lock").count_samples(chunk.len());
+                // Held per env: one seed for the whole stream, keyed by env; else per batch and sample.
+                let (seed, keys) = if per_env_draws {
+                    (self.spec.seed, Some(batch.refs.iter().map(|transition| transition.env as u64).collect::<Vec<_>>()))
+                } else {
+                    (self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15), None)
+                };
+                if let Err(error) = self.fill(pool, &mut batch, seed, keys.as_deref()) {
+                    let _ = ready.blocking_send(Err(error));
+                    return;
+                }
+                if ready.blocking_send(Ok(batch)).is_err() {
+                    return;
+                }
+                index += 1;
+            }
         }
     }
 
@@ -189,18 +287,18 @@ impl Producer {
         }
     }
 
-    fn fill(&self, pool: &rayon::ThreadPool, rng: &mut ChaCha8Rng, batch: &mut Batch) -> Result<()> {
-        let size = self.spec.batch_size;
+    /// Gather and augment the transitions in `batch.refs`; sample i draws with `keys[i]` (default i).
+    fn fill(&self, pool: &rayon::ThreadPool, batch: &mut Batch, draw_seed: u64, keys: Option<&[u64]>) -> Result<()> {
+        let size = batch.refs.len();
         batch.len = size;
         batch.obs_shape.clone_from(&self.obs_shape);
         batch.obs_float32 = matches!(self.plan, Plan::State(_));
         batch.obs.resize(size * self.obs_bytes, 0);
-        batch.next_obs.resize(size * self.obs_bytes, 0);
-        // Sampling bumps the counters, so it takes the write lock, briefly; the copies take the read lock.
-        self.buffer.write().expect("replay lock").sample(size, rng, &mut batch.refs)?;
+        if self.spec.include_next_obs {
+            batch.next_obs.resize(size * self.obs_bytes, 0);
+        }
         let buffer = self.buffer.read().expect("replay lock");
         buffer.gather_metadata(&batch.refs, &mut batch.metadata);
-        let draw_seed = self.spec.seed ^ batch.index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
         let draws = Draws { seed: draw_seed, view: View::Obs, sharing: self.spec.sharing };
         let stack_bytes = buffer.layout().frame_stack * buffer.layout().frame_bytes;
         let refs = &batch.refs;
@@ -209,7 +307,8 @@ impl Producer {
                 for (view, out) in [(View::Obs, &mut batch.obs), (View::NextObs, &mut batch.next_obs)] {
                     let draws = draws.with_view(view);
                     out.par_chunks_mut(self.obs_bytes).enumerate().for_each(|(sample, dst)| {
-                        let params = plan.draw(&draws, sample as u64);
+                        let key = keys.map_or(sample as u64, |keys| keys[sample]);
+                        let params = plan.draw(&draws, key);
                         STACK.with(|stack| {
                             let mut stack = stack.borrow_mut();
                             stack.resize(stack_bytes, 0);
@@ -221,13 +320,16 @@ impl Producer {
             }),
             Plan::State(plan) => {
                 for (view, out) in [(View::Obs, &mut batch.obs), (View::NextObs, &mut batch.next_obs)] {
+                    if out.is_empty() {
+                        continue;
+                    }
                     for (sample, dst) in out.chunks_exact_mut(self.obs_bytes).enumerate() {
                         buffer.copy_observation(refs[sample], view == View::NextObs, dst);
                     }
                     let values: Vec<f32> =
                         out.chunks_exact(4).map(|bytes| f32::from_le_bytes(bytes.try_into().unwrap())).collect();
                     let mut augmented = vec![0.0f32; values.len()];
-                    plan.apply(&values, &mut augmented, &draws.with_view(view))?;
+                    plan.apply_keyed(&values, &mut augmented, &draws.with_view(view), keys)?;
                     for (bytes, value) in out.chunks_exact_mut(4).zip(&augmented) {
                         bytes.copy_from_slice(&value.to_le_bytes());
                     }

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
 
 use radserve_augment::{FrameShape, Pipeline, Sharing};
-use radserve_replay::{ObservationFormat, Producer, RecordedStep, ReplayBuffer, ReplayLayout, SampleSpec, TransitionRef};
+use radserve_replay::{BufferKind, ObservationFormat, Producer, RecordedStep, ReplayBuffer, ReplayLayout, SampleSpec, Source, TransitionRef};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -37,7 +37,7 @@ struct Expected {
 /// Drive `num_envs` envs for `steps` steps with random episode ends; returns the buffer and, keyed
 /// by (env, step index), every transition with the stacks a correct buffer must rebuild.
 fn simulate(num_envs: usize, capacity: usize, steps: u64, seed: u64) -> (ReplayBuffer, HashMap<(u32, u64), Expected>) {
-    let layout = ReplayLayout { capacity, num_envs, frame_stack: 3, frame_bytes: FRAME_BYTES, action_bytes: 2 };
+    let layout = ReplayLayout { kind: BufferKind::Replay, capacity, num_envs, frame_stack: 3, frame_bytes: FRAME_BYTES, action_bytes: 2 };
     let mut buffer = ReplayBuffer::new(layout).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut episode = vec![0u32; num_envs];
@@ -129,7 +129,7 @@ fn sampling_is_uniform_over_stored_transitions() {
 
 #[test]
 fn memory_is_computed_up_front_and_frames_are_stored_about_once() {
-    let layout = ReplayLayout { capacity: 100_000, num_envs: 1, frame_stack: 3, frame_bytes: 3 * 100 * 100, action_bytes: 24 };
+    let layout = ReplayLayout { kind: BufferKind::Replay, capacity: 100_000, num_envs: 1, frame_stack: 3, frame_bytes: 3 * 100 * 100, action_bytes: 24 };
     assert!(layout.frames_per_transition() < 1.001);
     assert_eq!(layout.memory_bytes(), 100_003 * (30_000 + 24 + 21));
     let many = ReplayLayout { num_envs: 16, ..layout };
@@ -142,7 +142,7 @@ fn memory_is_computed_up_front_and_frames_are_stored_about_once() {
 
 #[test]
 fn an_empty_buffer_refuses_to_sample() {
-    let layout = ReplayLayout { capacity: 10, num_envs: 1, frame_stack: 3, frame_bytes: 4, action_bytes: 1 };
+    let layout = ReplayLayout { kind: BufferKind::Replay, capacity: 10, num_envs: 1, frame_stack: 3, frame_bytes: 4, action_bytes: 1 };
     let mut buffer = ReplayBuffer::new(layout).unwrap();
     let mut refs = Vec::new();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
@@ -157,6 +157,8 @@ fn an_empty_buffer_refuses_to_sample() {
 fn producer(buffer: ReplayBuffer, text: &str, batch_size: usize) -> (Producer, Arc<RwLock<ReplayBuffer>>) {
     let shared = Arc::new(RwLock::new(buffer));
     let spec = SampleSpec {
+        source: Source::Replay,
+        include_next_obs: true,
         batch_size,
         pipeline: Pipeline::parse(text).unwrap(),
         sharing: Sharing::Reference,
@@ -202,6 +204,8 @@ fn the_producer_augments_and_checks_the_request_first() {
     let batch = ready.blocking_recv().unwrap().unwrap();
     assert_eq!(batch.obs.len(), 8 * 9 * 3 * 3);
     let spec = |batch_size, text: &str, prefetch| SampleSpec {
+        source: Source::Replay,
+        include_next_obs: true,
         batch_size,
         pipeline: Pipeline::parse(text).unwrap(),
         sharing: Sharing::Reference,
@@ -227,6 +231,8 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
     let inserts = buffer.counters().inserts;
     let shared = Arc::new(RwLock::new(buffer));
     let spec = SampleSpec {
+        source: Source::Replay,
+        include_next_obs: true,
         batch_size: 10,
         pipeline: Pipeline::identity(),
         sharing: Sharing::Reference,
@@ -248,4 +254,128 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
     std::thread::sleep(std::time::Duration::from_millis(100));
     assert!(ready.try_recv().is_err(), "no batch beyond the ratio");
     assert_eq!(shared.read().unwrap().counters().samples, allowed * 10);
+}
+
+/// A rollout of `steps` steps of `num_envs` envs with random episode ends, recorded as sessions do.
+fn rollout_buffer(steps: u64, num_envs: usize, extra_steps: u64) -> ReplayBuffer {
+    let layout = ReplayLayout::rollout(steps as usize, num_envs, 3, FRAME_BYTES, 2);
+    let mut buffer = ReplayBuffer::new(layout).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut t = vec![0u32; num_envs];
+    let mut episode = vec![0u32; num_envs];
+    for env in 0..num_envs {
+        buffer.record_first_frame(env, &frame(env, 0, 0), 0);
+    }
+    for step in 0..steps + extra_steps {
+        for env in 0..num_envs {
+            let ends = rng.random_bool(0.3);
+            t[env] += 1;
+            let next = frame(env, episode[env], t[env]);
+            let action = [step as u8, env as u8];
+            buffer.record_step(env, &RecordedStep { action: &action, reward: 0.0, terminated: ends, truncated: false, next_frame: &next, step_index: step });
+            if ends {
+                episode[env] += 1;
+                t[env] = 0;
+                buffer.record_first_frame(env, &frame(env, episode[env], 0), step + 1);
+            }
+        }
+    }
+    buffer
+}
+
+fn rollout_spec(batch_size: usize, epochs: usize, per_env_draws: bool, text: &str) -> SampleSpec {
+    SampleSpec {
+        source: Source::Rollout { epochs, per_env_draws },
+        include_next_obs: false,
+        batch_size,
+        pipeline: Pipeline::parse(text).unwrap(),
+        sharing: Sharing::Reference,
+        seed: 4,
+        prefetch: 2,
+        min_size: 0,
+        samples_per_insert: None,
+        error_buffer: 0.0,
+        max_batches: None,
+    }
+}
+
+#[test]
+fn rollout_epochs_cover_every_step_of_every_env_exactly_once() {
+    // Episodes end at 30% of steps, so the ring holds many first frames; and 7 steps were taken
+    // after an older rollout's worth, which must not appear.
+    let (steps, num_envs) = (16u64, 4);
+    let shared = Arc::new(RwLock::new(rollout_buffer(steps, num_envs, 7)));
+    let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), rollout_spec(12, 3, false, "none")).unwrap();
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
+    let mut ready = producer.start(pool);
+    let mut epochs: Vec<Vec<(u32, u32)>> = vec![Vec::new()];
+    let mut batches = 0;
+    while let Some(batch) = ready.blocking_recv() {
+        let batch = batch.unwrap();
+        assert!(batch.next_obs.is_empty(), "rollouts leave next_obs out");
+        let t = batch.rollout_t.as_ref().unwrap();
+        #[allow(clippy::needless_range_loop)] // one index into several parallel arrays
+        for sample in 0..batch.len {
+            let (env, step) = (batch.metadata.env_indices[sample], batch.metadata.step_indices[sample]);
+            assert_eq!(step, 7 + u64::from(t[sample]), "t counts from the oldest step of the last rollout");
+            assert_eq!(batch.metadata.actions[sample * 2..sample * 2 + 2], [step as u8, env as u8]);
+            let current = epochs.last_mut().unwrap();
+            current.push((t[sample], env));
+            if current.len() == (steps as usize) * num_envs {
+                epochs.push(Vec::new());
+            }
+        }
+        batches += 1;
+    }
+    epochs.pop();
+    assert_eq!(epochs.len(), 3);
+    assert_eq!(batches, 3 * (64usize).div_ceil(12));
+    for epoch in &epochs {
+        let mut sorted = epoch.clone();
+        sorted.sort();
+        let all: Vec<(u32, u32)> = (0..steps as u32).flat_map(|t| (0..num_envs as u32).map(move |e| (t, e))).collect();
+        assert_eq!(sorted, all, "each (t, env) exactly once per epoch");
+    }
+    assert_ne!(epochs[0], epochs[1], "a fresh order each epoch");
+}
+
+#[test]
+fn rollout_draws_can_be_held_per_environment() {
+    let shared = Arc::new(RwLock::new(rollout_buffer(8, 3, 0)));
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
+    for (per_env, held) in [(true, true), (false, false)] {
+        let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), rollout_spec(24, 2, per_env, "crop(2)")).unwrap();
+        let mut ready = producer.start(pool.clone());
+        // Crop offsets, recovered from the frames' first bytes: byte 0 (env) sits at (0, 0) only
+        // when the crop starts at the top-left corner, so compare whole crops of equal frames.
+        let mut offsets: HashMap<u32, std::collections::HashSet<Vec<u8>>> = HashMap::new();
+        while let Some(batch) = ready.blocking_recv() {
+            let batch = batch.unwrap();
+            for sample in 0..batch.len {
+                let plane = &batch.obs[sample * 9 * 4..sample * 9 * 4 + 4];
+                // The position of the env byte tells the offset: (0,0) keeps it, others do not.
+                let signature = plane.iter().map(|&v| u8::from(v == batch.metadata.env_indices[sample] as u8)).collect();
+                offsets.entry(batch.metadata.env_indices[sample]).or_default().insert(signature);
+            }
+        }
+        let varied = offsets.values().any(|set| set.len() > 1);
+        assert_eq!(!varied, held, "per_env_draws={per_env}: {offsets:?}");
+    }
+}
+
+#[test]
+fn rollout_requests_are_checked_against_the_buffer() {
+    let rollout = Arc::new(RwLock::new(rollout_buffer(8, 2, 0)));
+    let image = ObservationFormat::Image(SHAPE);
+    let replay_spec = SampleSpec { source: Source::Replay, ..rollout_spec(4, 1, false, "none") };
+    let message = Producer::new(rollout.clone(), image, replay_spec).err().unwrap().to_string();
+    assert!(message.contains("keeps a rollout, not a replay buffer"), "{message}");
+    let (replay, _) = simulate(1, 50, 20, 1);
+    let message = Producer::new(Arc::new(RwLock::new(replay)), image, rollout_spec(4, 1, false, "none")).err().unwrap().to_string();
+    assert!(message.contains("keeps a replay buffer, not a rollout"), "{message}");
+    let short = Arc::new(RwLock::new(ReplayBuffer::new(ReplayLayout::rollout(8, 2, 3, FRAME_BYTES, 2)).unwrap()));
+    let message = Producer::new(short, image, rollout_spec(4, 1, false, "none")).err().unwrap().to_string();
+    assert!(message.contains("needs 8 steps of every env; only 0 were taken"), "{message}");
+    let message = Producer::new(rollout, image, rollout_spec(4, 0, false, "none")).err().unwrap().to_string();
+    assert!(message.contains("epochs must be at least 1"), "{message}");
 }

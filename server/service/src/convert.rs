@@ -3,8 +3,8 @@
 use std::collections::HashMap;
 
 use radserve_augment::{Pipeline, Sharing};
-use radserve_replay::{Batch, SampleSpec};
-use radserve_sim::{CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, Space, StepOutcome};
+use radserve_replay::{Batch, SampleSpec, Source};
+use radserve_sim::{BufferRequest, CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, Space, StepOutcome};
 use tonic::Status;
 
 use crate::proto;
@@ -114,8 +114,19 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
             memory_bytes: replay.memory_bytes,
             frames_per_transition: replay.frames_per_transition,
             active_streams: replay.active_streams as u32,
+            rollout_steps: replay.rollout_steps.unwrap_or(0) as u32,
         }),
     }
+}
+
+/// The buffer a CreateSession asks for: a rollout when rollout_steps is set, else replay when
+/// capacity is (zero capacity: none).
+pub fn buffer_request(options: Option<&proto::ReplayOptions>) -> Option<BufferRequest> {
+    let options = options?;
+    if options.rollout_steps > 0 {
+        return Some(BufferRequest::Rollout { steps: options.rollout_steps as usize });
+    }
+    (options.capacity > 0).then_some(BufferRequest::Replay { capacity: options.capacity as usize })
 }
 
 /// Default largest chunk of tensor bytes per BatchChunk: a Python client takes 1-4 MB messages
@@ -156,13 +167,23 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
         Err(_) => return Err(Status::invalid_argument(format!("unknown DrawSharing value {}", request.sharing))),
     };
     let batch_size = request.batch_size as usize;
+    let source = match proto::BatchSource::try_from(request.source) {
+        Ok(proto::BatchSource::SourceReplay) => Source::Replay,
+        Ok(proto::BatchSource::SourceRollout) => {
+            Source::Rollout { epochs: request.epochs.max(1) as usize, per_env_draws: request.per_env_augmentation }
+        }
+        Err(_) => return Err(Status::invalid_argument(format!("unknown BatchSource value {}", request.source))),
+    };
+    let include_next_obs = request.include_next_obs.unwrap_or(source == Source::Replay);
     Ok(SampleSpec {
+        source,
+        include_next_obs,
         batch_size,
         pipeline,
         sharing,
         seed: request.seed,
         prefetch: if request.prefetch == 0 { 2 } else { request.prefetch as usize },
-        min_size: request.min_size.map_or(batch_size, |size| size as usize),
+        min_size: if source == Source::Replay { request.min_size.map_or(batch_size, |size| size as usize) } else { 0 },
         samples_per_insert: request.samples_per_insert,
         error_buffer: request.error_buffer,
         max_batches: request.max_batches,
@@ -179,7 +200,8 @@ pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> Vec<
     let int32_bytes: Vec<u8> = metadata.env_indices.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect();
     let int64_bytes: Vec<u8> = metadata.step_indices.iter().flat_map(|v| (*v as i64).to_le_bytes()).collect();
     let reward_bytes: Vec<u8> = metadata.rewards.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let fields: [(&str, proto::DType, Vec<i64>, Vec<u8>); 8] = [
+    let rollout_t: Option<Vec<u8>> = batch.rollout_t.as_ref().map(|t| t.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect());
+    let fields: [(&str, proto::DType, Vec<i64>, Vec<u8>); 9] = [
         ("obs", obs_dtype, with_batch(&batch.obs_shape), batch.obs),
         ("next_obs", obs_dtype, with_batch(&batch.obs_shape), batch.next_obs),
         ("action", dtype_to_proto(action.dtype()), with_batch(action.shape()), metadata.actions),
@@ -188,9 +210,14 @@ pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> Vec<
         ("truncated", proto::DType::DtypeUint8, vec![len as i64], metadata.truncated),
         ("env_index", proto::DType::DtypeInt32, vec![len as i64], int32_bytes),
         ("step_index", proto::DType::DtypeInt64, vec![len as i64], int64_bytes),
+        ("t", proto::DType::DtypeInt32, vec![len as i64], rollout_t.unwrap_or_default()),
     ];
     let mut chunks = Vec::new();
     for (name, dtype, shape, data) in fields {
+        // Fields a stream does not carry (next_obs of rollouts, t of replay) are left out.
+        if data.is_empty() && len > 0 && matches!(name, "next_obs" | "t") {
+            continue;
+        }
         let data = prost::bytes::Bytes::from(data);
         let total = data.len();
         let mut offset = 0;

@@ -87,7 +87,7 @@ impl RadServe for RadServeService {
                 request.num_envs as usize,
                 request.seed,
                 &options,
-                request.replay.map_or(0, |replay| replay.capacity as usize),
+                convert::buffer_request(request.replay.as_ref()),
             )
             .await
             .map_err(to_status)?;

@@ -5,7 +5,7 @@ use std::hash::{BuildHasher, Hasher};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, RwLock};
 
-use radserve_replay::{ObservationFormat, ReplayBuffer, ReplayLayout};
+use radserve_replay::{BufferKind, ObservationFormat, ReplayBuffer, ReplayLayout};
 
 use serde::{Deserialize, Serialize};
 use tokio::sync::{Mutex, OnceCell};
@@ -35,6 +35,15 @@ impl Default for Limits {
     }
 }
 
+/// The buffer a session is created with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BufferRequest {
+    /// Uniform replay over the last `capacity` transitions.
+    Replay { capacity: usize },
+    /// The last `steps` steps of every env, for on-policy learners.
+    Rollout { steps: usize },
+}
+
 /// A session's replay buffer, as a client sees it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ReplayInfo {
@@ -47,6 +56,8 @@ pub struct ReplayInfo {
     pub frames_per_transition: f64,
     /// SampleBatches streams producing from it now.
     pub active_streams: usize,
+    /// For a rollout buffer: the steps per env it keeps.
+    pub rollout_steps: Option<usize>,
 }
 
 /// What a sampler needs of a session: its buffer and what its observations and actions are.
@@ -192,7 +203,7 @@ impl SessionManager {
         num_envs: usize,
         seed: u64,
         overrides: &Options,
-        replay_capacity: usize,
+        buffer: Option<BufferRequest>,
     ) -> Result<SessionInfo, SimError> {
         if num_envs == 0 {
             return Err(SimError::InvalidArgument("num_envs must be at least 1".into()));
@@ -217,8 +228,8 @@ impl SessionManager {
                 return Err(error);
             }
         };
-        if replay_capacity > 0 {
-            if let Err(error) = self.attach_replay(&mut session, replay_capacity) {
+        if let Some(buffer) = buffer {
+            if let Err(error) = self.attach_replay(&mut session, buffer) {
                 session.close().await;
                 self.release(num_envs, 1);
                 return Err(error);
@@ -270,8 +281,8 @@ impl SessionManager {
         Ok(())
     }
 
-    /// Give `session` a replay buffer of `capacity` transitions if the server's budget allows it.
-    fn attach_replay(&self, session: &mut Session, capacity: usize) -> Result<(), SimError> {
+    /// Give `session` a replay (or rollout) buffer if the server's budget allows it.
+    fn attach_replay(&self, session: &mut Session, buffer: BufferRequest) -> Result<(), SimError> {
         let frame = &session.frame_spec.observation;
         if !matches!(frame.dtype(), DType::Uint8 | DType::Float32) {
             return Err(SimError::InvalidArgument(format!(
@@ -280,13 +291,15 @@ impl SessionManager {
                 frame.describe()
             )));
         }
-        let layout = ReplayLayout {
-            capacity,
-            num_envs: session.num_envs(),
-            frame_stack: session.config.frame_stack,
-            frame_bytes: frame.num_bytes(),
-            action_bytes: session.frame_spec.action.num_bytes(),
+        let (num_envs, frame_stack) = (session.num_envs(), session.config.frame_stack);
+        let (frame_bytes, action_bytes) = (frame.num_bytes(), session.frame_spec.action.num_bytes());
+        let layout = match buffer {
+            BufferRequest::Replay { capacity } => {
+                ReplayLayout { kind: BufferKind::Replay, capacity, num_envs, frame_stack, frame_bytes, action_bytes }
+            }
+            BufferRequest::Rollout { steps } => ReplayLayout::rollout(steps, num_envs, frame_stack, frame_bytes, action_bytes),
         };
+        let capacity = layout.capacity;
         layout.validate().map_err(|error| SimError::InvalidArgument(error.to_string()))?;
         let bytes = layout.memory_bytes() as u64;
         {
@@ -417,6 +430,10 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
                 memory_bytes: layout.memory_bytes() as u64,
                 frames_per_transition: layout.frames_per_transition(),
                 active_streams: replay.active_producers(),
+                rollout_steps: match layout.kind {
+                    BufferKind::Rollout { steps } => Some(steps),
+                    BufferKind::Replay => None,
+                },
             }
         }),
     }
