@@ -1,6 +1,7 @@
 """Replay buffers and augmented minibatch streams, end to end: act with random actions through the
 real server, then check every sampled transition against what the acting client saw."""
 
+import re
 import time
 
 import numpy as np
@@ -235,3 +236,35 @@ def test_rollout_minibatches_cover_every_step_and_env_once_per_epoch(client):
         assert all(len(found) == 1 for found in offsets.values()), offsets
     finally:
         envs.close()
+
+
+def test_acting_through_the_evaluation_view_while_replay_keeps_raw_frames(client):
+    raw = client.make_vec("dmc/walker-walk", num_envs=2, seed=8, render_profile="fast")
+    viewed = client.make_vec("dmc/walker-walk", num_envs=2, seed=8, render_profile="fast",
+                             observation_view="center_crop(84)", replay_capacity=100)
+    try:
+        assert viewed.single_observation_space.shape == (9, 84, 84)
+        raw_obs, _ = raw.reset()
+        view_obs, _ = viewed.reset()
+        np.testing.assert_array_equal(view_obs, raw_obs[:, :, 8:92, 8:92])
+        actions = raw.action_space.sample()
+        raw_obs, *_ = raw.step(actions)
+        view_obs, *_ = viewed.step(actions)
+        np.testing.assert_array_equal(view_obs, raw_obs[:, :, 8:92, 8:92])
+        with client.sample_batches(viewed.session_id, 2, max_batches=1, min_size=1) as stream:
+            (batch,) = list(stream)
+        assert batch.obs.shape == (2, 9, 100, 100), "replay keeps the rendered frames"
+    finally:
+        raw.close()
+        viewed.close()
+    translated = client.make_vec("dmc/walker-walk", num_envs=1, observation_view="center_translate(108)", render_profile="fast")
+    try:
+        obs, _ = translated.reset()
+        assert obs.shape == (1, 9, 108, 108) and not obs[:, :, :4].any() and obs[:, :, 4:104, 4:104].any()
+    finally:
+        translated.close()
+    for view, message in [("crop(84)", "crop(84) is random"), ("center_crop(120)", "at least 120x120")]:
+        with pytest.raises(radserve.InvalidArgumentError, match=re.escape(message)):
+            client.make_vec("dmc/walker-walk", num_envs=1, observation_view=view)
+    with pytest.raises(radserve.InvalidArgumentError, match="views apply to image observations"):
+        client.make_vec("gym/Hopper-v5", num_envs=1, observation_view="center_crop(84)")

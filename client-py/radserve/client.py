@@ -119,6 +119,7 @@ class Client:
         stream: bool = False,
         replay_capacity: "int | None" = None,
         rollout_steps: "int | None" = None,
+        observation_view: str = "",
         **options: Any,
     ):
         """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
@@ -129,6 +130,8 @@ class Client:
         With `replay_capacity`, the server records every transition into a replay buffer of that many
         transitions, to be sampled with `sample_batches(envs.session_id, ...)`; with `rollout_steps`,
         it keeps the last that many steps of every env as a rollout (`source="rollout"`).
+        `observation_view="center_crop(84)"` (or `"center_translate(108)"`) returns observations
+        through RAD's evaluation view, matching what the learner trains on; replay keeps raw frames.
         """
         from .vector import RemoteVectorEnv
 
@@ -140,6 +143,7 @@ class Client:
             replay=pb.ReplayOptions(capacity=replay_capacity or 0, rollout_steps=rollout_steps or 0)
             if replay_capacity or rollout_steps
             else None,
+            observation_view=observation_view,
         )
         info = SessionInfo.from_proto(self._call("CreateSession", request))
         return RemoteVectorEnv(self, info, stream=stream)

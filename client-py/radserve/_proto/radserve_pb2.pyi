@@ -122,7 +122,7 @@ class ListEnvsResponse(_message.Message):
     def __init__(self, envs: _Optional[_Iterable[_Union[EnvInfo, _Mapping]]] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("env_id", "num_envs", "seed", "options", "replay")
+    __slots__ = ("env_id", "num_envs", "seed", "options", "replay", "observation_view")
     class OptionsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -135,12 +135,14 @@ class CreateSessionRequest(_message.Message):
     SEED_FIELD_NUMBER: _ClassVar[int]
     OPTIONS_FIELD_NUMBER: _ClassVar[int]
     REPLAY_FIELD_NUMBER: _ClassVar[int]
+    OBSERVATION_VIEW_FIELD_NUMBER: _ClassVar[int]
     env_id: str
     num_envs: int
     seed: int
     options: _containers.MessageMap[str, OptionValue]
     replay: ReplayOptions
-    def __init__(self, env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., replay: _Optional[_Union[ReplayOptions, _Mapping]] = ...) -> None: ...
+    observation_view: str
+    def __init__(self, env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., replay: _Optional[_Union[ReplayOptions, _Mapping]] = ..., observation_view: _Optional[str] = ...) -> None: ...
 
 class ReplayOptions(_message.Message):
     __slots__ = ("capacity", "rollout_steps")

@@ -6,7 +6,7 @@ use std::path::Path;
 use anyhow::{bail, Context};
 use radserve_augment::speed::{self, Measurement};
 use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline};
-use radserve_sim::{DType, OptionValue, Options, SessionManager, Space};
+use radserve_sim::{DType, OptionValue, Options, SessionExtras, SessionManager, Space};
 
 /// The paper's cases: crop/translate/window on 100x100 renders, the rest on 84x84 crops, three
 /// stacked RGB frames per sample.
@@ -100,7 +100,7 @@ fn preview_pipelines(side: usize) -> Vec<String> {
 async fn render_frame(manager: &SessionManager, env: &str, seed: u64) -> anyhow::Result<(Vec<u8>, usize)> {
     let mut overrides = Options::new();
     overrides.insert("frame_stack".into(), OptionValue::Int(1));
-    let info = manager.create_session(env, 1, seed, &overrides, None).await?;
+    let info = manager.create_session(env, 1, seed, &overrides, &SessionExtras::default()).await?;
     let Space::Box { dtype: DType::Uint8, shape, .. } = &info.observation_space else {
         bail!("{env} does not observe images ({}); pick a pixel environment", info.observation_space.describe());
     };

@@ -1,7 +1,7 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
-use radserve_sim::SessionManager;
+use radserve_sim::{SessionExtras, SessionManager};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
@@ -87,7 +87,10 @@ impl RadServe for RadServeService {
                 request.num_envs as usize,
                 request.seed,
                 &options,
-                convert::buffer_request(request.replay.as_ref()),
+                &SessionExtras {
+                    buffer: convert::buffer_request(request.replay.as_ref()),
+                    observation_view: (!request.observation_view.is_empty()).then(|| request.observation_view.clone()),
+                },
             )
             .await
             .map_err(to_status)?;

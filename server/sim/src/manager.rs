@@ -35,6 +35,15 @@ impl Default for Limits {
     }
 }
 
+/// What a session may have besides its environments.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct SessionExtras {
+    /// A replay or rollout buffer recording every step.
+    pub buffer: Option<BufferRequest>,
+    /// Return observations through this evaluation view (`center_crop(84)`, `center_translate(108)`).
+    pub observation_view: Option<String>,
+}
+
 /// The buffer a session is created with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BufferRequest {
@@ -203,7 +212,7 @@ impl SessionManager {
         num_envs: usize,
         seed: u64,
         overrides: &Options,
-        buffer: Option<BufferRequest>,
+        extras: &SessionExtras,
     ) -> Result<SessionInfo, SimError> {
         if num_envs == 0 {
             return Err(SimError::InvalidArgument("num_envs must be at least 1".into()));
@@ -228,12 +237,18 @@ impl SessionManager {
                 return Err(error);
             }
         };
-        if let Some(buffer) = buffer {
-            if let Err(error) = self.attach_replay(&mut session, buffer) {
-                session.close().await;
-                self.release(num_envs, 1);
-                return Err(error);
-            }
+        let prepared = match &extras.observation_view {
+            Some(view) => session.set_view(view),
+            None => Ok(()),
+        };
+        let prepared = prepared.and_then(|()| match extras.buffer {
+            Some(buffer) => self.attach_replay(&mut session, buffer),
+            None => Ok(()),
+        });
+        if let Err(error) = prepared {
+            session.close().await;
+            self.release(num_envs, 1);
+            return Err(error);
         }
         let session_id = self.new_session_id();
         let info = describe(&session_id, &session);

@@ -9,6 +9,7 @@ use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 
+use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline};
 use radserve_replay::{RecordedStep, ReplayBuffer};
 
 use crate::catalog::{EnvId, Options};
@@ -82,6 +83,8 @@ pub struct Session {
     pub step_calls: u64,
     /// Where every frame and transition is recorded, when the session keeps a replay buffer.
     replay: Option<Arc<RwLock<ReplayBuffer>>>,
+    /// The evaluation view observations are returned through (replay keeps the raw frames).
+    view: Option<ImagePlan>,
 }
 
 impl Session {
@@ -157,6 +160,7 @@ impl Session {
             episodes_completed: 0,
             step_calls: 0,
             replay: None,
+            view: None,
         };
         let attached = session.attach_all().await;
         for group in &session.groups {
@@ -187,6 +191,44 @@ impl Session {
 
     pub fn num_envs(&self) -> usize {
         self.config.num_envs
+    }
+
+    /// Return observations through `view` (a centre crop or centre translate, RAD's evaluation
+    /// views), so that a policy trained on augmented crops acts on the matching view.
+    pub fn set_view(&mut self, text: &str) -> Result<(), SimError> {
+        let invalid = |message: String| SimError::InvalidArgument(format!("observation_view {text:?}: {message}"));
+        let pipeline = Pipeline::parse(text).map_err(|error| invalid(error.to_string()))?;
+        if let Some(stage) = pipeline
+            .stages()
+            .iter()
+            .find(|stage| !matches!(stage, Augmentation::CenterCrop { .. } | Augmentation::CenterTranslate { .. }))
+        {
+            return Err(invalid(format!("only center_crop and center_translate are views; {stage} is random")));
+        }
+        let frame = &self.frame_spec.observation;
+        let (DType::Uint8, &[channels, height, width]) = (frame.dtype(), frame.shape()) else {
+            return Err(invalid(format!("views apply to image observations; this session observes {}", frame.describe())));
+        };
+        let shape = FrameShape::new(self.config.frame_stack, channels, height, width);
+        let plan = ImagePlan::new(&pipeline, shape).map_err(|error| invalid(error.to_string()))?;
+        let out = plan.output_shape();
+        self.observation_space = Space::Box {
+            dtype: DType::Uint8,
+            shape: vec![out.planes(), out.height, out.width],
+            low: vec![0.0],
+            high: vec![255.0],
+        };
+        self.view = (!plan.stages().is_empty()).then_some(plan);
+        Ok(())
+    }
+
+    /// Stacked observations `[n, ...]` as the client receives them: through the view, if any.
+    fn viewed(&self, stacks: &[u8]) -> Vec<u8> {
+        let Some(view) = &self.view else { return stacks.to_vec() };
+        let samples = stacks.len() / view.input_shape().sample_len();
+        let mut out = vec![0; samples * view.output_shape().sample_len()];
+        view.apply(stacks, &mut out, &Draws::new(0)).expect("buffers sized from the plan");
+        out
     }
 
     /// Record every frame and transition from now on into `replay` (from the next reset).
@@ -244,7 +286,7 @@ impl Session {
         self.episode_returns.iter_mut().for_each(|value| *value = 0.0);
         self.episode_lengths.iter_mut().for_each(|value| *value = 0);
         self.needs_reset = false;
-        Ok(self.stacks.clone())
+        Ok(self.viewed(&self.stacks))
     }
 
     async fn reset_group(&mut self, index: usize) -> Result<(), SimError> {
@@ -352,7 +394,8 @@ impl Session {
         }
         self.total_env_steps += num_envs as u64;
         self.step_calls += 1;
-        outcome.obs = self.stacks.clone();
+        outcome.obs = self.viewed(&self.stacks);
+        outcome.final_obs = self.viewed(&outcome.final_obs);
         Ok(outcome)
     }
 
