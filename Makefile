@@ -7,7 +7,7 @@ TORCH_STAMP := $(VENV)/.installed-torch
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build demo test test-rust test-python bench bench-sim bench-augment preview torch lock proto clean
+.PHONY: setup system-libs build demo test test-rust test-python bench bench-sim bench-augment bench-replay preview torch lock proto clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -48,14 +48,17 @@ $(TORCH_STAMP): requirements-torch.lock $(STAMP)
 	$(PYTHON) -m pip install -q -r requirements-torch.lock
 	touch $(TORCH_STAMP)
 
-## bench: every benchmark table (simulator throughput, augmentation kernels vs PyTorch)
-bench: bench-sim bench-augment
+## bench: every benchmark table (simulator throughput, augmentation kernels vs PyTorch, replay streams)
+bench: bench-sim bench-augment bench-replay
 
 bench-sim: setup
 	$(PYTHON) bench/sim_throughput.py
 
 bench-augment: setup torch
 	$(PYTHON) bench/augment_speed.py
+
+bench-replay: setup torch
+	$(PYTHON) bench/replay_stream.py
 
 ## preview: a PNG grid of a dm_control frame under every augmentation
 preview: setup

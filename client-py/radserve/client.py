@@ -166,6 +166,7 @@ class Client:
         epochs: int = 1,
         per_env_augmentation: bool = False,
         include_next_obs: "bool | None" = None,
+        repeat_first_batch: bool = False,
     ):
         """Stream minibatches sampled uniformly from the session's replay buffer and augmented on
         the server: an iterator of `radserve.Batch` (numpy arrays), produced `prefetch` ahead.
@@ -179,6 +180,7 @@ class Client:
         visiting every (t, env) once in a fresh random order (batches carry `t` and `env_index` to
         pair with the values and advantages the learner computed), augmentation drawn per sample or,
         with `per_env_augmentation`, once per env for the whole rollout; the stream then ends.
+        `repeat_first_batch` is for benchmarks: the first batch's bytes are sent again and again.
         Errors in the request are raised before the first batch. `close()` the stream (or use it in a
         `with` block) to stop it early.
         """
@@ -205,6 +207,7 @@ class Client:
             epochs=epochs,
             per_env_augmentation=per_env_augmentation,
             include_next_obs=include_next_obs,
+            repeat_first_batch=repeat_first_batch,
         )
         method = self._channel.unary_stream(
             "/radserve.v1.RadServe/SampleBatches",

@@ -159,6 +159,7 @@ impl RadServe for RadServeService {
         let mut ready = producer.start(self.augment_pool.clone());
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
         let session_id = request.session_id;
+        let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
         tokio::spawn(async move {
             loop {
                 // A client that leaves while the producer waits for data must still free it.
@@ -177,7 +178,21 @@ impl RadServe for RadServeService {
                         break;
                     }
                 };
-                for chunk in convert::batch_to_chunks(batch, &source.action_space, chunk_bytes) {
+                let chunks = convert::batch_to_chunks(batch, &source.action_space, chunk_bytes);
+                if repeat_first_batch {
+                    drop(ready);
+                    // The same chunks over and over (cloning Bytes, not data): the transport alone.
+                    for index in 0..max_batches.unwrap_or(u64::MAX) {
+                        for chunk in &chunks {
+                            let chunk = proto::BatchChunk { batch_index: index, ..chunk.clone() };
+                            if sender.send(Ok(chunk)).await.is_err() {
+                                return;
+                            }
+                        }
+                    }
+                    return;
+                }
+                for chunk in chunks {
                     // A failed send means the client left: dropping `ready` stops the producer.
                     if sender.send(Ok(chunk)).await.is_err() {
                         debug!(session = %session_id, "sample stream cancelled");

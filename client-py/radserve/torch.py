@@ -1,0 +1,57 @@
+"""Minibatches as torch tensors: `for batch in radserve.torch.tensors(client.sample_batches(...), device="cuda")`.
+
+Needs the `torch` extra (`pip install radserve[torch]`); nothing else in radserve imports torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Iterable, Iterator
+
+import numpy as np
+import torch
+
+from .batches import Batch
+
+
+@dataclass
+class TensorBatch:
+    """A Batch with every array as a tensor on `device` (uint8 observations stay uint8: scale them on
+    the device, where it is cheap)."""
+
+    index: int
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    env_index: torch.Tensor
+    step_index: torch.Tensor
+    next_obs: "torch.Tensor | None" = None
+    t: "torch.Tensor | None" = None
+
+    def __len__(self) -> int:
+        return len(self.reward)
+
+
+def to_tensors(batch: Batch, device: "torch.device | str" = "cpu", *, pin_memory: bool = False) -> TensorBatch:
+    """One Batch as tensors. The numpy arrays are shared, not copied, on the CPU; with `pin_memory`
+    they are copied into page-locked memory first so that the copy to a GPU runs asynchronously."""
+    device = torch.device(device)
+    converted = {}
+    for spec in fields(Batch):
+        value = getattr(batch, spec.name)
+        if not isinstance(value, np.ndarray):
+            converted[spec.name] = value
+            continue
+        tensor = torch.from_numpy(value)
+        if pin_memory and device.type == "cuda":
+            tensor = tensor.pin_memory()
+        converted[spec.name] = tensor.to(device, non_blocking=pin_memory)
+    return TensorBatch(**converted)
+
+
+def tensors(batches: Iterable[Batch], device: "torch.device | str" = "cpu", *, pin_memory: bool = False) -> Iterator[TensorBatch]:
+    """Every Batch of `batches` (e.g. `client.sample_batches(...)`) as a TensorBatch on `device`."""
+    for batch in batches:
+        yield to_tensors(batch, device, pin_memory=pin_memory)

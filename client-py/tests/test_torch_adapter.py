@@ -1,0 +1,30 @@
+"""The torch adapter on a real batch stream (runs where the torch extra is installed)."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import radserve  # noqa: E402
+import radserve.torch as radserve_torch  # noqa: E402
+
+
+def test_batches_become_tensors_sharing_memory_on_cpu():
+    with radserve.LocalServer(workers=1) as server, radserve.Client(server.address) as client:
+        envs = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0, replay_capacity=100)
+        envs.reset()
+        for _ in range(20):
+            envs.step(envs.action_space.sample())
+        with client.sample_batches(envs.session_id, 8, max_batches=2) as stream:
+            converted = list(radserve_torch.tensors(stream))
+    assert [b.index for b in converted] == [0, 1]
+    batch = converted[0]
+    assert batch.obs.dtype == torch.float32 and batch.obs.shape == (8, 4)
+    assert batch.terminated.dtype == torch.bool and batch.action.dtype == torch.int64
+    assert batch.t is None and isinstance(batch.next_obs, torch.Tensor)
+    plain = radserve.Batch(index=0, obs=np.arange(6, dtype=np.uint8).reshape(2, 3), action=np.zeros(2),
+                           reward=np.zeros(2, np.float32), terminated=np.zeros(2, bool), truncated=np.zeros(2, bool),
+                           env_index=np.zeros(2, np.int32), step_index=np.zeros(2, np.int64))
+    tensors = radserve_torch.to_tensors(plain)
+    plain.obs[0, 0] = 42
+    assert tensors.obs[0, 0] == 42, "CPU tensors share the arrays' memory"
