@@ -60,6 +60,7 @@ class SessionInfo:
                 "size": message.replay.size,
                 "inserts": message.replay.inserts,
                 "samples": message.replay.samples,
+                "batches": message.replay.batches,
                 "memory_bytes": message.replay.memory_bytes,
                 "frames_per_transition": message.replay.frames_per_transition,
                 "active_streams": message.replay.active_streams,

@@ -112,6 +112,8 @@ pub struct ReplayCounters {
     pub inserts: u64,
     /// Transitions handed out by samplers since creation.
     pub samples: u64,
+    /// Minibatches handed out by samplers since creation.
+    pub batches: u64,
 }
 
 pub struct ReplayBuffer {
@@ -290,6 +292,7 @@ impl ReplayBuffer {
             }
         }
         self.counters.samples += count as u64;
+        self.counters.batches += 1;
         Ok(())
     }
 
@@ -325,9 +328,10 @@ impl ReplayBuffer {
         Ok((table.into_iter().map(|entry| entry.expect("checked above")).collect(), start))
     }
 
-    /// Count transitions handed out by a sampler that did not draw them through `sample`.
+    /// Count a batch of transitions handed out by a sampler that did not draw them through `sample`.
     pub fn count_samples(&mut self, count: usize) {
         self.counters.samples += count as u64;
+        self.counters.batches += 1;
     }
 
     /// Copy the observation (`next == false`) or next observation stack of a sampled transition

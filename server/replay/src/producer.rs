@@ -293,9 +293,11 @@ impl Producer {
         batch.len = size;
         batch.obs_shape.clone_from(&self.obs_shape);
         batch.obs_float32 = matches!(self.plan, Plan::State(_));
-        batch.obs.resize(size * self.obs_bytes, 0);
+        // Fresh batches come from calloc, whose pages the kernel zeroes on first touch; `resize`
+        // would write every zero itself first.
+        batch.obs = vec![0; size * self.obs_bytes];
         if self.spec.include_next_obs {
-            batch.next_obs.resize(size * self.obs_bytes, 0);
+            batch.next_obs = vec![0; size * self.obs_bytes];
         }
         let buffer = self.buffer.read().expect("replay lock");
         buffer.gather_metadata(&batch.refs, &mut batch.metadata);

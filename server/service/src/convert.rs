@@ -111,6 +111,7 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
             size: replay.size as u64,
             inserts: replay.inserts,
             samples: replay.samples,
+            batches: replay.batches,
             memory_bytes: replay.memory_bytes,
             frames_per_transition: replay.frames_per_transition,
             active_streams: replay.active_streams as u32,

@@ -61,6 +61,8 @@ pub struct ReplayInfo {
     pub size: usize,
     pub inserts: u64,
     pub samples: u64,
+    /// Minibatches sampled (divide the change by the time between two looks for a rate).
+    pub batches: u64,
     pub memory_bytes: u64,
     pub frames_per_transition: f64,
     /// SampleBatches streams producing from it now.
@@ -442,6 +444,7 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
                 size: replay.len(),
                 inserts: replay.counters().inserts,
                 samples: replay.counters().samples,
+                batches: replay.counters().batches,
                 memory_bytes: layout.memory_bytes() as u64,
                 frames_per_transition: layout.frames_per_transition(),
                 active_streams: replay.active_producers(),
