@@ -28,9 +28,10 @@ $(STAMP): requirements.lock client-py/pyproject.toml | $(PYTHON)
 build: $(STAMP)
 	cargo build --release -p radserve
 
-## demo: a server on localhost and a vectorized dm_control pixel env driven through it
+## demo: a server on localhost; random acting into its replay buffer while a learner loop draws
+## server-augmented minibatches (progress bar). The learners of issue 5 will take its place.
 demo: setup
-	$(PYTHON) client-py/examples/random_agent.py
+	$(PYTHON) client-py/examples/augmented_batches.py
 
 ## test: every test (Rust unit and integration tests, then the Python end-to-end tests)
 test: setup test-rust test-python

@@ -1,0 +1,108 @@
+"""The main job until the learners exist (issue 5): start a radserve server on localhost, act in a
+vectorized dm_control pixel environment with random actions (observations through the centre-crop
+evaluation view), and, in the learner's loop, draw minibatches that the server samples from the
+session's replay buffer and augments (crop 100->84, as RAD does), with a progress bar. A real
+learner would take a gradient step on each batch where this one only checks and counts it.
+
+    python client-py/examples/augmented_batches.py --env dmc/cheetah-run --batches 300
+"""
+
+import argparse
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+import radserve
+
+
+@dataclass
+class Args:
+    env: str = "dmc/cheetah-run"
+    """environment id (see `radserve envs`); a dm_control pixel task"""
+    num_envs: int = 4
+    """environments acting together"""
+    seed: int = 1
+    """environment i is seeded with seed + i"""
+    augment: str = "crop(84)"
+    """the augmentation pipeline the server applies to obs and next_obs (docs/augmentations.md)"""
+    batch_size: int = 128
+    """transitions per minibatch (the paper uses 512)"""
+    batches: int = 300
+    """minibatches the learner draws"""
+    initial_steps: int = 250
+    """transitions acted before the learner starts (the paper waits for 1000)"""
+    replay_capacity: int = 100_000
+    """transitions the server's replay buffer keeps"""
+    render_profile: str = "fast"
+    """dm_control look: "fast" for CPU-only hosts, "default" for the paper's pixels"""
+    address: str = ""
+    """an existing server to use; empty starts one on a free localhost port"""
+    workers: int = 0
+    """worker processes of the started server (0: one per core)"""
+
+
+def parse_args() -> Args:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    for name, default in vars(Args()).items():
+        parser.add_argument(f"--{name.replace('_', '-')}", type=type(default), default=default)
+    return Args(**vars(parser.parse_args()))
+
+
+def act(envs, stop: threading.Event, counters: dict, seed: int) -> None:
+    """Random actions until told to stop; the server records every transition."""
+    rng = np.random.default_rng(seed)
+    low, high = envs.single_action_space.low, envs.single_action_space.high
+    envs.reset()
+    while not stop.is_set():
+        envs.step(rng.uniform(low, high, size=(envs.num_envs,) + low.shape).astype(np.float32))
+        counters["steps"] += envs.num_envs
+
+
+def run(args: Args, address: str) -> None:
+    client = radserve.Client(address)
+    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, replay_capacity=args.replay_capacity,
+                           observation_view="center_crop(84)", render_profile=args.render_profile)
+    print(f"{args.env}: {args.num_envs} envs acting on {envs.single_observation_space}; "
+          f"the learner draws {args.batch_size}-transition batches augmented with {args.augment}")
+    counters = {"steps": 0}
+    stop = threading.Event()
+    actor = threading.Thread(target=act, args=(envs, stop, counters, args.seed), daemon=True)
+    actor.start()
+    start = time.perf_counter()
+    stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.augment,
+                                   min_size=args.initial_steps, max_batches=args.batches, seed=args.seed)
+    try:
+        with tqdm(total=args.batches, unit="batch", dynamic_ncols=True) as bar:
+            for batch in stream:
+                # A learner's gradient step goes here; this one checks what it got.
+                assert batch.obs.shape[1:] == (9, 84, 84) and batch.next_obs.shape == batch.obs.shape
+                bar.update(1)
+                elapsed = time.perf_counter() - start
+                bar.set_postfix(acted=counters["steps"], env_sps=f"{counters['steps'] / elapsed:.0f}",
+                                batch_reward=f"{batch.reward.mean():.3f}")
+    finally:
+        stream.close()
+        stop.set()
+        actor.join()
+    replay = client.describe_session(envs.session_id).replay
+    elapsed = time.perf_counter() - start
+    print(f"{args.batches} augmented batches in {elapsed:.1f} s while acting {counters['steps']} steps; "
+          f"replay holds {replay['size']} transitions at {replay['frames_per_transition']:.3f} frames each")
+    envs.close()
+    client.close()
+
+
+def main() -> None:
+    args = parse_args()
+    if args.address:
+        run(args, args.address)
+        return
+    with radserve.LocalServer(workers=args.workers or None) as server:
+        run(args, server.address)
+
+
+if __name__ == "__main__":
+    main()
