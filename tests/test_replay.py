@@ -268,3 +268,22 @@ def test_acting_through_the_evaluation_view_while_replay_keeps_raw_frames(client
             client.make_vec("dmc/walker-walk", num_envs=1, observation_view=view)
     with pytest.raises(radserve.InvalidArgumentError, match="views apply to image observations"):
         client.make_vec("gym/Hopper-v5", num_envs=1, observation_view="center_crop(84)")
+
+
+def test_outputs_too_large_and_too_many_streams_are_refused(client, cheetah):
+    envs, _ = cheetah
+    with pytest.raises(radserve.InvalidArgumentError, match="the most allowed is 67108864"):
+        client.sample_batches(envs.session_id, 8, augment="translate(100000)")
+    with pytest.raises(radserve.InvalidArgumentError, match="the most allowed is 1073741824"):
+        client.sample_batches(envs.session_id, 100, augment="translate(2000)")
+    with pytest.raises(radserve.InvalidArgumentError, match="the most allowed"):
+        client.make_vec("dmc/cheetah-run", num_envs=1, observation_view="center_translate(100000)")
+    streams = [client.sample_batches(envs.session_id, 4, min_size=1000) for _ in range(4)]  # never reached: waits
+    try:
+        wait_for_streams(client, envs.session_id, 4)
+        with pytest.raises(radserve.ResourceExhaustedError, match="already has 4 sample streams open"):
+            client.sample_batches(envs.session_id, 4)
+    finally:
+        for stream in streams:
+            stream.close()
+    wait_for_streams(client, envs.session_id, 0)

@@ -30,6 +30,6 @@ mod spec;
 pub use draw::{Draws, JitterOp, JitterParams, Sharing, StageParams, View, CONV_WEIGHT_STD};
 pub use error::{AugmentError, Result};
 pub use kernels::Isa;
-pub use plan::{ImagePlan, StatePlan};
+pub use plan::{ImagePlan, StatePlan, MAX_SAMPLE_BYTES};
 pub use shape::FrameShape;
 pub use spec::{Augmentation, Domain, Pipeline, LUMA_WEIGHTS};

@@ -10,6 +10,11 @@ use crate::kernels::{run_stage, FloatScratch, Isa};
 use crate::shape::FrameShape;
 use crate::spec::{Augmentation, Domain, Pipeline};
 
+/// The largest augmented sample (or intermediate) a plan may produce: 64 MiB, far above any
+/// observation (a stack of three 108x108 RGB frames is 105 KB) and far below what would exhaust a
+/// server's memory at a few hundred samples a batch.
+pub const MAX_SAMPLE_BYTES: usize = 64 << 20;
+
 /// The shape one stage turns `input` into, or why it cannot apply.
 fn stage_output(augmentation: &Augmentation, input: &FrameShape) -> Result<FrameShape> {
     let name = augmentation.name();
@@ -127,6 +132,16 @@ impl ImagePlan {
         let mut shapes = vec![input];
         for augmentation in pipeline.stages() {
             let next = stage_output(augmentation, shapes.last().expect("starts with the input"))?;
+            if next.sample_len() > MAX_SAMPLE_BYTES {
+                return Err(AugmentError::DoesNotFit {
+                    augmentation: augmentation.name(),
+                    observation: input.to_string(),
+                    message: format!(
+                        "{augmentation} would make samples of {} bytes; the most allowed is {MAX_SAMPLE_BYTES}",
+                        next.sample_len()
+                    ),
+                });
+            }
             shapes.push(next);
         }
         Ok(Self { stages: pipeline.stages().to_vec(), shapes, isa: Isa::detect() })

@@ -218,6 +218,7 @@ fn shapes_that_do_not_fit_are_refused_before_any_batch() {
     assert!(message("cutout(10, 40)", FrameShape::new(1, 3, 32, 32)).contains("must fit in the 32x32 frame"));
     assert!(message("ras_s", SHAPE).contains("applies to state vectors, not images"));
     assert!(message("crop(84)|crop(90)", SHAPE).contains("needs frames of at least 90x90, got 84x84"));
+    assert!(message("translate(1000000)", SHAPE).contains("the most allowed is 67108864"));
     let state = StatePlan::new(&Pipeline::parse("crop(84)").unwrap(), 17).unwrap_err().to_string();
     assert!(state.contains("applies to images, not state vectors"), "{state}");
     let augment = plan("crop(84)", SHAPE);

@@ -73,7 +73,11 @@ impl Config {
             .parse::<SocketAddr>()
             .with_context(|| format!("server.address '{}' is not a host:port socket address", self.server.address))?;
         let limits = &self.limits;
-        if limits.max_sessions == 0 || limits.max_envs_per_session == 0 || limits.max_total_envs == 0 {
+        if limits.max_sessions == 0
+            || limits.max_envs_per_session == 0
+            || limits.max_total_envs == 0
+            || limits.max_streams_per_session == 0
+        {
             bail!("limits must all be at least 1, got {limits:?}");
         }
         Ok(())

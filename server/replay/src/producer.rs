@@ -16,6 +16,10 @@ use rayon::prelude::*;
 use crate::buffer::{BufferKind, ReplayBuffer, TransitionMetadata, TransitionRef};
 use crate::error::{ReplayError, Result};
 
+/// The largest batch of observations a stream may produce (1 GiB): 512 translated 108x108 stacks with
+/// their next observations take 107 MB.
+pub const MAX_BATCH_BYTES: usize = 1 << 30;
+
 /// What one observation is, for choosing the augmentation plan.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ObservationFormat {
@@ -159,6 +163,16 @@ impl Producer {
             Plan::Image(plan) => plan.output_shape().sample_len(),
             Plan::State(plan) => plan.dim() * 4,
         };
+        let views = if spec.include_next_obs { 2 } else { 1 };
+        let batch_bytes = spec.batch_size.saturating_mul(obs_bytes).saturating_mul(views);
+        if batch_bytes > MAX_BATCH_BYTES {
+            return invalid(format!(
+                "a batch of {} observations of {obs_bytes} bytes{} is {batch_bytes} bytes; the most allowed is \
+                 {MAX_BATCH_BYTES} (use a smaller batch_size or augmentation output)",
+                spec.batch_size,
+                if views == 2 { " (obs and next_obs)" } else { "" },
+            ));
+        }
         Ok(Self { buffer, spec, plan, obs_shape, obs_bytes })
     }
 

@@ -27,11 +27,19 @@ pub struct Limits {
     pub max_total_envs: usize,
     /// Bytes all sessions' replay buffers may take together (computed up front at creation).
     pub replay_memory_bytes: u64,
+    /// SampleBatches streams open at once on one session (each has a sampler thread).
+    pub max_streams_per_session: usize,
 }
 
 impl Default for Limits {
     fn default() -> Self {
-        Limits { max_sessions: 64, max_envs_per_session: 256, max_total_envs: 1024, replay_memory_bytes: 8 << 30 }
+        Limits {
+            max_sessions: 64,
+            max_envs_per_session: 256,
+            max_total_envs: 1024,
+            replay_memory_bytes: 8 << 30,
+            max_streams_per_session: 4,
+        }
     }
 }
 
@@ -364,6 +372,13 @@ impl SessionManager {
                 "session {session_id} keeps no replay buffer; create it with a replay capacity"
             )));
         };
+        let active = buffer.read().expect("replay lock").active_producers();
+        if active >= self.limits.max_streams_per_session {
+            return Err(SimError::LimitExceeded(format!(
+                "session {session_id} already has {active} sample streams open, this server's limit \
+                 (limits.max_streams_per_session); close one first"
+            )));
+        }
         let frame = &session.frame_spec.observation;
         let format = match (frame.dtype(), frame.shape()) {
             (DType::Uint8, &[channels, height, width]) => {
