@@ -10,4 +10,4 @@ mod producer;
 
 pub use buffer::{BufferKind, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata, TransitionRef};
 pub use error::{ReplayError, Result};
-pub use producer::{Batch, ObservationFormat, Producer, SampleSpec, Source, MAX_BATCH_BYTES};
+pub use producer::{Batch, ObservationFormat, Producer, Recycler, SampleSpec, Source, MAX_BATCH_BYTES};

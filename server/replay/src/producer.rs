@@ -64,6 +64,27 @@ pub struct SampleSpec {
     pub max_batches: Option<u64>,
 }
 
+/// Where the transport returns observation buffers it has finished sending.
+pub type Recycler = std::sync::mpsc::Sender<Vec<u8>>;
+
+/// Observation buffers returned by the transport, waiting to be reused.
+struct Spare {
+    returned: std::sync::mpsc::Receiver<Vec<u8>>,
+    buffers: Vec<Vec<u8>>,
+}
+
+impl Spare {
+    /// A buffer of exactly `len` bytes: a returned one if there is one (every byte of it gets
+    /// overwritten), else a fresh one from calloc, whose pages the kernel zeroes on first touch.
+    fn take(&mut self, len: usize) -> Vec<u8> {
+        self.buffers.extend(self.returned.try_iter());
+        match self.buffers.iter().position(|buffer| buffer.len() == len) {
+            Some(position) => self.buffers.swap_remove(position),
+            None => vec![0; len],
+        }
+    }
+}
+
 /// One augmented minibatch.
 #[derive(Debug, Default)]
 pub struct Batch {
@@ -181,18 +202,20 @@ impl Producer {
     }
 
     /// Start producing on a thread of its own, augmenting on `pool`. Batches arrive on the returned
-    /// receiver in order, at most `prefetch` ahead. Dropping the receiver stops the thread before
-    /// its next batch.
-    pub fn start(self, pool: Arc<rayon::ThreadPool>) -> tokio::sync::mpsc::Receiver<Result<Batch>> {
+    /// receiver in order, at most `prefetch` ahead. Observation buffers sent back on the returned
+    /// sender once the transport is done with them are reused for later batches. Dropping the
+    /// receiver stops the thread before its next batch.
+    pub fn start(self, pool: Arc<rayon::ThreadPool>) -> (tokio::sync::mpsc::Receiver<Result<Batch>>, Recycler) {
         let (ready_tx, ready_rx) = tokio::sync::mpsc::channel(self.spec.prefetch);
+        let (recycle_tx, recycle_rx) = std::sync::mpsc::channel();
         std::thread::Builder::new()
             .name("radserve-sampler".into())
-            .spawn(move || self.run(&pool, ready_tx))
+            .spawn(move || self.run(&pool, ready_tx, Spare { returned: recycle_rx, buffers: Vec::new() }))
             .expect("spawning a sampler thread");
-        ready_rx
+        (ready_rx, recycle_tx)
     }
 
-    fn run(self, pool: &rayon::ThreadPool, ready: tokio::sync::mpsc::Sender<Result<Batch>>) {
+    fn run(self, pool: &rayon::ThreadPool, ready: tokio::sync::mpsc::Sender<Result<Batch>>, mut spare: Spare) {
         /// Counts this producer among the buffer's active ones until the thread ends.
         struct Active(Arc<std::sync::atomic::AtomicUsize>);
         impl Drop for Active {
@@ -205,12 +228,20 @@ impl Producer {
         let _active = Active(counter);
         let mut rng = ChaCha8Rng::seed_from_u64(self.spec.seed);
         match self.spec.source {
-            Source::Replay => self.run_replay(pool, &ready, &mut rng),
-            Source::Rollout { epochs, per_env_draws } => self.run_rollout(pool, &ready, &mut rng, epochs, per_env_draws),
+            Source::Replay => self.run_replay(pool, &ready, &mut rng, &mut spare),
+            Source::Rollout { epochs, per_env_draws } => {
+                self.run_rollout(pool, &ready, &mut rng, &mut spare, epochs, per_env_draws)
+            }
         }
     }
 
-    fn run_replay(&self, pool: &rayon::ThreadPool, ready: &tokio::sync::mpsc::Sender<Result<Batch>>, rng: &mut ChaCha8Rng) {
+    fn run_replay(
+        &self,
+        pool: &rayon::ThreadPool,
+        ready: &tokio::sync::mpsc::Sender<Result<Batch>>,
+        rng: &mut ChaCha8Rng,
+        spare: &mut Spare,
+    ) {
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {
             if !self.wait_until_allowed(ready) {
@@ -219,7 +250,7 @@ impl Producer {
             let mut batch = Batch { index, ..Batch::default() };
             let sampled = self.buffer.write().expect("replay lock").sample(self.spec.batch_size, rng, &mut batch.refs);
             let seed = self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-            if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None)) {
+            if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None, spare)) {
                 let _ = ready.blocking_send(Err(error));
                 return;
             }
@@ -235,6 +266,7 @@ impl Producer {
         pool: &rayon::ThreadPool,
         ready: &tokio::sync::mpsc::Sender<Result<Batch>>,
         rng: &mut ChaCha8Rng,
+        spare: &mut Spare,
         epochs: usize,
         per_env_draws: bool,
     ) {
@@ -267,7 +299,7 @@ impl Producer {
                 } else {
                     (self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15), None)
                 };
-                if let Err(error) = self.fill(pool, &mut batch, seed, keys.as_deref()) {
+                if let Err(error) = self.fill(pool, &mut batch, seed, keys.as_deref(), spare) {
                     let _ = ready.blocking_send(Err(error));
                     return;
                 }
@@ -302,16 +334,21 @@ impl Producer {
     }
 
     /// Gather and augment the transitions in `batch.refs`; sample i draws with `keys[i]` (default i).
-    fn fill(&self, pool: &rayon::ThreadPool, batch: &mut Batch, draw_seed: u64, keys: Option<&[u64]>) -> Result<()> {
+    fn fill(
+        &self,
+        pool: &rayon::ThreadPool,
+        batch: &mut Batch,
+        draw_seed: u64,
+        keys: Option<&[u64]>,
+        spare: &mut Spare,
+    ) -> Result<()> {
         let size = batch.refs.len();
         batch.len = size;
         batch.obs_shape.clone_from(&self.obs_shape);
         batch.obs_float32 = matches!(self.plan, Plan::State(_));
-        // Fresh batches come from calloc, whose pages the kernel zeroes on first touch; `resize`
-        // would write every zero itself first.
-        batch.obs = vec![0; size * self.obs_bytes];
+        batch.obs = spare.take(size * self.obs_bytes);
         if self.spec.include_next_obs {
-            batch.next_obs = vec![0; size * self.obs_bytes];
+            batch.next_obs = spare.take(size * self.obs_bytes);
         }
         let buffer = self.buffer.read().expect("replay lock");
         buffer.gather_metadata(&batch.refs, &mut batch.metadata);

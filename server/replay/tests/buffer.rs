@@ -177,10 +177,10 @@ fn the_producer_delivers_batches_in_order_with_real_stacks() {
     let (buffer, expected) = simulate(2, 100, 200, 5);
     let (producer, _) = producer(buffer, "none", 64);
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
-    let mut ready = producer.start(pool);
+    let (mut ready, recycle) = producer.start(pool);
     let mut seen = 0;
     while let Some(batch) = ready.blocking_recv() {
-        let batch = batch.unwrap();
+        let mut batch = batch.unwrap();
         assert_eq!(batch.index, seen);
         assert_eq!(batch.obs_shape, vec![9, 4, 4]);
         for sample in 0..batch.len {
@@ -190,6 +190,11 @@ fn the_producer_delivers_batches_in_order_with_real_stacks() {
             assert_eq!(batch.next_obs[sample * stack..(sample + 1) * stack], expected[&key].next_obs);
         }
         seen += 1;
+        // Buffers handed back are reused (filled with garbage first: every byte must be rewritten).
+        batch.obs.fill(0xEE);
+        batch.next_obs.fill(0xEE);
+        let _ = recycle.send(std::mem::take(&mut batch.obs));
+        let _ = recycle.send(std::mem::take(&mut batch.next_obs));
     }
     assert_eq!(seen, 3, "max_batches ends the stream");
 }
@@ -200,7 +205,7 @@ fn the_producer_augments_and_checks_the_request_first() {
     let (producer, shared) = producer(buffer, "crop(3)|flip(p=0.5)", 8);
     assert_eq!(producer.obs_shape(), &[9, 3, 3]);
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
-    let mut ready = producer.start(pool);
+    let (mut ready, _recycle) = producer.start(pool);
     let batch = ready.blocking_recv().unwrap().unwrap();
     assert_eq!(batch.obs.len(), 8 * 9 * 3 * 3);
     let spec = |batch_size, text: &str, prefetch| SampleSpec {
@@ -245,7 +250,7 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
     };
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
-    let mut ready = producer.start(pool);
+    let (mut ready, _recycle) = producer.start(pool);
     // 2 samples per insert + 10 of slack: floor((2 * inserts + 10) / 10) batches, then it waits.
     let allowed = (2 * inserts + 10) / 10;
     for _ in 0..allowed {
@@ -307,7 +312,7 @@ fn rollout_epochs_cover_every_step_of_every_env_exactly_once() {
     let shared = Arc::new(RwLock::new(rollout_buffer(steps, num_envs, 7)));
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), rollout_spec(12, 3, false, "none")).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
-    let mut ready = producer.start(pool);
+    let (mut ready, _recycle) = producer.start(pool);
     let mut epochs: Vec<Vec<(u32, u32)>> = vec![Vec::new()];
     let mut batches = 0;
     while let Some(batch) = ready.blocking_recv() {
@@ -345,7 +350,7 @@ fn rollout_draws_can_be_held_per_environment() {
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
     for (per_env, held) in [(true, true), (false, false)] {
         let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), rollout_spec(24, 2, per_env, "crop(2)")).unwrap();
-        let mut ready = producer.start(pool.clone());
+        let (mut ready, _recycle) = producer.start(pool.clone());
         // Crop offsets, recovered from the frames' first bytes: byte 0 (env) sits at (0, 0) only
         // when the crop starts at the top-left corner, so compare whole crops of equal frames.
         let mut offsets: HashMap<u32, std::collections::HashSet<Vec<u8>>> = HashMap::new();

@@ -1,6 +1,7 @@
 //! Conversions between proto messages and core types.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 
 use radserve_augment::{Pipeline, Sharing};
 use radserve_replay::{Batch, SampleSpec, Source};
@@ -191,9 +192,20 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
     })
 }
 
-/// Split a batch into BatchChunk messages of at most `chunk_bytes` of tensor data each; the
-/// observation buffers move into `Bytes` and are sliced, never copied.
-pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> Vec<proto::BatchChunk> {
+/// An observation buffer shared between the chunks being sent and the stream, which takes it back
+/// for the producer once every chunk is gone (no copy either way).
+struct SharedBuffer(Arc<Vec<u8>>);
+
+impl AsRef<[u8]> for SharedBuffer {
+    fn as_ref(&self) -> &[u8] {
+        &self.0
+    }
+}
+
+/// Split a batch into BatchChunk messages of at most `chunk_bytes` of tensor data each. The
+/// observation buffers are sliced, never copied; they are also returned, for recycling once the
+/// chunks have been sent (when the `Arc` is unique again).
+pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> (Vec<proto::BatchChunk>, Vec<Arc<Vec<u8>>>) {
     let len = batch.len;
     let obs_dtype = if batch.obs_float32 { proto::DType::DtypeFloat32 } else { proto::DType::DtypeUint8 };
     let with_batch = |shape: &[usize]| -> Vec<i64> { std::iter::once(len).chain(shape.iter().copied()).map(|d| d as i64).collect() };
@@ -214,12 +226,19 @@ pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> Vec<
         ("t", proto::DType::DtypeInt32, vec![len as i64], rollout_t.unwrap_or_default()),
     ];
     let mut chunks = Vec::new();
+    let mut observation_buffers = Vec::new();
     for (name, dtype, shape, data) in fields {
         // Fields a stream does not carry (next_obs of rollouts, t of replay) are left out.
         if data.is_empty() && len > 0 && matches!(name, "next_obs" | "t") {
             continue;
         }
-        let data = prost::bytes::Bytes::from(data);
+        let data = if matches!(name, "obs" | "next_obs") {
+            let shared = Arc::new(data);
+            observation_buffers.push(shared.clone());
+            prost::bytes::Bytes::from_owner(SharedBuffer(shared))
+        } else {
+            prost::bytes::Bytes::from(data)
+        };
         let total = data.len();
         let mut offset = 0;
         loop {
@@ -243,7 +262,7 @@ pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> Vec<
     if let Some(last) = chunks.last_mut() {
         last.last = true;
     }
-    chunks
+    (chunks, observation_buffers)
 }
 
 pub fn tensor(dtype: DType, shape: Vec<usize>, data: Vec<u8>) -> proto::Tensor {

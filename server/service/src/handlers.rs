@@ -156,12 +156,23 @@ impl RadServe for RadServeService {
         // Everything is checked here, before the stream starts.
         let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?;
         let chunk_bytes = if request.chunk_bytes == 0 { convert::DEFAULT_CHUNK_BYTES } else { request.chunk_bytes as usize };
-        let mut ready = producer.start(self.augment_pool.clone());
+        let (mut ready, recycler) = producer.start(self.augment_pool.clone());
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
         let session_id = request.session_id;
         let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
         tokio::spawn(async move {
+            // Observation buffers of sent batches, handed back to the producer once tonic has
+            // dropped every chunk that points into them.
+            let mut in_flight: Vec<Arc<Vec<u8>>> = Vec::new();
             loop {
+                let (done, pending): (Vec<_>, Vec<_>) =
+                    in_flight.drain(..).partition(|buffer| Arc::strong_count(buffer) == 1);
+                in_flight = pending;
+                for buffer in done {
+                    if let Ok(buffer) = Arc::try_unwrap(buffer) {
+                        let _ = recycler.send(buffer);
+                    }
+                }
                 // A client that leaves while the producer waits for data must still free it.
                 let batch = tokio::select! {
                     batch = ready.recv() => batch,
@@ -178,7 +189,8 @@ impl RadServe for RadServeService {
                         break;
                     }
                 };
-                let chunks = convert::batch_to_chunks(batch, &source.action_space, chunk_bytes);
+                let (chunks, observation_buffers) = convert::batch_to_chunks(batch, &source.action_space, chunk_bytes);
+                in_flight.extend(observation_buffers);
                 if repeat_first_batch {
                     drop(ready);
                     // The same chunks over and over (cloning Bytes, not data): the transport alone.
