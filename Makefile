@@ -7,7 +7,7 @@ TORCH_STAMP := $(VENV)/.installed-torch
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build demo test test-rust test-python bench bench-sim bench-augment bench-replay preview torch lock proto clean
+.PHONY: setup system-libs build demo test test-rust test-python test-learners bench bench-sim bench-augment bench-replay bench-learning preview torch lock proto clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -28,21 +28,31 @@ $(STAMP): requirements.lock client-py/pyproject.toml | $(PYTHON)
 build: $(STAMP)
 	cargo build --release -p radserve
 
-## demo: a server on localhost; random acting into its replay buffer while a learner loop draws
-## server-augmented minibatches (progress bar). The learners of issue 5 will take its place.
-demo: setup
-	$(PYTHON) client-py/examples/augmented_batches.py
+## demo: a server on localhost and RAD-SAC (translate) learning dm_control's cartpole-balance from
+## pixels through it for a few minutes, with a progress bar; writes runs/demo/<run>/curve.png and the
+## augmentation preview grid runs/demo/augment-preview.png. CPU-sized: batch 64, bfloat16 convs.
+DEMO_FLAGS ?= --env dmc/cartpole-balance --total-env-steps 16000 --init-steps 250 --batch-size 64 --amp \
+	--eval-every 4000 --eval-episodes 5 --render-profile fast --log-every 50
+demo: setup torch
+	$(PYTHON) client-py/examples/sac_pixels.py $(DEMO_FLAGS) --runs-dir runs/demo
+	$(BIN) augment-preview --env dmc/cartpole-balance --out runs/demo/augment-preview.png
+	@echo "curve: $$(ls -td runs/demo/*/ | head -1)curve.png; augmentations: runs/demo/augment-preview.png"
 
-## test: every test (Rust unit and integration tests, then the Python end-to-end tests)
-test: setup test-rust test-python
+## test: every test: Rust unit and integration tests, the server's end-to-end tests, then (after the
+## learners' extra is installed, so the server's tests never wait for torch) the learners' smoke tests
+test: setup test-rust test-python test-learners
 
 test-rust:
 	cargo test --release --workspace
 
 test-python:
-	$(PYTHON) -m pytest -q tests client-py/tests
+	$(PYTHON) -m pytest -q tests client-py/tests --ignore=tests/test_learners.py
 
-## torch: PyTorch in .venv, only for the learners and the benchmarks (never for the tests)
+test-learners: torch
+	RADSERVE_REQUIRE_TORCH=1 $(PYTHON) -m pytest -q tests/test_learners.py client-py/tests/test_torch_adapter.py
+
+## torch: the learners' extra in .venv (PyTorch, TensorBoard, matplotlib), for the learners, their smoke
+## tests and the benchmarks; never needed by the server
 torch: $(TORCH_STAMP)
 
 $(TORCH_STAMP): requirements-torch.lock $(STAMP)
@@ -50,6 +60,7 @@ $(TORCH_STAMP): requirements-torch.lock $(STAMP)
 	touch $(TORCH_STAMP)
 
 ## bench: every benchmark table (simulator throughput, augmentation kernels vs PyTorch, replay streams)
+## (the learning checks take hours on two cores: make bench-learning runs them one by one)
 bench: bench-sim bench-augment bench-replay
 
 bench-sim: setup
@@ -60,6 +71,13 @@ bench-augment: setup torch
 
 bench-replay: setup torch
 	$(PYTHON) bench/replay_stream.py
+
+## bench-learning: do the learners learn? SAC-state on InvertedPendulum, RAD-SAC vs pixel SAC on
+## cartpole-balance, PPO on bigfish; appends to docs/learning.md
+bench-learning: setup torch
+	$(PYTHON) bench/learning.py sac-state
+	$(PYTHON) bench/learning.py rad-sac
+	$(PYTHON) bench/learning.py ppo
 
 ## preview: a PNG grid of a dm_control frame under every augmentation
 preview: setup

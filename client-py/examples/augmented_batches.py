@@ -1,8 +1,8 @@
-"""The main job until the learners exist (issue 5): start a radserve server on localhost, act in a
-vectorized dm_control pixel environment with random actions (observations through the centre-crop
-evaluation view), and, in the learner's loop, draw minibatches that the server samples from the
-session's replay buffer and augments (crop 100->84, as RAD does), with a progress bar. A real
-learner would take a gradient step on each batch where this one only checks and counts it.
+"""Server-side replay and augmentation without a learner (and without torch): start a radserve
+server on localhost, act in a vectorized dm_control pixel environment with random actions
+(observations through the centre-crop evaluation view), and, in the learner's loop, draw minibatches that the server samples from the
+session's replay buffer and augments (crop 100->84, as RAD does), with a progress bar. sac_pixels.py
+takes a gradient step on each batch where this one only checks and counts it.
 
     python client-py/examples/augmented_batches.py --env dmc/cheetah-run --batches 300
 """

@@ -1,4 +1,4 @@
-"""The main job until the learners exist: start a radserve server on localhost and drive a
+"""The smallest radserve program: start a server on localhost and drive a
 vectorized dm_control pixel environment through it with random actions.
 
     python client-py/examples/random_agent.py --env dmc/cheetah-run --num-envs 4 --steps 2000

@@ -1,0 +1,185 @@
+"""The bookkeeping every example learner shares, kept out of the algorithm files (CleanRL keeps the
+same things in tyro and SummaryWriter): a command line built from an `Args` dataclass and its field
+docstrings, a run directory with metrics in CSV and TensorBoard, evaluation episodes on a session, the
+evaluation view that matches an augmentation pipeline, and learning-curve plots.
+
+TensorBoard and matplotlib come with the learners' extra (`make torch`); they are imported when used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import csv
+import dataclasses
+import inspect
+import json
+import math
+import re
+import textwrap
+import time
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+
+def field_docs(cls) -> "dict[str, str]":
+    """The docstring under each field of a dataclass (the string literal on the line after it)."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body
+    docs = {}
+    for statement, following in zip(body, body[1:]):
+        if (isinstance(statement, ast.AnnAssign) and isinstance(statement.target, ast.Name)
+                and isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant)
+                and isinstance(following.value.value, str)):
+            docs[statement.target.id] = " ".join(following.value.value.split())
+    return docs
+
+
+def parse_args(cls, description: "str | None" = None, argv: "list[str] | None" = None):
+    """An instance of the dataclass `cls` from the command line: one `--field-name` per field, typed
+    by its default, documented by its docstring; booleans take `--name/--no-name`."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    docs = field_docs(cls)
+    for spec in dataclasses.fields(cls):
+        flag = f"--{spec.name.replace('_', '-')}"
+        default = spec.default
+        help_text = f"{docs.get(spec.name, '')} (default: {default!r})"
+        if isinstance(default, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=help_text)
+        else:
+            parser.add_argument(flag, type=type(default), default=default, help=help_text)
+    return cls(**vars(parser.parse_args(argv)))
+
+
+def evaluation_view(pipeline: str) -> str:
+    """The deterministic view RAD evaluates with for an augmentation pipeline: `crop(84)` is evaluated
+    on the centre crop, `translate(108)` on the centred frame (RAD's `center_crop_image` and
+    `center_translate`); other augmentations keep the frame size and need no view."""
+    first = pipeline.split("|")[0].strip()
+    match = re.fullmatch(r"(crop|translate)\(\s*(?:size\s*=\s*)?(\d+)\s*\)", first)
+    if not match:
+        return ""
+    return f"center_{match.group(1)}({match.group(2)})"
+
+
+def select_device(name: str):
+    """`auto`: the first CUDA device when there is one, else the CPU."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+class RunLog:
+    """A run directory: `args.json`, `metrics.csv` (step, wall time, name, value), TensorBoard events,
+    and at the end `curve.png`."""
+
+    def __init__(self, root: "str | Path", name: str, args) -> None:
+        self.dir = Path(root) / name
+        self.dir.mkdir(parents=True, exist_ok=True)
+        (self.dir / "args.json").write_text(json.dumps(dataclasses.asdict(args), indent=2) + "\n")
+        self._csv_file = open(self.dir / "metrics.csv", "w", newline="")
+        self._csv = csv.writer(self._csv_file)
+        self._csv.writerow(["step", "wall_time", "name", "value"])
+        from torch.utils.tensorboard import SummaryWriter
+
+        self._writer = SummaryWriter(str(self.dir))
+        self._writer.add_text("args", "\n".join(f"{k}: {v}" for k, v in dataclasses.asdict(args).items()))
+        self._start = time.time()
+
+    def scalar(self, name: str, value: float, step: int) -> None:
+        value = float(value)
+        self._csv.writerow([step, f"{time.time() - self._start:.3f}", name, repr(value)])
+        self._writer.add_scalar(name, value, step)
+
+    def scalars(self, step: int, **named: float) -> None:
+        """`scalars(step, **{"losses/qf_loss": 0.3})`."""
+        for name, value in named.items():
+            self.scalar(name, value, step)
+
+    def flush(self) -> None:
+        self._csv_file.flush()
+        self._writer.flush()
+
+    def close(self) -> None:
+        self._csv_file.close()
+        self._writer.close()
+
+
+def read_metrics(run_dir: "str | Path") -> "dict[str, tuple[np.ndarray, np.ndarray]]":
+    """metrics.csv of a run as {name: (steps, values)}."""
+    series: "dict[str, tuple[list, list]]" = {}
+    with open(Path(run_dir) / "metrics.csv", newline="") as handle:
+        for row in csv.DictReader(handle):
+            steps, values = series.setdefault(row["name"], ([], []))
+            steps.append(int(row["step"]))
+            values.append(float(row["value"]))
+    return {name: (np.array(steps), np.array(values)) for name, (steps, values) in series.items()}
+
+
+def plot_curves(runs: "dict[str, str | Path]", out: "str | Path", *, title: str = "",
+                metric: str = "charts/eval_return", spread: str = "charts/eval_return_std",
+                xlabel: str = "environment steps") -> Path:
+    """One learning curve per labelled run (mean evaluation return, with its spread shaded) in a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(6.4, 4.0), dpi=120)
+    for label, run_dir in runs.items():
+        metrics = read_metrics(run_dir)
+        if metric not in metrics:
+            continue
+        steps, values = metrics[metric]
+        line, = axes.plot(steps, values, marker="o", markersize=3, label=label)
+        if spread in metrics and len(metrics[spread][1]) == len(values):
+            deviation = metrics[spread][1]
+            axes.fill_between(steps, values - deviation, values + deviation, color=line.get_color(), alpha=0.2)
+    axes.set_xlabel(xlabel)
+    axes.set_ylabel(metric.split("/")[-1].replace("_", " "))
+    axes.set_title(title)
+    axes.grid(alpha=0.3)
+    if len(runs) > 1:
+        axes.legend()
+    figure.tight_layout()
+    out = Path(out)
+    figure.savefig(out)
+    plt.close(figure)
+    return out
+
+
+def evaluate(envs, policy: Callable[[np.ndarray], np.ndarray], episodes: int) -> "list[float]":
+    """Returns of `episodes` whole episodes of `policy` on the vector env `envs`, reset first.
+
+    Every env contributes the same number of episodes (its first ones), so short episodes are not
+    favoured over long ones; the extra envs' episodes are dropped."""
+    per_env = math.ceil(episodes / envs.num_envs)
+    counted = np.zeros(envs.num_envs, dtype=np.int64)
+    returns: "list[list[float]]" = [[] for _ in range(envs.num_envs)]
+    obs, _ = envs.reset()
+    while counted.min() < per_env:
+        obs, _, _, _, infos = envs.step(policy(obs))
+        if "episode" not in infos:
+            continue
+        for i in np.flatnonzero(infos["_episode"]):
+            if counted[i] < per_env:
+                returns[i].append(float(infos["episode"]["r"][i]))
+                counted[i] += 1
+    ordered = [r for round_ in range(per_env) for env_returns in returns for r in env_returns[round_:round_ + 1]]
+    return ordered[:episodes]
+
+
+def episode_stats(infos: dict) -> "Iterable[tuple[float, int]]":
+    """(return, length) of every episode that ended in a step's infos."""
+    if "episode" not in infos:
+        return []
+    return [(float(infos["episode"]["r"][i]), int(infos["episode"]["l"][i])) for i in np.flatnonzero(infos["_episode"])]
+
+
+def run_name(env_id: str, algorithm: str, seed: int) -> str:
+    """CleanRL's run naming: env__algorithm__seed__unixtime (`/` in env ids becomes `-`)."""
+    return f"{env_id.replace('/', '-')}__{algorithm}__{seed}__{int(time.time())}"

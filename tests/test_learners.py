@@ -1,0 +1,95 @@
+"""The example learners, run as a user would with a tiny budget (CleanRL's smoke tests): each must
+finish, write finite losses and evaluation returns to metrics.csv and TensorBoard, a checkpoint, and
+its learning-curve PNG. Whether they learn is measured by bench/learning.py, not here.
+
+They need the learners' extra (torch); `make test` installs it before running this file, with
+RADSERVE_REQUIRE_TORCH=1 so that a missing torch fails instead of skipping.
+"""
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+if os.environ.get("RADSERVE_REQUIRE_TORCH") != "1":
+    pytest.importorskip("torch", reason="the learners need the torch extra (make torch)")
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "client-py"))
+from radserve.runs import read_metrics  # noqa: E402
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "client-py" / "examples"
+
+
+def run_learner(script: str, runs_dir: Path, *flags: str) -> Path:
+    result = subprocess.run([sys.executable, str(EXAMPLES / script), *flags, "--runs-dir", str(runs_dir),
+                             "--workers", "1", "--torch-threads", "1", "--device", "cpu"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "final evaluation return" in result.stdout
+    (run_dir,) = runs_dir.iterdir()
+    return run_dir
+
+
+def check_run(run_dir: Path, expected_losses: "set[str]") -> dict:
+    metrics = read_metrics(run_dir)
+    losses = {name for name in metrics if name.startswith("losses/")}
+    assert expected_losses <= losses, f"missing {expected_losses - losses}"
+    for name in losses | {"charts/eval_return"}:
+        steps, values = metrics[name]
+        assert len(values) > 0 and all(math.isfinite(v) for v in values), f"{name}: {values}"
+    assert len(metrics["charts/eval_return"][1]) >= 2, "evaluated at the start and at the end"
+    assert (run_dir / "curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (run_dir / "checkpoint.pt").stat().st_size > 0
+    assert any(path.name.startswith("events.out.tfevents") for path in run_dir.iterdir())
+    assert (run_dir / "args.json").exists()
+    return metrics
+
+
+def test_rad_sac_from_pixels(tmp_path):
+    run_dir = run_learner("sac_pixels.py", tmp_path, "--env", "dmc/cartpole-balance", "--aug", "translate(108)",
+                          "--total-env-steps", "240", "--init-steps", "10", "--batch-size", "8", "--hidden-dim", "64",
+                          "--eval-every", "240", "--eval-episodes", "2", "--render-profile", "fast", "--log-every", "1")
+    metrics = check_run(run_dir, {"losses/critic_loss", "losses/actor_loss", "losses/alpha_loss", "losses/alpha"})
+    # 30 agent steps at action repeat 8: the steps are counted in environment steps, like the paper.
+    assert metrics["charts/eval_return"][0][-1] == 240
+
+
+def test_rad_sac_crop_with_bfloat16_convs(tmp_path):
+    run_dir = run_learner("sac_pixels.py", tmp_path, "--env", "dmc/cartpole-balance", "--aug", "crop(84)|grayscale(p=0.5)",
+                          "--amp", "--total-env-steps", "160", "--init-steps", "10", "--batch-size", "8",
+                          "--hidden-dim", "64", "--eval-every", "160", "--eval-episodes", "1", "--render-profile", "fast",
+                          "--log-every", "1")
+    check_run(run_dir, {"losses/critic_loss", "losses/actor_loss"})
+
+
+def test_sac_from_states_with_amplitude_scaling(tmp_path):
+    run_dir = run_learner("sac_state.py", tmp_path, "--env", "gym/InvertedPendulum-v5", "--aug", "ras_s",
+                          "--total-steps", "300", "--learning-starts", "50", "--batch-size", "32",
+                          "--eval-every", "300", "--eval-episodes", "2", "--log-every", "50")
+    check_run(run_dir, {"losses/qf_loss", "losses/actor_loss", "losses/alpha_loss"})
+
+
+def test_discrete_sac_on_cartpole_with_noise(tmp_path):
+    run_dir = run_learner("sac_state.py", tmp_path, "--env", "gym/CartPole-v1", "--aug", "noise(std=0.05)",
+                          "--total-steps", "200", "--learning-starts", "50", "--batch-size", "32",
+                          "--eval-every", "200", "--eval-episodes", "2", "--log-every", "50")
+    check_run(run_dir, {"losses/qf_loss", "losses/actor_loss", "losses/alpha_loss"})
+
+
+def test_ppo_on_procgen_with_rollouts(tmp_path):
+    run_dir = run_learner("ppo_procgen.py", tmp_path, "--env", "procgen/bigfish", "--aug", "crop(56)",
+                          "--num-envs", "4", "--num-steps", "16", "--num-minibatches", "2", "--total-timesteps", "128",
+                          "--eval-every", "128", "--eval-episodes", "2", "--num-levels", "10")
+    metrics = check_run(run_dir, {"losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl"})
+    assert list(metrics["losses/policy_loss"][0]) == [64, 128], "one log per rollout of 4 envs x 16 steps"
+
+
+def test_an_unknown_augmentation_is_refused_before_training(tmp_path):
+    result = subprocess.run([sys.executable, str(EXAMPLES / "sac_state.py"), "--env", "gym/InvertedPendulum-v5",
+                             "--aug", "ras_x", "--total-steps", "100", "--runs-dir", str(tmp_path), "--workers", "1"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0
+    assert "ras_x" in result.stderr and "ras_s" in result.stderr, result.stderr[-2000:]
