@@ -46,7 +46,7 @@ test-rust:
 	cargo test --release --workspace
 
 test-python:
-	$(PYTHON) -m pytest -q tests client-py/tests --ignore=tests/test_learners.py
+	$(PYTHON) -m pytest -q tests client-py/tests --ignore=tests/test_learners.py --ignore=client-py/tests/test_torch_adapter.py
 
 test-learners: torch
 	RADSERVE_REQUIRE_TORCH=1 $(PYTHON) -m pytest -q tests/test_learners.py client-py/tests/test_torch_adapter.py
