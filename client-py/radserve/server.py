@@ -1,11 +1,21 @@
 """Starting a radserve server on this machine, for scripts, examples and tests."""
 
+import ctypes
 import os
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 from pathlib import Path
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: the kernel sends it SIGTERM when the process that started it dies, so a
+    learner killed without cleanup (SIGKILL, or SIGTERM's default action) leaves no server behind."""
+    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def find_binary() -> str:
@@ -24,7 +34,8 @@ def find_binary() -> str:
 
 
 class LocalServer:
-    """A `radserve serve` child process on a free localhost port.
+    """A `radserve serve` child process on a free localhost port. On Linux it is stopped when the
+    thread that started it ends, cleanup or not (PR_SET_PDEATHSIG); start it from the main thread.
 
     >>> with LocalServer(workers=2) as server:
     ...     client = radserve.Client(server.address)
@@ -42,7 +53,8 @@ class LocalServer:
         self.address: "str | None" = None
 
     def start(self) -> str:
-        self.process = subprocess.Popen(self.args, stdout=subprocess.PIPE, env=self.env, text=True)
+        self.process = subprocess.Popen(self.args, stdout=subprocess.PIPE, env=self.env, text=True,
+                                        preexec_fn=_die_with_parent if sys.platform == "linux" else None)
         found: dict = {}
 
         def read_address():

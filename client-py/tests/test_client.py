@@ -64,3 +64,29 @@ def test_generated_stubs_are_up_to_date(tmp_path):
     generated = CLIENT / "radserve" / "_proto"
     for name in ["radserve_pb2.py", "radserve_pb2.pyi", "radserve_pb2_grpc.py"]:
         assert filecmp.cmp(tmp_path / name, generated / name, shallow=False), f"{name} is stale: run make proto"
+
+
+def test_a_started_server_does_not_outlive_a_killed_learner():
+    import os
+    import signal
+    import sys
+    import time
+
+    learner = subprocess.Popen(
+        [sys.executable, "-c", "import radserve, time\n"
+         "server = radserve.LocalServer(workers=1)\nserver.start()\nprint(server.process.pid, flush=True)\ntime.sleep(120)"],
+        stdout=subprocess.PIPE, text=True)
+    server_pid = int(learner.stdout.readline())
+    learner.send_signal(signal.SIGKILL)  # no cleanup runs in the learner
+    learner.wait()
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        try:
+            state = Path(f"/proc/{server_pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except FileNotFoundError:
+            return
+        if state == "Z":  # exited; its new parent has not reaped it yet
+            return
+        time.sleep(0.1)
+    os.kill(server_pid, signal.SIGKILL)
+    raise AssertionError("the server kept running after the learner that started it was killed")
