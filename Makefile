@@ -30,8 +30,8 @@ build: $(STAMP)
 
 ## demo: a server on localhost and RAD-SAC (translate) learning dm_control's cartpole-balance from
 ## pixels through it for a few minutes, with a progress bar; writes runs/demo/<run>/curve.png and the
-## augmentation preview grid runs/demo/augment-preview.png. CPU-sized: batch 64, bfloat16 convs.
-DEMO_FLAGS ?= --env dmc/cartpole-balance --total-env-steps 16000 --init-steps 250 --batch-size 64 --amp \
+## augmentation preview grid runs/demo/augment-preview.png. CPU-sized: batch 32, bfloat16 convs (docs/learning.md).
+DEMO_FLAGS ?= --env dmc/cartpole-balance --total-env-steps 16000 --init-steps 250 --batch-size 32 --amp \
 	--eval-every 4000 --eval-episodes 5 --render-profile fast --log-every 50
 demo: setup torch
 	$(PYTHON) client-py/examples/sac_pixels.py $(DEMO_FLAGS) --runs-dir runs/demo

@@ -53,15 +53,22 @@ def parse_args(cls, description: "str | None" = None, argv: "list[str] | None" =
     return cls(**vars(parser.parse_args(argv)))
 
 
+# The frame-size-changing augmentations a pipeline may start with: their names (with RAD's aliases,
+# as the server's parser accepts them), view, and default size (the paper's).
+_VIEWS = {"crop": ("center_crop", 84), "random_crop": ("center_crop", 84), "translate": ("center_translate", 108)}
+
+
 def evaluation_view(pipeline: str) -> str:
     """The deterministic view RAD evaluates with for an augmentation pipeline: `crop(84)` is evaluated
     on the centre crop, `translate(108)` on the centred frame (RAD's `center_crop_image` and
-    `center_translate`); other augmentations keep the frame size and need no view."""
+    `center_translate`), with the same defaults as the server (`crop` alone is crop(84)); other
+    augmentations keep the frame size and need no view."""
     first = pipeline.split("|")[0].strip()
-    match = re.fullmatch(r"(crop|translate)\(\s*(?:size\s*=\s*)?(\d+)\s*\)", first)
-    if not match:
+    match = re.fullmatch(r"(\w+)\s*(?:\(\s*(?:size\s*=\s*)?(\d*)\s*\))?", first)
+    if not match or match.group(1).lower() not in _VIEWS:
         return ""
-    return f"center_{match.group(1)}({match.group(2)})"
+    view, default_size = _VIEWS[match.group(1).lower()]
+    return f"{view}({match.group(2) or default_size})"
 
 
 def select_device(name: str):

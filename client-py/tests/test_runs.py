@@ -33,6 +33,9 @@ def test_fields_document_themselves_and_become_flags():
     ("crop(84)", "center_crop(84)"),
     ("translate(108)|grayscale(p=0.3)", "center_translate(108)"),
     ("crop(size=64)", "center_crop(64)"),
+    ("translate", "center_translate(108)"),
+    ("crop|grayscale", "center_crop(84)"),
+    ("Random_Crop( 76 )", "center_crop(76)"),
     ("cutout_color", ""),
     ("none", ""),
     ("grayscale|crop(84)", ""),  # only a leading crop or translate changes the frame the policy sees
