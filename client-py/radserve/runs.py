@@ -127,31 +127,63 @@ def read_metrics(run_dir: "str | Path") -> "dict[str, tuple[np.ndarray, np.ndarr
     return {name: (np.array(steps), np.array(values)) for name, (steps, values) in series.items()}
 
 
+def binned_mean(steps: np.ndarray, values: np.ndarray, bins: int = 40) -> "tuple[np.ndarray, np.ndarray]":
+    """Means of `values` over equal-width bins of `steps`, each placed at the mean step of its bin.
+
+    Training episodes arrive by the thousand and each is noisy (a ProcGen return is a small integer);
+    the binned mean is the readable training curve. Empty bins are dropped."""
+    steps = np.asarray(steps, dtype=np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    if steps.size == 0:
+        return steps, values
+    edges = np.linspace(steps.min(), steps.max(), bins + 1)
+    which = np.clip(np.searchsorted(edges, steps, side="right") - 1, 0, bins - 1)
+    counts = np.bincount(which, minlength=bins)
+    kept = counts > 0
+    centres = np.bincount(which, weights=steps, minlength=bins)[kept] / counts[kept]
+    means = np.bincount(which, weights=values, minlength=bins)[kept] / counts[kept]
+    return centres, means
+
+
 def plot_curves(runs: "dict[str, str | Path]", out: "str | Path", *, title: str = "",
                 metric: str = "charts/eval_return", spread: str = "charts/eval_return_std",
+                train_metric: "str | None" = "charts/episodic_return",
                 xlabel: str = "environment steps") -> Path:
-    """One learning curve per labelled run (mean evaluation return, with its spread shaded) in a PNG."""
+    """Learning curves of labelled runs in a PNG: the mean evaluation return (its spread shaded) and,
+    beside it when the runs logged training episodes, their return as a binned mean."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axes = plt.subplots(figsize=(6.4, 4.0), dpi=120)
-    for label, run_dir in runs.items():
-        metrics = read_metrics(run_dir)
-        if metric not in metrics:
+    metrics = {label: read_metrics(run_dir) for label, run_dir in runs.items()}
+    with_train = train_metric is not None and any(train_metric in m for m in metrics.values())
+    figure, panels = plt.subplots(1, 2 if with_train else 1, figsize=(11.0 if with_train else 6.4, 4.0),
+                                  dpi=120, squeeze=False)
+    evaluation = panels[0][0]
+    for label, series in metrics.items():
+        if metric not in series:
             continue
-        steps, values = metrics[metric]
-        line, = axes.plot(steps, values, marker="o", markersize=3, label=label)
-        if spread in metrics and len(metrics[spread][1]) == len(values):
-            deviation = metrics[spread][1]
-            axes.fill_between(steps, values - deviation, values + deviation, color=line.get_color(), alpha=0.2)
-    axes.set_xlabel(xlabel)
-    axes.set_ylabel(metric.split("/")[-1].replace("_", " "))
-    axes.set_title(title)
-    axes.grid(alpha=0.3)
-    if len(runs) > 1:
-        axes.legend()
+        steps, values = series[metric]
+        line, = evaluation.plot(steps, values, marker="o", markersize=3, label=label)
+        if spread in series and len(series[spread][1]) == len(values):
+            deviation = series[spread][1]
+            evaluation.fill_between(steps, values - deviation, values + deviation, color=line.get_color(), alpha=0.2)
+    evaluation.set_ylabel(metric.split("/")[-1].replace("_", " "))
+    axes_used = [evaluation]
+    if with_train:
+        training = panels[0][1]
+        for label, series in metrics.items():
+            if train_metric in series:
+                training.plot(*binned_mean(*series[train_metric]), label=label)
+        training.set_ylabel("training episode return (binned mean)")
+        axes_used.append(training)
+    for axes in axes_used:
+        axes.set_xlabel(xlabel)
+        axes.grid(alpha=0.3)
+        if len(runs) > 1:
+            axes.legend()
+    figure.suptitle(title)
     figure.tight_layout()
     out = Path(out)
     figure.savefig(out)

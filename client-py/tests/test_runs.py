@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from radserve.runs import evaluate, evaluation_view, field_docs, parse_args
+from radserve.runs import binned_mean, evaluate, evaluation_view, field_docs, parse_args
 
 
 @dataclass
@@ -71,3 +71,18 @@ def test_evaluation_takes_the_same_number_of_episodes_from_every_env():
     # env 0 after its second are not counted.
     assert sorted(returns) == [4.0, 6.0, 10.0, 15.0]
     assert sorted(evaluate(ScriptedEnvs(), lambda obs: np.zeros(2), episodes=3)) == [4.0, 6.0, 10.0]
+
+
+def test_binned_mean_averages_each_bin_at_its_mean_step():
+    steps = np.array([0, 10, 20, 90, 100])
+    values = np.array([1.0, 3.0, 5.0, 7.0, 9.0])
+    centres, means = binned_mean(steps, values, bins=2)  # bins [0, 50) and [50, 100]
+    np.testing.assert_allclose(centres, [10.0, 95.0])
+    np.testing.assert_allclose(means, [3.0, 8.0])
+
+
+def test_binned_mean_drops_empty_bins_and_accepts_no_data():
+    centres, means = binned_mean(np.array([0, 100]), np.array([2.0, 4.0]), bins=10)
+    np.testing.assert_allclose(centres, [0.0, 100.0])
+    np.testing.assert_allclose(means, [2.0, 4.0])
+    assert binned_mean(np.array([]), np.array([]))[0].size == 0
