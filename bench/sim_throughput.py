@@ -115,6 +115,7 @@ def main():
     parser.add_argument("--seconds", type=float, default=8.0, help="measuring time per row and side")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
     parser.add_argument("--stream", action="store_true", help="act over the bidirectional stream")
+    parser.add_argument("--only", default="", help="run only the rows whose label contains this text")
     args = parser.parse_args()
     s = args.seconds
     rows = [
@@ -129,7 +130,11 @@ def main():
          lambda: gym_direct("HalfCheetah-v5", 16, s), 1.3),
         ("procgen bigfish", "procgen/bigfish", 64, {},
          lambda: procgen_direct("bigfish", 64, s), 0.5),
+        # radserve's previous setting, for comparison in the same run: procgen's pool of 4 threads per env
+        ("procgen bigfish (num_threads=4 per env)", "procgen/bigfish", 64, {"num_threads": 4},
+         lambda: procgen_direct("bigfish", 64, s), 0.5),
     ]
+    rows = [row for row in rows if args.only in row[0]]
     results = []
     with radserve.LocalServer(workers=args.workers) as server:
         client = radserve.Client(server.address)

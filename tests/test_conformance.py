@@ -176,3 +176,24 @@ class TestProcgen(EnvContract):
     env_id = "procgen/bigfish"
     num_envs = 4
     max_steps_to_episode_end = 3000
+
+    def test_procgen_threads_do_not_change_the_frames(self, client):
+        """num_threads only decides where procgen steps (the worker's thread by default, or procgen's own
+        pool): the same seed and actions give the same frames and rewards either way."""
+        rng = np.random.default_rng(5)
+        actions = [rng.integers(0, 15, size=self.num_envs) for _ in range(40)]
+        runs = []
+        for threads in (0, 2):
+            envs = self.make(client, seed=11, num_threads=threads)
+            try:
+                frames, rewards = [envs.reset()[0]], []
+                for action in actions:
+                    obs, reward, _, _, _ = envs.step(action)
+                    frames.append(obs)
+                    rewards.append(reward)
+                runs.append((np.stack(frames), np.stack(rewards)))
+            finally:
+                envs.close()
+        np.testing.assert_array_equal(runs[0][0], runs[1][0])
+        np.testing.assert_array_equal(runs[0][1], runs[1][1])
+        assert runs[0][0][1:].std() > 0  # the frames move, so equality says something

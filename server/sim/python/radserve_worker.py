@@ -191,7 +191,11 @@ class ProcgenEnv:
         with contextlib.redirect_stderr(io.StringIO()):
             from procgen import ProcgenGym3Env
 
-        self.env = ProcgenGym3Env(num=1, env_name=self.name, rand_seed=int(seed), **self.kwargs)
+        # num_threads=0 steps the game on the worker's own thread. procgen's default hands every act()
+        # to a pool of 4 threads per object: measured here, 32 one-env objects stepped in 5.9 ms with
+        # it and 2.2 ms without (the same frames; the worker's thread waits for the step either way).
+        kwargs = {"num_threads": 0, **self.kwargs}
+        self.env = ProcgenGym3Env(num=1, env_name=self.name, rand_seed=int(seed), **kwargs)
         self.fresh = True
         self.action = np.zeros(1, dtype=np.int32)
 

@@ -167,6 +167,9 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
             option("use_sequential_levels", Bool(false), Rule::Any),
             option("paint_vel_info", Bool(false), Rule::Any),
             option("use_generated_assets", Bool(false), Rule::Any),
+            // procgen's own stepping threads per env object; 0 (radserve's default, not procgen's 4)
+            // steps on the worker's thread, 2.6x faster per step here (radserve_worker.py).
+            option("num_threads", Int(0), Rule::IntRange(0, 64)),
             option(FRAME_STACK, Int(1), Rule::IntRange(1, MAX_FRAME_STACK)),
         ],
     }
@@ -358,5 +361,15 @@ mod tests {
         let bigfish = EnvId { family: Family::Procgen, name: "bigfish".into() };
         let mode = resolve_options(&bigfish, &Options::from([("distribution_mode".into(), OptionValue::Str("medium".into()))]));
         assert!(mode.unwrap_err().to_string().contains("one of easy, hard"));
+    }
+
+    #[test]
+    fn procgen_steps_on_the_worker_thread_unless_asked() {
+        let bigfish = EnvId { family: Family::Procgen, name: "bigfish".into() };
+        assert_eq!(default_options(&bigfish)["num_threads"], OptionValue::Int(0));
+        let pooled = resolve_options(&bigfish, &Options::from([("num_threads".into(), OptionValue::Int(4))])).unwrap();
+        assert_eq!(pooled["num_threads"], OptionValue::Int(4));
+        let too_many = resolve_options(&bigfish, &Options::from([("num_threads".into(), OptionValue::Int(65))]));
+        assert!(too_many.unwrap_err().to_string().contains("[0, 64]"));
     }
 }

@@ -24,6 +24,11 @@ pub struct WorkerLauncher {
     pub gl: GlBackend,
 }
 
+/// The niceness of the catalog worker: the catalog is built in the background at start-up (about 14 s
+/// of one core: every task is loaded once for its spaces), and on a small host it must not take CPU
+/// from the workers that serve sessions. At niceness 19 it gets what they leave.
+const BACKGROUND_NICENESS: libc::c_int = 19;
+
 impl WorkerLauncher {
     pub async fn spawn(&self) -> io::Result<WorkerProcess> {
         let mut child = Command::new(&self.program)
@@ -189,9 +194,20 @@ impl WorkerPool {
         workers
     }
 
-    /// A worker outside the pool for a one-off job (the catalog), dropped (killed) when done.
+    /// A worker outside the pool for a one-off background job (the catalog), at the lowest CPU priority;
+    /// dropped (killed) when done.
     pub async fn spawn_transient(&self) -> io::Result<WorkerProcess> {
-        self.launcher.spawn().await
+        let worker = self.launcher.spawn().await?;
+        if let Some(pid) = worker.pid() {
+            // SAFETY: setpriority only reads its integer arguments. The worker was just spawned and is
+            // owned (kill_on_drop) by `worker`, so the pid names it. Python threads it starts later
+            // inherit the niceness.
+            let failed = unsafe { libc::setpriority(libc::PRIO_PROCESS, pid, BACKGROUND_NICENESS) } != 0;
+            if failed {
+                warn!(pid, error = %io::Error::last_os_error(), "could not lower the catalog worker's priority");
+            }
+        }
+        Ok(worker)
     }
 }
 
