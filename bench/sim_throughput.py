@@ -1,7 +1,9 @@
 """Steps per second through radserve (a Python client, one session) against the same simulator driven
 directly in one Python process, measured in the same run; prints a markdown table with the ratio.
 
-    .venv/bin/python bench/sim_throughput.py [--seconds 8] [--workers 2]
+    .venv/bin/python bench/sim_throughput.py [--seconds 8] [--workers 2] [--stream] [--only TEXT]
+
+Rows marked "pipelined" split the envs into two sessions stepped with step_async/step_wait.
 
 Targets on a 2-core machine: dmc pixels >= 1.5x one process; dmc state and gym >= 1.3x; ProcGen >=
 0.5x of procgen's own vectorized in-process rate.
@@ -110,6 +112,35 @@ def served(client, env_id, num_envs, seconds, stream, **options):
     return rate
 
 
+def served_pipelined(client, env_id, num_envs, seconds, stream, **options):
+    """num_envs split into two sessions, stepped EnvPool-style: one half's step is in flight while the
+    other half's reply is read and its next actions are made (step_async / step_wait)."""
+    half = num_envs // 2
+    pair = [client.make_vec(env_id, num_envs=half, seed=0, stream=stream, **options) for _ in range(2)]
+    for envs in pair:
+        envs.reset()
+    space = pair[0].single_action_space
+    rng = np.random.default_rng(0)
+    if hasattr(space, "n"):
+        actions = [rng.integers(0, space.n, half) for _ in range(64)]
+    else:
+        actions = [rng.uniform(space.low, space.high, (half,) + space.shape).astype(np.float32) for _ in range(64)]
+    counter = iter(range(1 << 62))
+    pair[0].step_async(actions[0])
+
+    def step():  # one call steps both halves: num_envs env steps
+        pair[1].step_async(actions[next(counter) % 64])
+        pair[0].step_wait()
+        pair[0].step_async(actions[next(counter) % 64])
+        pair[1].step_wait()
+
+    rate = timed(step, 2 * half, seconds)
+    pair[0].step_wait()
+    for envs in pair:
+        envs.close()
+    return rate
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=8.0, help="measuring time per row and side")
@@ -128,7 +159,11 @@ def main():
          lambda: dmc_direct("cheetah-run", 16, False, False, s), 1.3),
         ("gym HalfCheetah-v5", "gym/HalfCheetah-v5", 16, {},
          lambda: gym_direct("HalfCheetah-v5", 16, s), 1.3),
+        ("gym HalfCheetah-v5, pipelined 2 x 8", "gym/HalfCheetah-v5", 16, {},
+         lambda: gym_direct("HalfCheetah-v5", 16, s), 1.3),
         ("procgen bigfish", "procgen/bigfish", 64, {},
+         lambda: procgen_direct("bigfish", 64, s), 0.5),
+        ("procgen bigfish, pipelined 2 x 32", "procgen/bigfish", 64, {},
          lambda: procgen_direct("bigfish", 64, s), 0.5),
         # radserve's previous setting, for comparison in the same run: procgen's pool of 4 threads per env
         ("procgen bigfish (num_threads=4 per env)", "procgen/bigfish", 64, {"num_threads": 4},
@@ -139,7 +174,8 @@ def main():
     with radserve.LocalServer(workers=args.workers) as server:
         client = radserve.Client(server.address)
         for label, env_id, num_envs, options, direct, target in rows:
-            served_rate = served(client, env_id, num_envs, s, args.stream, **options)
+            acting = served_pipelined if "pipelined" in label else served
+            served_rate = acting(client, env_id, num_envs, s, args.stream, **options)
             direct_rate = direct()
             results.append((label, num_envs, served_rate, direct_rate, target))
             print(f"{label}: {served_rate:.0f} vs {direct_rate:.0f} steps/s", flush=True)

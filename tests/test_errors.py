@@ -71,6 +71,43 @@ def test_act_stream_gives_the_same_results_as_unary_calls(client):
         streamed.close()
 
 
+@pytest.mark.parametrize("stream", [False, True], ids=["unary", "stream"])
+def test_step_async_then_wait_gives_what_step_gives(client, stream):
+    """Two sessions pipelined (one's step in flight while the other is read) give, step for step,
+    what plain step() gives; a bad action surfaces at step_wait (and, unary, the session keeps going;
+    an error status ends an Act stream, as gRPC streams end)."""
+    plain = client.make_vec("gym/Pendulum-v1", num_envs=3, seed=8)
+    pipelined = [client.make_vec("gym/Pendulum-v1", num_envs=3, seed=8, stream=stream) for _ in range(2)]
+    try:
+        first = plain.reset()[0]
+        for envs in pipelined:
+            np.testing.assert_array_equal(envs.reset()[0], first)
+        actions = np.random.default_rng(1).uniform(-2, 2, size=(15, 3, 1)).astype(np.float32)
+        pipelined[0].step_async(actions[0])
+        for t, action in enumerate(actions):
+            expected = plain.step(action)
+            pipelined[1].step_async(action)  # in flight while session 0's reply is read
+            got = [pipelined[0].step_wait(), pipelined[1].step_wait()]
+            if t + 1 < len(actions):
+                pipelined[0].step_async(actions[t + 1])
+            for result in got:
+                for want, have in zip(expected[:4], result[:4]):
+                    np.testing.assert_array_equal(want, have)
+        with pytest.raises(RuntimeError, match="step_wait"):
+            pipelined[0].step_wait()
+        pipelined[0].step_async(np.zeros((3, 2), dtype=np.float32))
+        with pytest.raises(RuntimeError, match="awaits"):
+            pipelined[0].step(actions[0])
+        with pytest.raises(radserve.InvalidArgumentError, match="shape"):
+            pipelined[0].step_wait()
+        if not stream:
+            assert pipelined[0].step(actions[0])[0].shape == (3, 3)
+    finally:
+        plain.close()
+        for envs in pipelined:
+            envs.close()
+
+
 def test_health_reports_serving(server):
     with grpc.insecure_channel(server.address) as channel:
         stub = health_pb2_grpc.HealthStub(channel)

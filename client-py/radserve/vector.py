@@ -39,6 +39,7 @@ class RemoteVectorEnv(VectorEnv):
         self._action_dtype = np.dtype(np.int64) if info.action_space.shape == () else info.action_space.dtype
         self._requests: "queue.Queue | None" = None
         self._responses = None
+        self._pending = None  # the step sent by step_async, until step_wait takes its reply
         if stream:
             self._requests = queue.Queue()
             self._responses = client._stub.Act(iter(self._requests.get, None))
@@ -56,16 +57,52 @@ class RemoteVectorEnv(VectorEnv):
 
     def reset(self, *, seed: "int | None" = None, options: "dict[str, Any] | None" = None):
         """Resets every environment; with `seed`, environment i is re-seeded with `seed + i`."""
+        self._check_idle("reset")
         request = pb.ResetRequest(session_id=self.session_id, seed=seed)
         response = self._act(pb.ActRequest(reset=request), "reset")
         return _convert.to_numpy(response.obs), {}
 
     def step(self, actions):
+        self._check_idle("step")
+        return self._unpack(self._act(pb.ActRequest(step=self._step_request(actions)), "step"))
+
+    def step_async(self, actions) -> None:
+        """Sends a step and returns at once; `step_wait()` returns what `step(actions)` would have.
+
+        This is EnvPool's send/recv split, for pipelining: a learner holding two sessions sends one's
+        step, then works on the other's observations while the server steps the first, so neither
+        the workers nor the learner wait for each other. One step may be outstanding per session.
+        Errors (a wrong action shape, an unknown session) are raised by `step_wait()`."""
+        self._check_idle("step_async")
+        request = self._step_request(actions)
+        if self._requests is None:
+            self._pending = self._client._stub.Step.future(request)
+        else:
+            self._requests.put(pb.ActRequest(step=request))
+            self._pending = self._responses
+
+    def step_wait(self):
+        """The reply to the step sent by `step_async()`."""
+        if self._pending is None:
+            raise RuntimeError("step_wait() without a step_async() before it")
+        pending, self._pending = self._pending, None
+        try:
+            response = pending.result() if self._requests is None else next(pending).step
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from None
+        return self._unpack(response)
+
+    def _check_idle(self, what: str) -> None:
+        if self._pending is not None:
+            raise RuntimeError(f"{what}() while a step_async() awaits its step_wait()")
+
+    def _step_request(self, actions) -> "pb.StepRequest":
         actions = np.asarray(actions)
         if actions.dtype != self._action_dtype and np.can_cast(actions.dtype, self._action_dtype, "same_kind"):
             actions = actions.astype(self._action_dtype)
-        request = pb.StepRequest(session_id=self.session_id, actions=_convert.to_tensor(actions))
-        response = self._act(pb.ActRequest(step=request), "step")
+        return pb.StepRequest(session_id=self.session_id, actions=_convert.to_tensor(actions))
+
+    def _unpack(self, response: "pb.StepResponse"):
         obs = _convert.to_numpy(response.obs)
         rewards = _convert.to_numpy(response.reward)
         terminated = np.array(response.terminated, dtype=bool)
