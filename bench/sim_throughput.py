@@ -10,7 +10,10 @@ Targets on a 2-core machine: dmc pixels >= 1.5x one process; dmc state and gym >
 """
 
 import argparse
+import contextlib
+import functools
 import os
+import tempfile
 import time
 
 import numpy as np
@@ -30,6 +33,19 @@ def timed(step_fn, steps_per_call, seconds, warmup=2):
     return calls * steps_per_call / (time.perf_counter() - start)
 
 
+def in_scratch_dir(baseline):
+    """Runs a MuJoCo baseline in a temporary working directory: MuJoCo writes its warnings to
+    MUJOCO_LOG.TXT there, not into the checkout (the server's workers do the same, worker.rs)."""
+
+    @functools.wraps(baseline)
+    def run(*args):
+        with tempfile.TemporaryDirectory(prefix="radserve-bench-") as scratch, contextlib.chdir(scratch):
+            return baseline(*args)
+
+    return run
+
+
+@in_scratch_dir
 def dmc_direct(name, num_envs, fast, pixels, seconds):
     from dm_control import suite
 
@@ -62,6 +78,7 @@ def dmc_direct(name, num_envs, fast, pixels, seconds):
     return timed(step, num_envs, seconds)
 
 
+@in_scratch_dir
 def gym_direct(name, num_envs, seconds):
     import gymnasium
 
@@ -93,15 +110,18 @@ def procgen_direct(name, num_envs, seconds):
     return timed(step, num_envs, seconds)
 
 
+def random_actions(space, num_envs, count=64):
+    """`count` batches of random actions for `num_envs` envs, cycled through while timing."""
+    rng = np.random.default_rng(0)
+    if hasattr(space, "n"):
+        return [rng.integers(0, space.n, num_envs) for _ in range(count)]
+    return [rng.uniform(space.low, space.high, (num_envs,) + space.shape).astype(np.float32) for _ in range(count)]
+
+
 def served(client, env_id, num_envs, seconds, stream, **options):
     envs = client.make_vec(env_id, num_envs=num_envs, seed=0, stream=stream, **options)
     envs.reset()
-    space = envs.single_action_space
-    rng = np.random.default_rng(0)
-    if hasattr(space, "n"):
-        actions = [rng.integers(0, space.n, num_envs) for _ in range(64)]
-    else:
-        actions = [rng.uniform(space.low, space.high, (num_envs,) + space.shape).astype(np.float32) for _ in range(64)]
+    actions = random_actions(envs.single_action_space, num_envs)
     counter = iter(range(1 << 62))
 
     def step():
@@ -119,12 +139,7 @@ def served_pipelined(client, env_id, num_envs, seconds, stream, **options):
     pair = [client.make_vec(env_id, num_envs=half, seed=0, stream=stream, **options) for _ in range(2)]
     for envs in pair:
         envs.reset()
-    space = pair[0].single_action_space
-    rng = np.random.default_rng(0)
-    if hasattr(space, "n"):
-        actions = [rng.integers(0, space.n, half) for _ in range(64)]
-    else:
-        actions = [rng.uniform(space.low, space.high, (half,) + space.shape).astype(np.float32) for _ in range(64)]
+    actions = random_actions(pair[0].single_action_space, half)
     counter = iter(range(1 << 62))
     pair[0].step_async(actions[0])
 
