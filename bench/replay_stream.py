@@ -3,12 +3,14 @@ against the reference pipeline, in one run.
 
     make bench-replay           (or: .venv/bin/python bench/replay_stream.py)
 
-1. radserve: a dm_control pixel session records transitions into its replay buffer; a Python
+1. radserve over gRPC: a dm_control pixel session records transitions into its replay buffer; a Python
    learner streams batches of 512 sampled, frame-stacked and augmented on the server
    (crop 100->84, translate 100->108) with obs and next_obs, into numpy arrays.
 2. transport ceiling: the same stream with `repeat_first_batch`: the server sends one batch's bytes
    again and again, so nothing is sampled or augmented; same message sizes, same client decoding.
-3. reference pipeline: in one Python process, a numpy replay buffer that stores obs and next_obs
+3. shared memory: the same batches written by the server into memory the learner maps (delivery=
+   "shared_memory"): only descriptors go through gRPC, the arrays are read in place.
+4. reference pipeline: in one Python process, a numpy replay buffer that stores obs and next_obs
    stacks separately (as RAD's reference does), sampled with numpy and augmented with PyTorch
    (bench/augment_speed.py's implementation) on the same cores.
 Also prints the bytes of memory per stored transition of both buffers.
@@ -28,8 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import radserve  # noqa: E402
 
 
-def rate(stream, batches: int, warmup: int = 2) -> "tuple[float, int]":
-    """Batches per second over `batches` batches after `warmup`, and bytes per batch."""
+def rate(stream, batches: int, warmup: int = 6) -> "tuple[float, int]":
+    """Batches per second over `batches` batches after `warmup`, and bytes per batch. The warm-up
+    covers a shared-memory ring's first pass (prefetch 4 + 2 slots), whose pages the kernel zeroes
+    on first touch, once per stream."""
     iterator = iter(stream)
     for _ in range(warmup):
         next(iterator)
@@ -93,7 +97,9 @@ def main() -> None:
                 served, size = rate(client.sample_batches(envs.session_id, args.batch, **common), args.batches)
                 ceiling, _ = rate(client.sample_batches(envs.session_id, args.batch, repeat_first_batch=True, **common),
                                   args.batches)
-                rows.append((name, "obs+next_obs" if next_obs else "obs only", size, served, ceiling))
+                shared, _ = rate(client.sample_batches(envs.session_id, args.batch, delivery="shared_memory", **common),
+                                 args.batches)
+                rows.append((name, "obs+next_obs" if next_obs else "obs only", size, served, ceiling, shared))
         envs.close()
 
     reference = {}
@@ -104,13 +110,15 @@ def main() -> None:
             reference[name] = reference_rate(fn, min(stored, 4000), args.batch, max(3, args.batches // 8), args.threads)
 
     print(f"\nbatch {args.batch}, {args.threads} cores, batches per second into numpy (median of one run)")
-    header = f"{'augment':<10} {'fields':<13} {'MB/batch':>9} {'radserve':>9} {'ceiling':>8} {'of ceiling':>10} {'GB/s':>6} {'reference':>10}"
+    header = (f"{'augment':<10} {'fields':<13} {'MB/batch':>9} {'grpc':>7} {'ceiling':>8} {'of ceiling':>10} "
+              f"{'GB/s':>6} {'shm':>7} {'GB/s':>6} {'shm/ceiling':>11} {'reference':>10}")
     print(header)
     print("-" * len(header))
-    for name, fields, size, served, ceiling in rows:
+    for name, fields, size, served, ceiling, shared in rows:
         ref = reference.get(name) if fields == "obs+next_obs" else None
-        print(f"{name:<10} {fields:<13} {size / 1e6:>9.1f} {served:>9.1f} {ceiling:>8.1f} {served / ceiling:>10.2f} "
-              f"{served * size / 1e9:>6.2f} {f'{ref:.2f}' if ref else '-':>10}")
+        print(f"{name:<10} {fields:<13} {size / 1e6:>9.1f} {served:>7.1f} {ceiling:>8.1f} {served / ceiling:>10.2f} "
+              f"{served * size / 1e9:>6.2f} {shared:>7.1f} {shared * size / 1e9:>6.2f} {shared / ceiling:>11.2f} "
+              f"{f'{ref:.2f}' if ref else '-':>10}")
     reference_bytes = 2 * 9 * 100 * 100 + 6 * 4 + 4 + 1
     print(f"\nmemory per transition: radserve {replay['memory_bytes'] / replay['capacity']:.0f} B "
           f"({replay['frames_per_transition']:.4f} frames), reference {reference_bytes} B (6 frames)")

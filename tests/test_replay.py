@@ -4,6 +4,7 @@ real server, then check every sampled transition against what the acting client 
 import re
 import time
 
+import grpc
 import numpy as np
 import pytest
 
@@ -287,3 +288,126 @@ def test_outputs_too_large_and_too_many_streams_are_refused(client, cheetah):
         for stream in streams:
             stream.close()
     wait_for_streams(client, envs.session_id, 0)
+
+
+def copies(batch):
+    """Every array of a batch, copied (shared-memory arrays are only valid until the next batch)."""
+    return {name: None if value is None else np.array(value) for name, value in vars(batch).items() if name != "index"}
+
+
+@pytest.mark.parametrize("source", ["replay", "rollout"])
+def test_shared_memory_batches_equal_the_grpc_ones(client, cheetah, source):
+    """Same request, same seed: the batches read in place from shared memory are the batches the
+    byte stream delivers, field by field (obs and next_obs from the slots, the rest inline)."""
+    if source == "replay":
+        envs, session = None, cheetah[0].session_id
+        request = dict(augment="crop(84)|flip(p=0.5)", max_batches=5, seed=9, prefetch=1)
+    else:
+        envs = client.make_vec("procgen/bigfish", num_envs=3, seed=4, rollout_steps=8)
+        act(envs, 8)
+        session = envs.session_id
+        # 24 transitions in batches of 10: the last batch of each epoch is short.
+        request = dict(augment="crop(56)", source="rollout", epochs=2, seed=9, include_next_obs=True)
+    try:
+        with client.sample_batches(session, 10, **request) as stream:
+            expected = [copies(batch) for batch in stream]
+        with client.sample_batches(session, 10, delivery="shared_memory", **request) as stream:
+            assert isinstance(stream, radserve.SharedBatchStream)
+            got = []
+            for batch in stream:
+                assert batch.obs.base is not None, "obs is a view of the shared memory, not a copy"
+                got.append(copies(batch))
+    finally:
+        if envs is not None:
+            envs.close()
+    assert len(got) == len(expected) == (5 if source == "replay" else 6)
+    for want, have in zip(expected, got):
+        assert want.keys() == have.keys()
+        for name in want:
+            if want[name] is None:
+                assert have[name] is None, name
+                continue
+            assert have[name].dtype == want[name].dtype and have[name].shape == want[name].shape, name
+            np.testing.assert_array_equal(have[name], want[name], err_msg=name)
+
+
+def test_shared_memory_slots_are_reused_only_after_release(client, cheetah):
+    """A batch's observations stay intact while the client holds it, even with the producer running
+    ahead; slots cycle once released, and a client that leaves frees the producer and the memory."""
+    envs, _ = cheetah
+    stream = client.sample_batches(envs.session_id, 8, augment="crop(84)", prefetch=2, seed=1,
+                                   delivery="shared_memory")
+    assert stream.slots == 4
+    first = next(stream)
+    kept = first.obs.copy()
+    time.sleep(0.3)  # the producer fills every other slot meanwhile
+    np.testing.assert_array_equal(first.obs, kept, err_msg="the held batch was overwritten")
+    offsets = set()
+    for _ in range(12):
+        batch = next(stream)
+        offsets.add(batch.obs.__array_interface__["data"][0])
+    assert 1 < len(offsets) <= 4, "batches cycle through the slots of the ring, and only those"
+    wait_for_streams(client, envs.session_id, 1)
+    stream.close()
+    wait_for_streams(client, envs.session_id, 0)
+
+
+def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
+    envs, _ = cheetah
+    with pytest.raises(radserve.InvalidArgumentError, match="a batch of 1001 .* the most allowed|between 1 and the replay capacity"):
+        client.sample_batches(envs.session_id, 1001, delivery="shared_memory")
+    with pytest.raises(radserve.InvalidArgumentError, match="repeat_first_batch"):
+        client.sample_batches(envs.session_id, 8, delivery="shared_memory", repeat_first_batch=True)
+    with pytest.raises(ValueError, match="delivery must be one of"):
+        client.sample_batches(envs.session_id, 8, delivery="pigeon")
+
+    # The first request must say what to sample.
+    pb = radserve.batches.pb
+    method = client._channel.stream_stream("/radserve.v1.RadServe/SampleBatchesShared",
+                                           request_serializer=pb.SharedSampleRequest.SerializeToString,
+                                           response_deserializer=pb.SharedSampleResponse.FromString)
+    with pytest.raises(grpc.RpcError) as refused:
+        next(method(iter([pb.SharedSampleRequest(release=0)])))
+    assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "must hold `start`" in refused.value.details()
+
+    # Releasing a batch the client does not hold ends the stream with what it holds.
+    stream = client.sample_batches(envs.session_id, 8, delivery="shared_memory")
+    next(stream)
+    stream._requests.put(radserve.batches.pb.SharedSampleRequest(release=77))
+    with pytest.raises(radserve.InvalidArgumentError, match=r"release of batch 77, which the client does not hold \(it holds \[0"):
+        for _ in range(50):
+            next(stream)
+    stream.close()
+
+    # A learner that cannot map the memory (another host, another user) gets a clear error, and
+    # "auto" falls back to the byte stream.
+    def unreachable(region):
+        raise radserve.SharedMemoryError(f"cannot open the server's batch memory {region.path}: no such file")
+
+    monkeypatch.setattr(radserve.batches, "_map_region", unreachable)
+    with pytest.raises(radserve.SharedMemoryError, match="cannot open"):
+        client.sample_batches(envs.session_id, 8, delivery="shared_memory")
+    with client.sample_batches(envs.session_id, 8, delivery="auto", max_batches=1) as stream:
+        assert isinstance(stream, radserve.BatchStream)
+        assert next(stream).obs.shape == (8, 9, 100, 100)
+    wait_for_streams(client, envs.session_id, 0)
+
+
+def test_shared_memory_token_is_checked():
+    """Memory that is not the stream's (a descriptor of another process) is refused, not read."""
+    import mmap
+    import os
+
+    fd = os.memfd_create("not-radserve")
+    os.ftruncate(fd, 8192)
+    try:
+        region = radserve.batches.pb.SharedMemoryRegion(path=f"/proc/{os.getpid()}/fd/{fd}", size=8192,
+                                                        token=b"\x01" * 16, slots=1, slot_bytes=4096)
+        with pytest.raises(radserve.SharedMemoryError, match="not this stream's batch memory"):
+            radserve.batches._map_region(region)
+        with mmap.mmap(fd, 8192) as memory:
+            memory[:32] = b"radserve-batches" + b"\x01" * 16
+        assert radserve.batches._map_region(region)[:16] == b"radserve-batches"
+    finally:
+        os.close(fd)

@@ -34,6 +34,8 @@ class Args:
     """minibatches the learner draws"""
     initial_steps: int = 250
     """transitions acted before the learner starts (the paper waits for 1000)"""
+    delivery: str = "auto"
+    """how minibatches arrive: "shared_memory" (learner on the server's host: written into memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
     replay_capacity: int = 100_000
     """transitions the server's replay buffer keeps"""
     render_profile: str = "fast"
@@ -73,7 +75,8 @@ def run(args: Args, address: str) -> None:
     actor.start()
     start = time.perf_counter()
     stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.augment,
-                                   min_size=args.initial_steps, max_batches=args.batches, seed=args.seed)
+                                   min_size=args.initial_steps, max_batches=args.batches, seed=args.seed,
+                                   delivery=args.delivery)
     try:
         with tqdm(total=args.batches, unit="batch", dynamic_ncols=True) as bar:
             for batch in stream:

@@ -48,6 +48,8 @@ class Args:
     """augmentation pipeline the server applies to every observation of a minibatch (docs/augmentations.md): crop(56), cutout_color, color_jitter, conv, flip, rotate, grayscale, none, ..."""
     per_env_augmentation: bool = True
     """draw the augmentation once per env for the whole rollout (False: once per sample)"""
+    delivery: str = "auto"
+    """how minibatches arrive: "shared_memory" (learner on the server's host: written into memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
     num_levels: int = 200
     """training levels (the paper trains on 100 or 200)"""
     start_level: int = 0
@@ -274,7 +276,7 @@ def train(args: Args, address: str) -> RunLog:
             # Learn: the server shuffles the rollout into minibatches and augments their observations.
             stream = client.sample_batches(envs.session_id, minibatch_size, source="rollout", epochs=args.update_epochs,
                                            augment=args.aug, per_env_augmentation=args.per_env_augmentation,
-                                           seed=args.seed * 1_000_003 + update)
+                                           seed=args.seed * 1_000_003 + update, delivery=args.delivery)
             clip_fractions, approx_kls = [], []
             with stream:
                 for batch in stream:

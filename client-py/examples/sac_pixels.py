@@ -94,6 +94,8 @@ class Args:
     """dm_control look: "default" (the paper's pixels) or "fast" (cheaper software rendering)"""
     prefetch: int = 2
     """minibatches the server prepares ahead of the learner"""
+    delivery: str = "auto"
+    """how minibatches arrive: "shared_memory" (learner on the server's host: written into memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
     amp: bool = False
     """run the encoder's convs in bfloat16 autocast (2-4x faster on CPUs with AMX/AVX512-BF16 and on recent GPUs; the paper used fp32)"""
     device: str = "auto"
@@ -318,7 +320,8 @@ def train(args: Args, address: str) -> RunLog:
     # The server samples uniformly from its replay buffer once it holds the initial steps' transitions,
     # augments obs and next_obs, and keeps `prefetch` minibatches ready.
     stream = client.sample_batches(envs.session_id, args.batch_size, augment=aug, seed=args.seed, prefetch=args.prefetch,
-                                   min_size=min(args.init_steps * args.num_envs, args.replay_capacity))
+                                   min_size=min(args.init_steps * args.num_envs, args.replay_capacity),
+                                   delivery=args.delivery)
     batches = iter(stream)
     rng = np.random.default_rng(args.seed)
     obs, _ = envs.reset()

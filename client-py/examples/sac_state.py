@@ -78,6 +78,8 @@ class Args:
     """episodes per evaluation, on a separate session with other seeds, deterministic policy"""
     prefetch: int = 2
     """minibatches the server prepares ahead of the learner"""
+    delivery: str = "auto"
+    """how minibatches arrive: "shared_memory" (learner on the server's host: written into memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
     device: str = "auto"
     """torch device: auto (cuda when present), cpu, cuda ..."""
     torch_threads: int = 0
@@ -277,7 +279,7 @@ def train(args: Args, address: str) -> RunLog:
         return float(np.mean(returns))
 
     stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.aug, seed=args.seed,
-                                   prefetch=args.prefetch, min_size=args.learning_starts)
+                                   prefetch=args.prefetch, min_size=args.learning_starts, delivery=args.delivery)
     batches = iter(stream)
     obs, _ = envs.reset()
     last_return, last_eval = float("nan"), run_evaluation(0)

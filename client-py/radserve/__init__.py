@@ -3,7 +3,7 @@
 Public names only; the generated gRPC code lives in the private `radserve._proto` package.
 """
 
-from .batches import Batch, BatchStream
+from .batches import Batch, BatchStream, SharedBatchStream
 from .client import Client, EnvInfo, SessionInfo
 from .errors import (
     FailedPreconditionError,
@@ -12,13 +12,15 @@ from .errors import (
     NotFoundError,
     RadServeError,
     ResourceExhaustedError,
+    SharedMemoryError,
     UnavailableError,
 )
 from .server import LocalServer
 from .vector import RemoteVectorEnv
 
 __all__ = [
-    "Client", "EnvInfo", "SessionInfo", "Batch", "BatchStream", "RemoteVectorEnv", "LocalServer",
+    "Client", "EnvInfo", "SessionInfo", "Batch", "BatchStream", "SharedBatchStream", "RemoteVectorEnv",
+    "LocalServer",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
-    "ResourceExhaustedError", "UnavailableError", "InternalError",
+    "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",
 ]

@@ -1,13 +1,20 @@
-"""Augmented minibatches streamed from a session's replay buffer, decoded without protobuf objects.
+"""Augmented minibatches from a session's replay buffer or rollout, two ways.
 
-Generated protobuf classes copy a `bytes` field on every access; a 32 MB observation would be copied
-twice before numpy saw it. The stream is therefore read as raw message bytes, and each BatchChunk is
-parsed here with a few lines of protobuf wire format: the tensor bytes are copied once, straight into
-the batch's numpy arrays.
+Over gRPC (`BatchStream`): generated protobuf classes copy a `bytes` field on every access; a 32 MB
+observation would be copied twice before numpy saw it. The stream is therefore read as raw message
+bytes, and each BatchChunk is parsed here with a few lines of protobuf wire format: the tensor bytes
+are copied once, straight into the batch's numpy arrays.
+
+Through shared memory (`SharedBatchStream`), for a learner on the server's host: the server writes
+each batch's observations into a slot of memory this process maps, and gRPC carries only where they
+are. The arrays are views of that memory, valid until the next batch is taken from the stream.
 """
 
 from __future__ import annotations
 
+import mmap
+import os
+import queue
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -16,7 +23,7 @@ import numpy as np
 
 from ._convert import _NUMPY_DTYPES
 from ._proto import radserve_pb2 as pb
-from .errors import from_rpc_error
+from .errors import SharedMemoryError, from_rpc_error
 
 FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index", "t")
 OPTIONAL_FIELDS = ("next_obs", "t")
@@ -156,6 +163,91 @@ class BatchStream:
         self._call.cancel()
 
     def __enter__(self) -> "BatchStream":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+
+_SHARED_MAGIC = b"radserve-batches"
+_END_OF_REQUESTS = None
+
+
+def _map_region(region: "pb.SharedMemoryRegion") -> mmap.mmap:
+    """Map the server's batch memory and check that it is the memory the server described."""
+    hint = ("shared-memory batches need the learner on the server's host, in its pid namespace, as the "
+            "same user; use delivery='grpc' otherwise")
+    try:
+        fd = os.open(region.path, os.O_RDWR)
+    except OSError as error:
+        raise SharedMemoryError(f"cannot open the server's batch memory {region.path}: {error}; {hint}") from None
+    try:
+        memory = mmap.mmap(fd, region.size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+    except (OSError, ValueError) as error:
+        raise SharedMemoryError(f"cannot map {region.size} bytes of {region.path}: {error}; {hint}") from None
+    finally:
+        os.close(fd)
+    if memory[:16] != _SHARED_MAGIC or memory[16:32] != region.token:
+        memory.close()
+        raise SharedMemoryError(f"{region.path} is not this stream's batch memory (its token differs); {hint}")
+    return memory
+
+
+class SharedBatchStream:
+    """An iterator of Batch objects whose observations are read in place from shared memory.
+
+    `obs` and `next_obs` are views of a slot the server owns again once the next batch is taken:
+    use (or copy) a batch before asking for the next one. Moving it to a GPU (`radserve.torch`) or
+    through any numpy operation that makes a new array is enough. The other fields are the
+    stream's own arrays. `close()` (or leaving a `with` block) ends the stream; the server frees the
+    memory, and what this process mapped stays readable until its arrays are gone.
+    """
+
+    def __init__(self, method, request: "pb.SampleBatchesRequest"):
+        self._requests: "queue.SimpleQueue" = queue.SimpleQueue()
+        self._requests.put(pb.SharedSampleRequest(start=request))
+        self._call = method(iter(self._requests.get, _END_OF_REQUESTS))
+        self._held: "int | None" = None
+        try:
+            first = next(self._call)
+        except grpc.RpcError as error:
+            self.close()
+            raise from_rpc_error(error) from None
+        try:
+            self._memory = _map_region(first.region)
+        except SharedMemoryError:
+            self.close()
+            raise
+        self.slots = first.region.slots
+
+    def __iter__(self) -> "SharedBatchStream":
+        return self
+
+    def __next__(self) -> Batch:
+        if self._held is not None:
+            self._requests.put(pb.SharedSampleRequest(release=self._held))
+            self._held = None
+        try:
+            message = next(self._call).batch
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from None
+        arrays = {}
+        for name, tensor in message.shared.items():
+            dtype = np.dtype(_NUMPY_DTYPES[tensor.dtype])
+            shape = tuple(tensor.shape)
+            count = int(np.prod(shape))
+            arrays[name] = np.frombuffer(self._memory, dtype=dtype, count=count, offset=tensor.offset).reshape(shape)
+        for name, tensor in message.tensors.items():
+            array = np.frombuffer(tensor.data, dtype=_NUMPY_DTYPES[tensor.dtype]).reshape(tuple(tensor.shape))
+            arrays[name] = array.astype(bool) if name in ("terminated", "truncated") else array.copy()
+        self._held = message.batch_index
+        return Batch(index=message.batch_index, **arrays)
+
+    def close(self) -> None:
+        self._requests.put(_END_OF_REQUESTS)
+        self._call.cancel()
+
+    def __enter__(self) -> "SharedBatchStream":
         return self
 
     def __exit__(self, *exc_info) -> None:

@@ -9,7 +9,7 @@ from gymnasium import spaces
 from . import _convert
 from ._proto import radserve_pb2 as pb
 from ._proto import radserve_pb2_grpc as pb_grpc
-from .errors import from_rpc_error
+from .errors import SharedMemoryError, from_rpc_error
 
 # Large batches of frames must fit; the server bounds them itself.
 _CHANNEL_OPTIONS = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
@@ -168,6 +168,7 @@ class Client:
         per_env_augmentation: bool = False,
         include_next_obs: "bool | None" = None,
         repeat_first_batch: bool = False,
+        delivery: str = "grpc",
     ):
         """Stream minibatches sampled uniformly from the session's replay buffer and augmented on
         the server: an iterator of `radserve.Batch` (numpy arrays), produced `prefetch` ahead.
@@ -182,11 +183,20 @@ class Client:
         pair with the values and advantages the learner computed), augmentation drawn per sample or,
         with `per_env_augmentation`, once per env for the whole rollout; the stream then ends.
         `repeat_first_batch` is for benchmarks: the first batch's bytes are sent again and again.
+
+        `delivery="shared_memory"` is for a learner on the server's host: the server writes the
+        observations into memory this process maps and only descriptors travel (no 32 MB through a
+        socket); the arrays are then views valid until the next batch is taken (see
+        `radserve.SharedBatchStream`). `"auto"` uses shared memory when it can be mapped and the
+        gRPC byte stream otherwise; `"grpc"` (the default) always streams the bytes.
         Errors in the request are raised before the first batch. `close()` the stream (or use it in a
         `with` block) to stop it early.
         """
-        from .batches import SHARING, BatchStream
+        from .batches import SHARING, BatchStream, SharedBatchStream
 
+        deliveries = ("grpc", "shared_memory", "auto")
+        if delivery not in deliveries:
+            raise ValueError(f"delivery must be one of {deliveries}, got {delivery!r}")
         if sharing not in SHARING:
             raise ValueError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
         sources = {"replay": pb.SOURCE_REPLAY, "rollout": pb.SOURCE_ROLLOUT}
@@ -210,6 +220,17 @@ class Client:
             include_next_obs=include_next_obs,
             repeat_first_batch=repeat_first_batch,
         )
+        if delivery != "grpc":
+            shared = self._channel.stream_stream(
+                "/radserve.v1.RadServe/SampleBatchesShared",
+                request_serializer=pb.SharedSampleRequest.SerializeToString,
+                response_deserializer=pb.SharedSampleResponse.FromString,
+            )
+            try:
+                return SharedBatchStream(shared, request)
+            except SharedMemoryError:
+                if delivery == "shared_memory":
+                    raise
         method = self._channel.unary_stream(
             "/radserve.v1.RadServe/SampleBatches",
             request_serializer=pb.SampleBatchesRequest.SerializeToString,

@@ -36,6 +36,11 @@ class InternalError(RadServeError):
     """A simulator failed in a way that is not the caller's fault."""
 
 
+class SharedMemoryError(RadServeError):
+    """Shared-memory batches cannot be used here: the server's memory could not be mapped (the
+    learner is on another host, in another pid namespace, or runs as another user)."""
+
+
 _BY_CODE = {
     grpc.StatusCode.NOT_FOUND: NotFoundError,
     grpc.StatusCode.INVALID_ARGUMENT: InvalidArgumentError,

@@ -373,3 +373,69 @@ class BatchChunk(_message.Message):
     last: bool
     data: bytes
     def __init__(self, batch_index: _Optional[int] = ..., field: _Optional[str] = ..., dtype: _Optional[_Union[DType, str]] = ..., shape: _Optional[_Iterable[int]] = ..., offset: _Optional[int] = ..., field_bytes: _Optional[int] = ..., last: _Optional[bool] = ..., data: _Optional[bytes] = ...) -> None: ...
+
+class SharedSampleRequest(_message.Message):
+    __slots__ = ("start", "release")
+    START_FIELD_NUMBER: _ClassVar[int]
+    RELEASE_FIELD_NUMBER: _ClassVar[int]
+    start: SampleBatchesRequest
+    release: int
+    def __init__(self, start: _Optional[_Union[SampleBatchesRequest, _Mapping]] = ..., release: _Optional[int] = ...) -> None: ...
+
+class SharedSampleResponse(_message.Message):
+    __slots__ = ("region", "batch")
+    REGION_FIELD_NUMBER: _ClassVar[int]
+    BATCH_FIELD_NUMBER: _ClassVar[int]
+    region: SharedMemoryRegion
+    batch: SharedBatch
+    def __init__(self, region: _Optional[_Union[SharedMemoryRegion, _Mapping]] = ..., batch: _Optional[_Union[SharedBatch, _Mapping]] = ...) -> None: ...
+
+class SharedMemoryRegion(_message.Message):
+    __slots__ = ("path", "size", "token", "slots", "slot_bytes")
+    PATH_FIELD_NUMBER: _ClassVar[int]
+    SIZE_FIELD_NUMBER: _ClassVar[int]
+    TOKEN_FIELD_NUMBER: _ClassVar[int]
+    SLOTS_FIELD_NUMBER: _ClassVar[int]
+    SLOT_BYTES_FIELD_NUMBER: _ClassVar[int]
+    path: str
+    size: int
+    token: bytes
+    slots: int
+    slot_bytes: int
+    def __init__(self, path: _Optional[str] = ..., size: _Optional[int] = ..., token: _Optional[bytes] = ..., slots: _Optional[int] = ..., slot_bytes: _Optional[int] = ...) -> None: ...
+
+class SharedTensor(_message.Message):
+    __slots__ = ("dtype", "shape", "offset")
+    DTYPE_FIELD_NUMBER: _ClassVar[int]
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_FIELD_NUMBER: _ClassVar[int]
+    dtype: DType
+    shape: _containers.RepeatedScalarFieldContainer[int]
+    offset: int
+    def __init__(self, dtype: _Optional[_Union[DType, str]] = ..., shape: _Optional[_Iterable[int]] = ..., offset: _Optional[int] = ...) -> None: ...
+
+class SharedBatch(_message.Message):
+    __slots__ = ("batch_index", "slot", "shared", "tensors")
+    class SharedEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: SharedTensor
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[_Union[SharedTensor, _Mapping]] = ...) -> None: ...
+    class TensorsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: Tensor
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+    BATCH_INDEX_FIELD_NUMBER: _ClassVar[int]
+    SLOT_FIELD_NUMBER: _ClassVar[int]
+    SHARED_FIELD_NUMBER: _ClassVar[int]
+    TENSORS_FIELD_NUMBER: _ClassVar[int]
+    batch_index: int
+    slot: int
+    shared: _containers.MessageMap[str, SharedTensor]
+    tensors: _containers.MessageMap[str, Tensor]
+    def __init__(self, batch_index: _Optional[int] = ..., slot: _Optional[int] = ..., shared: _Optional[_Mapping[str, SharedTensor]] = ..., tensors: _Optional[_Mapping[str, Tensor]] = ...) -> None: ...

@@ -74,6 +74,11 @@ class RadServeStub:
                 request_serializer=radserve__pb2.SampleBatchesRequest.SerializeToString,
                 response_deserializer=radserve__pb2.BatchChunk.FromString,
                 _registered_method=True)
+        self.SampleBatchesShared = channel.stream_stream(
+                '/radserve.v1.RadServe/SampleBatchesShared',
+                request_serializer=radserve__pb2.SharedSampleRequest.SerializeToString,
+                response_deserializer=radserve__pb2.SharedSampleResponse.FromString,
+                _registered_method=True)
 
 
 class RadServeServicer:
@@ -135,6 +140,18 @@ class RadServeServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def SampleBatchesShared(self, request_iterator, context):
+        """The same minibatches for a learner on the same host, written by the server straight into
+        shared memory the learner maps: no bytes travel through gRPC, only descriptors. The first
+        request carries the SampleBatchesRequest; the first response names the memory (a ring of
+        slots). Each SharedBatch occupies one slot until the client releases it with a later request;
+        the server fills only free slots, so a client that holds batches slows the stream down, never
+        corrupts it. Memory is freed when the stream ends, however it ends.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_RadServeServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -177,6 +194,11 @@ def add_RadServeServicer_to_server(servicer, server):
                     servicer.SampleBatches,
                     request_deserializer=radserve__pb2.SampleBatchesRequest.FromString,
                     response_serializer=radserve__pb2.BatchChunk.SerializeToString,
+            ),
+            'SampleBatchesShared': grpc.stream_stream_rpc_method_handler(
+                    servicer.SampleBatchesShared,
+                    request_deserializer=radserve__pb2.SharedSampleRequest.FromString,
+                    response_serializer=radserve__pb2.SharedSampleResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -395,6 +417,33 @@ class RadServe:
             '/radserve.v1.RadServe/SampleBatches',
             radserve__pb2.SampleBatchesRequest.SerializeToString,
             radserve__pb2.BatchChunk.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def SampleBatchesShared(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/radserve.v1.RadServe/SampleBatchesShared',
+            radserve__pb2.SharedSampleRequest.SerializeToString,
+            radserve__pb2.SharedSampleResponse.FromString,
             options,
             channel_credentials,
             insecure,

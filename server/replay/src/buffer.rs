@@ -372,7 +372,7 @@ impl ReplayBuffer {
 }
 
 /// Everything of sampled transitions but their observations.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct TransitionMetadata {
     pub len: usize,
     /// [len, action_bytes]

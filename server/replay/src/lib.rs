@@ -2,12 +2,14 @@
 //!
 //! Sessions record every step into a [`ReplayBuffer`] that stores each frame once; a [`Producer`]
 //! samples it, rebuilds the frame stacks and augments them with `radserve-augment`, ahead of the
-//! learner, into reused buffers.
+//! learner, into reused buffers or into a [`SharedRing`] that a learner on the same host maps.
 
 mod buffer;
 mod error;
 mod producer;
+mod shared;
 
 pub use buffer::{BufferKind, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata, TransitionRef};
 pub use error::{ReplayError, Result};
-pub use producer::{Batch, ObservationFormat, Producer, Recycler, SampleSpec, Source, MAX_BATCH_BYTES};
+pub use producer::{Batch, ObservationFormat, Output, Producer, Recycler, SampleSpec, Source, MAX_BATCH_BYTES};
+pub use shared::{SharedRing, Slot, SHARED_HEADER_BYTES, SHARED_MAGIC};

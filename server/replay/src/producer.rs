@@ -1,7 +1,8 @@
 //! Produces augmented minibatches ahead of the learner, on a thread of its own. Each sample's stacks
 //! are gathered from the frame store into per-thread scratch (reused) and augmented straight into
-//! the batch, in parallel over the batch. A batch's buffers then move to the transport, which sends
-//! them without copying, so each batch is a fresh allocation made on this thread.
+//! the batch, in parallel over the batch. The batch's observations go either into heap buffers that
+//! move to the transport (which sends them without copying and hands them back for reuse) or into a
+//! slot of a shared-memory ring that a learner on the same host reads in place.
 
 use std::cell::RefCell;
 use std::sync::{Arc, RwLock};
@@ -15,6 +16,7 @@ use rayon::prelude::*;
 
 use crate::buffer::{BufferKind, ReplayBuffer, TransitionMetadata, TransitionRef};
 use crate::error::{ReplayError, Result};
+use crate::shared::{SharedRing, Slot};
 
 /// The largest batch of observations a stream may produce (1 GiB): 512 translated 108x108 stacks with
 /// their next observations take 107 MB.
@@ -67,6 +69,14 @@ pub struct SampleSpec {
 /// Where the transport returns observation buffers it has finished sending.
 pub type Recycler = std::sync::mpsc::Sender<Vec<u8>>;
 
+/// Where a producer writes the observations of its batches.
+pub enum Output {
+    /// Heap buffers in `Batch::obs` / `Batch::next_obs`, reused once returned through the Recycler.
+    Heap,
+    /// A slot of this ring per batch (`Batch::slot`), waited for when all are taken.
+    Shared(Arc<SharedRing>),
+}
+
 /// Observation buffers returned by the transport, waiting to be reused.
 struct Spare {
     returned: std::sync::mpsc::Receiver<Vec<u8>>,
@@ -99,10 +109,20 @@ pub struct Batch {
     pub obs: Vec<u8>,
     /// Empty when the stream does not include next observations.
     pub next_obs: Vec<u8>,
+    /// The stream carries next observations (in `next_obs` or in the slot).
+    pub has_next_obs: bool,
     pub metadata: TransitionMetadata,
     /// For rollouts: each transition's step within the rollout (0 the oldest).
     pub rollout_t: Option<Vec<u32>>,
+    /// With shared output: the slot holding obs (and next_obs); `obs`/`next_obs` stay empty.
+    pub slot: Option<Slot>,
     refs: Vec<TransitionRef>,
+}
+
+/// Where `fill` gets the memory for a batch's observations.
+enum Destination {
+    Heap(Spare),
+    Shared(Arc<SharedRing>),
 }
 
 enum Plan {
@@ -201,21 +221,36 @@ impl Producer {
         &self.obs_shape
     }
 
+    /// Bytes of one batch's observations (obs, or next_obs: each as large).
+    pub fn observation_bytes(&self) -> usize {
+        self.spec.batch_size * self.obs_bytes
+    }
+
+    /// Batches produced ahead of the learner.
+    pub fn prefetch(&self) -> usize {
+        self.spec.prefetch
+    }
+
     /// Start producing on a thread of its own, augmenting on `pool`. Batches arrive on the returned
-    /// receiver in order, at most `prefetch` ahead. Observation buffers sent back on the returned
-    /// sender once the transport is done with them are reused for later batches. Dropping the
-    /// receiver stops the thread before its next batch.
-    pub fn start(self, pool: Arc<rayon::ThreadPool>) -> (tokio::sync::mpsc::Receiver<Result<Batch>>, Recycler) {
+    /// receiver in order, at most `prefetch` ahead. With heap output, observation buffers sent back
+    /// on the returned sender once the transport is done with them are reused for later batches;
+    /// with shared output, a batch's slot is reused once the transport drops the batch's `Slot`.
+    /// Dropping the receiver stops the thread before its next batch.
+    pub fn start(self, pool: Arc<rayon::ThreadPool>, output: Output) -> (tokio::sync::mpsc::Receiver<Result<Batch>>, Recycler) {
         let (ready_tx, ready_rx) = tokio::sync::mpsc::channel(self.spec.prefetch);
         let (recycle_tx, recycle_rx) = std::sync::mpsc::channel();
+        let destination = match output {
+            Output::Heap => Destination::Heap(Spare { returned: recycle_rx, buffers: Vec::new() }),
+            Output::Shared(ring) => Destination::Shared(ring),
+        };
         std::thread::Builder::new()
             .name("radserve-sampler".into())
-            .spawn(move || self.run(&pool, ready_tx, Spare { returned: recycle_rx, buffers: Vec::new() }))
+            .spawn(move || self.run(&pool, ready_tx, destination))
             .expect("spawning a sampler thread");
         (ready_rx, recycle_tx)
     }
 
-    fn run(self, pool: &rayon::ThreadPool, ready: tokio::sync::mpsc::Sender<Result<Batch>>, mut spare: Spare) {
+    fn run(self, pool: &rayon::ThreadPool, ready: tokio::sync::mpsc::Sender<Result<Batch>>, mut spare: Destination) {
         /// Counts this producer among the buffer's active ones until the thread ends.
         struct Active(Arc<std::sync::atomic::AtomicUsize>);
         impl Drop for Active {
@@ -240,7 +275,7 @@ impl Producer {
         pool: &rayon::ThreadPool,
         ready: &tokio::sync::mpsc::Sender<Result<Batch>>,
         rng: &mut ChaCha8Rng,
-        spare: &mut Spare,
+        spare: &mut Destination,
     ) {
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {
@@ -248,9 +283,12 @@ impl Producer {
                 return;
             }
             let mut batch = Batch { index, ..Batch::default() };
+            if !self.allocate(spare, &mut batch, self.spec.batch_size, ready) {
+                return;
+            }
             let sampled = self.buffer.write().expect("replay lock").sample(self.spec.batch_size, rng, &mut batch.refs);
             let seed = self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-            if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None, spare)) {
+            if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None)) {
                 let _ = ready.blocking_send(Err(error));
                 return;
             }
@@ -266,7 +304,7 @@ impl Producer {
         pool: &rayon::ThreadPool,
         ready: &tokio::sync::mpsc::Sender<Result<Batch>>,
         rng: &mut ChaCha8Rng,
-        spare: &mut Spare,
+        spare: &mut Destination,
         epochs: usize,
         per_env_draws: bool,
     ) {
@@ -290,6 +328,9 @@ impl Producer {
                     return;
                 }
                 let mut batch = Batch { index, ..Batch::default() };
+                if !self.allocate(spare, &mut batch, chunk.len(), ready) {
+                    return;
+                }
                 batch.refs = chunk.iter().map(|&position| table[position]).collect();
                 batch.rollout_t = Some(chunk.iter().map(|&position| (position / num_envs) as u32).collect());
                 self.buffer.write().expect("replay lock").count_samples(chunk.len());
@@ -299,7 +340,7 @@ impl Producer {
                 } else {
                     (self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15), None)
                 };
-                if let Err(error) = self.fill(pool, &mut batch, seed, keys.as_deref(), spare) {
+                if let Err(error) = self.fill(pool, &mut batch, seed, keys.as_deref()) {
                     let _ = ready.blocking_send(Err(error));
                     return;
                 }
@@ -333,31 +374,53 @@ impl Producer {
         }
     }
 
-    /// Gather and augment the transitions in `batch.refs`; sample i draws with `keys[i]` (default i).
-    fn fill(
+    /// Memory for the observations of a batch of `size`: heap buffers, or a shared slot once one is
+    /// free. False when the client left while waiting for a slot.
+    fn allocate(
         &self,
-        pool: &rayon::ThreadPool,
+        destination: &mut Destination,
         batch: &mut Batch,
-        draw_seed: u64,
-        keys: Option<&[u64]>,
-        spare: &mut Spare,
-    ) -> Result<()> {
+        size: usize,
+        ready: &tokio::sync::mpsc::Sender<Result<Batch>>,
+    ) -> bool {
+        match destination {
+            Destination::Heap(spare) => {
+                batch.obs = spare.take(size * self.obs_bytes);
+                if self.spec.include_next_obs {
+                    batch.next_obs = spare.take(size * self.obs_bytes);
+                }
+            }
+            Destination::Shared(ring) => match ring.acquire(|| !ready.is_closed()) {
+                Some(slot) => batch.slot = Some(slot),
+                None => return false,
+            },
+        }
+        true
+    }
+
+    /// Gather and augment the transitions in `batch.refs` into the observation memory `allocate`
+    /// gave the batch; sample i draws with `keys[i]` (default i).
+    fn fill(&self, pool: &rayon::ThreadPool, batch: &mut Batch, draw_seed: u64, keys: Option<&[u64]>) -> Result<()> {
         let size = batch.refs.len();
         batch.len = size;
         batch.obs_shape.clone_from(&self.obs_shape);
         batch.obs_float32 = matches!(self.plan, Plan::State(_));
-        batch.obs = spare.take(size * self.obs_bytes);
-        if self.spec.include_next_obs {
-            batch.next_obs = spare.take(size * self.obs_bytes);
-        }
+        batch.has_next_obs = self.spec.include_next_obs;
         let buffer = self.buffer.read().expect("replay lock");
         buffer.gather_metadata(&batch.refs, &mut batch.metadata);
         let draws = Draws { seed: draw_seed, view: View::Obs, sharing: self.spec.sharing };
         let stack_bytes = buffer.layout().frame_stack * buffer.layout().frame_bytes;
         let refs = &batch.refs;
+        let observation_len = size * self.obs_bytes;
+        let (obs, next_obs) = match &mut batch.slot {
+            Some(slot) => slot.regions_mut(observation_len),
+            None => (&mut batch.obs[..], &mut batch.next_obs[..]),
+        };
+        let next_obs = if self.spec.include_next_obs { &mut next_obs[..observation_len] } else { &mut next_obs[..0] };
+        let obs = &mut obs[..observation_len];
         match &self.plan {
             Plan::Image(plan) => pool.install(|| {
-                for (view, out) in [(View::Obs, &mut batch.obs), (View::NextObs, &mut batch.next_obs)] {
+                for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
                     let draws = draws.with_view(view);
                     out.par_chunks_mut(self.obs_bytes).enumerate().for_each(|(sample, dst)| {
                         let key = keys.map_or(sample as u64, |keys| keys[sample]);
@@ -372,7 +435,7 @@ impl Producer {
                 }
             }),
             Plan::State(plan) => {
-                for (view, out) in [(View::Obs, &mut batch.obs), (View::NextObs, &mut batch.next_obs)] {
+                for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
                     if out.is_empty() {
                         continue;
                     }

@@ -5,7 +5,10 @@ use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
 
 use radserve_augment::{FrameShape, Pipeline, Sharing};
-use radserve_replay::{BufferKind, ObservationFormat, Producer, RecordedStep, ReplayBuffer, ReplayLayout, SampleSpec, Source, TransitionRef};
+use radserve_replay::{
+    BufferKind, ObservationFormat, Output, Producer, RecordedStep, ReplayBuffer, ReplayLayout, SampleSpec, SharedRing, Source,
+    TransitionRef,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -177,7 +180,7 @@ fn the_producer_delivers_batches_in_order_with_real_stacks() {
     let (buffer, expected) = simulate(2, 100, 200, 5);
     let (producer, _) = producer(buffer, "none", 64);
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
-    let (mut ready, recycle) = producer.start(pool);
+    let (mut ready, recycle) = producer.start(pool, Output::Heap);
     let mut seen = 0;
     while let Some(batch) = ready.blocking_recv() {
         let mut batch = batch.unwrap();
@@ -200,12 +203,78 @@ fn the_producer_delivers_batches_in_order_with_real_stacks() {
 }
 
 #[test]
+fn shared_output_writes_the_same_batches_into_slots_and_waits_for_free_ones() {
+    let (buffer, _) = simulate(2, 100, 200, 5);
+    let (heap_producer, shared) = producer(buffer, "crop(3)|flip(p=0.5)", 16);
+    let spec = |max_batches| SampleSpec {
+        source: Source::Replay,
+        include_next_obs: true,
+        batch_size: 16,
+        pipeline: Pipeline::parse("crop(3)|flip(p=0.5)").unwrap(),
+        sharing: Sharing::Reference,
+        seed: 11,
+        prefetch: 2,
+        min_size: 1,
+        samples_per_insert: None,
+        error_buffer: 0.0,
+        max_batches,
+    };
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
+    let (mut heap, _recycle) = heap_producer.start(pool.clone(), Output::Heap);
+    let expected: Vec<_> = std::iter::from_fn(|| heap.blocking_recv()).map(Result::unwrap).collect();
+    assert_eq!(expected.len(), 3);
+
+    let shared_producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec(Some(3))).unwrap();
+    let ring = SharedRing::create(2, shared_producer.observation_bytes()).unwrap();
+    let (mut ready, _) = shared_producer.start(pool.clone(), Output::Shared(ring.clone()));
+    let first = ready.blocking_recv().unwrap().unwrap();
+    let second = ready.blocking_recv().unwrap().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(100));
+    assert!(ready.try_recv().is_err(), "both slots are held: the third batch must wait for one");
+    let file = std::fs::File::open(ring.path()).unwrap();
+    // SAFETY: a read-only view of memory the producer no longer writes into for these batches.
+    let peer = unsafe { memmap2::Mmap::map(&file).unwrap() };
+    let slot_bytes = |batch: &radserve_replay::Batch, next: bool| {
+        let slot = batch.slot.as_ref().expect("shared batches carry their slot");
+        let offset = if next { slot.next_obs_offset() } else { slot.obs_offset() };
+        peer[offset..offset + expected[0].obs.len()].to_vec()
+    };
+    for (batch, reference) in [(&first, &expected[0]), (&second, &expected[1])] {
+        assert!(batch.obs.is_empty() && batch.next_obs.is_empty());
+        assert_eq!(batch.metadata, reference.metadata);
+        assert_eq!(slot_bytes(batch, false), reference.obs, "batch {}", batch.index);
+        assert_eq!(slot_bytes(batch, true), reference.next_obs, "batch {}", batch.index);
+    }
+    let freed = first.slot.as_ref().unwrap().index();
+    drop(first);
+    let third = ready.blocking_recv().unwrap().unwrap();
+    assert_eq!(third.slot.as_ref().unwrap().index(), freed, "the released slot is reused");
+    assert_eq!(slot_bytes(&third, false), expected[2].obs);
+    assert!(ready.blocking_recv().is_none(), "max_batches ends the stream");
+
+    // A client that leaves while the producer waits for a slot frees the producer.
+    let waiting = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec(None)).unwrap();
+    let small_ring = SharedRing::create(1, waiting.observation_bytes()).unwrap();
+    let (mut ready, _) = waiting.start(pool, Output::Shared(small_ring));
+    let held = ready.blocking_recv().unwrap().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(50));
+    assert_eq!(shared.read().unwrap().active_producers(), 1);
+    drop(ready);
+    let started = std::time::Instant::now();
+    while shared.read().unwrap().active_producers() > 0 {
+        assert!(started.elapsed() < std::time::Duration::from_secs(2), "the producer still waits for a slot");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    drop(held);
+}
+
+#[test]
 fn the_producer_augments_and_checks_the_request_first() {
     let (buffer, _) = simulate(1, 50, 100, 6);
     let (producer, shared) = producer(buffer, "crop(3)|flip(p=0.5)", 8);
     assert_eq!(producer.obs_shape(), &[9, 3, 3]);
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
-    let (mut ready, _recycle) = producer.start(pool);
+    let (mut ready, _recycle) = producer.start(pool, Output::Heap);
     let batch = ready.blocking_recv().unwrap().unwrap();
     assert_eq!(batch.obs.len(), 8 * 9 * 3 * 3);
     let spec = |batch_size, text: &str, prefetch| SampleSpec {
@@ -250,7 +319,7 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
     };
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
-    let (mut ready, _recycle) = producer.start(pool);
+    let (mut ready, _recycle) = producer.start(pool, Output::Heap);
     // 2 samples per insert + 10 of slack: floor((2 * inserts + 10) / 10) batches, then it waits.
     let allowed = (2 * inserts + 10) / 10;
     for _ in 0..allowed {
@@ -312,7 +381,7 @@ fn rollout_epochs_cover_every_step_of_every_env_exactly_once() {
     let shared = Arc::new(RwLock::new(rollout_buffer(steps, num_envs, 7)));
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), rollout_spec(12, 3, false, "none")).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
-    let (mut ready, _recycle) = producer.start(pool);
+    let (mut ready, _recycle) = producer.start(pool, Output::Heap);
     let mut epochs: Vec<Vec<(u32, u32)>> = vec![Vec::new()];
     let mut batches = 0;
     while let Some(batch) = ready.blocking_recv() {
@@ -350,7 +419,7 @@ fn rollout_draws_can_be_held_per_environment() {
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
     for (per_env, held) in [(true, true), (false, false)] {
         let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), rollout_spec(24, 2, per_env, "crop(2)")).unwrap();
-        let (mut ready, _recycle) = producer.start(pool.clone());
+        let (mut ready, _recycle) = producer.start(pool.clone(), Output::Heap);
         // Crop offsets, recovered from the frames' first bytes: byte 0 (env) sits at (0, 0) only
         // when the crop starts at the top-left corner, so compare whole crops of equal frames.
         let mut offsets: HashMap<u32, std::collections::HashSet<Vec<u8>>> = HashMap::new();

@@ -4,7 +4,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use radserve_augment::{Pipeline, Sharing};
-use radserve_replay::{Batch, SampleSpec, Source};
+use radserve_replay::{Batch, SampleSpec, Slot, Source};
 use radserve_sim::{BufferRequest, CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, Space, StepOutcome};
 use tonic::Status;
 
@@ -202,34 +202,58 @@ impl AsRef<[u8]> for SharedBuffer {
     }
 }
 
-/// Split a batch into BatchChunk messages of at most `chunk_bytes` of tensor data each. The
-/// observation buffers are sliced, never copied; they are also returned, for recycling once the
-/// chunks have been sent (when the `Arc` is unique again).
-pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> (Vec<proto::BatchChunk>, Vec<Arc<Vec<u8>>>) {
+/// The fields of a batch other than its observations, in the stream's order, as (name, dtype,
+/// shape, little-endian bytes); `t` only for rollout batches.
+fn small_fields(batch: &mut Batch, action: &Space) -> Vec<(&'static str, proto::DType, Vec<i64>, Vec<u8>)> {
     let len = batch.len;
-    let obs_dtype = if batch.obs_float32 { proto::DType::DtypeFloat32 } else { proto::DType::DtypeUint8 };
     let with_batch = |shape: &[usize]| -> Vec<i64> { std::iter::once(len).chain(shape.iter().copied()).map(|d| d as i64).collect() };
-    let metadata = batch.metadata;
+    let metadata = std::mem::take(&mut batch.metadata);
     let int32_bytes: Vec<u8> = metadata.env_indices.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect();
     let int64_bytes: Vec<u8> = metadata.step_indices.iter().flat_map(|v| (*v as i64).to_le_bytes()).collect();
     let reward_bytes: Vec<u8> = metadata.rewards.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let rollout_t: Option<Vec<u8>> = batch.rollout_t.as_ref().map(|t| t.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect());
-    let fields: [(&str, proto::DType, Vec<i64>, Vec<u8>); 9] = [
-        ("obs", obs_dtype, with_batch(&batch.obs_shape), batch.obs),
-        ("next_obs", obs_dtype, with_batch(&batch.obs_shape), batch.next_obs),
+    let mut fields = vec![
         ("action", dtype_to_proto(action.dtype()), with_batch(action.shape()), metadata.actions),
         ("reward", proto::DType::DtypeFloat32, vec![len as i64], reward_bytes),
         ("terminated", proto::DType::DtypeUint8, vec![len as i64], metadata.terminated),
         ("truncated", proto::DType::DtypeUint8, vec![len as i64], metadata.truncated),
         ("env_index", proto::DType::DtypeInt32, vec![len as i64], int32_bytes),
         ("step_index", proto::DType::DtypeInt64, vec![len as i64], int64_bytes),
-        ("t", proto::DType::DtypeInt32, vec![len as i64], rollout_t.unwrap_or_default()),
     ];
+    if let Some(rollout_t) = &batch.rollout_t {
+        fields.push(("t", proto::DType::DtypeInt32, vec![len as i64], rollout_t.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect()));
+    }
+    fields
+}
+
+fn observation_dtype(batch: &Batch) -> proto::DType {
+    if batch.obs_float32 {
+        proto::DType::DtypeFloat32
+    } else {
+        proto::DType::DtypeUint8
+    }
+}
+
+fn observation_shape(batch: &Batch) -> Vec<i64> {
+    std::iter::once(batch.len).chain(batch.obs_shape.iter().copied()).map(|d| d as i64).collect()
+}
+
+/// Split a batch into BatchChunk messages of at most `chunk_bytes` of tensor data each. The
+/// observation buffers are sliced, never copied; they are also returned, for recycling once the
+/// chunks have been sent (when the `Arc` is unique again).
+pub fn batch_to_chunks(mut batch: Batch, action: &Space, chunk_bytes: usize) -> (Vec<proto::BatchChunk>, Vec<Arc<Vec<u8>>>) {
+    let len = batch.len;
+    let (obs_dtype, obs_shape) = (observation_dtype(&batch), observation_shape(&batch));
+    let small = small_fields(&mut batch, action);
+    let mut fields = vec![
+        ("obs", obs_dtype, obs_shape.clone(), std::mem::take(&mut batch.obs)),
+        ("next_obs", obs_dtype, obs_shape, std::mem::take(&mut batch.next_obs)),
+    ];
+    fields.extend(small);
     let mut chunks = Vec::new();
     let mut observation_buffers = Vec::new();
     for (name, dtype, shape, data) in fields {
-        // Fields a stream does not carry (next_obs of rollouts, t of replay) are left out.
-        if data.is_empty() && len > 0 && matches!(name, "next_obs" | "t") {
+        // next_obs is left out when the stream does not carry it (rollouts by default).
+        if data.is_empty() && len > 0 && name == "next_obs" {
             continue;
         }
         let data = if matches!(name, "obs" | "next_obs") {
@@ -263,6 +287,27 @@ pub fn batch_to_chunks(batch: Batch, action: &Space, chunk_bytes: usize) -> (Vec
         last.last = true;
     }
     (chunks, observation_buffers)
+}
+
+/// A batch whose observations are in a shared-memory slot: descriptors of where they lie, and the
+/// small fields inline. The slot is handed back to the caller, who holds it until the learner
+/// releases the batch.
+pub fn shared_batch_to_proto(mut batch: Batch, action: &Space) -> (proto::SharedBatch, Slot) {
+    let slot = batch.slot.take().expect("a batch produced into shared memory carries its slot");
+    let (dtype, shape) = (observation_dtype(&batch) as i32, observation_shape(&batch));
+    let mut shared = HashMap::from([(
+        "obs".to_string(),
+        proto::SharedTensor { dtype, shape: shape.clone(), offset: slot.obs_offset() as u64 },
+    )]);
+    if batch.has_next_obs {
+        shared.insert("next_obs".into(), proto::SharedTensor { dtype, shape, offset: slot.next_obs_offset() as u64 });
+    }
+    let tensors = small_fields(&mut batch, action)
+        .into_iter()
+        .map(|(name, dtype, shape, data)| (name.to_string(), proto::Tensor { dtype: dtype as i32, shape, data: data.into() }))
+        .collect();
+    let message = proto::SharedBatch { batch_index: batch.index, slot: slot.index() as u32, shared, tensors };
+    (message, slot)
 }
 
 pub fn tensor(dtype: DType, shape: Vec<usize>, data: Vec<u8>) -> proto::Tensor {

@@ -9,7 +9,7 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::debug;
 
 use crate::convert::{self, observation_tensor};
-use radserve_replay::Producer;
+use radserve_replay::{Output, Producer, SharedRing, Slot};
 
 use crate::error::{replay_status, to_status};
 use crate::proto::{self, act_request, act_response, rad_serve_server::RadServe};
@@ -19,6 +19,9 @@ const ACT_STREAM_BUFFER: usize = 2;
 
 /// Chunk messages of a SampleBatches stream that may wait for the client to read them.
 const SAMPLE_STREAM_BUFFER: usize = 4;
+
+/// Batch descriptors of a SampleBatchesShared stream that may wait for the client to read them.
+const SHARED_STREAM_BUFFER: usize = 2;
 
 #[derive(Clone)]
 pub struct RadServeService {
@@ -60,6 +63,7 @@ impl RadServeService {
 
 type ActStream = Pin<Box<dyn Stream<Item = Result<proto::ActResponse, Status>> + Send>>;
 type SampleStream = Pin<Box<dyn Stream<Item = Result<proto::BatchChunk, Status>> + Send>>;
+type SharedSampleStream = Pin<Box<dyn Stream<Item = Result<proto::SharedSampleResponse, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl RadServe for RadServeService {
@@ -156,7 +160,7 @@ impl RadServe for RadServeService {
         // Everything is checked here, before the stream starts.
         let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?;
         let chunk_bytes = if request.chunk_bytes == 0 { convert::DEFAULT_CHUNK_BYTES } else { request.chunk_bytes as usize };
-        let (mut ready, recycler) = producer.start(self.augment_pool.clone());
+        let (mut ready, recycler) = producer.start(self.augment_pool.clone(), Output::Heap);
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
         let session_id = request.session_id;
         let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
@@ -213,6 +217,114 @@ impl RadServe for RadServeService {
                 }
             }
             debug!(session = %session_id, "sample stream ended");
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
+    }
+
+    type SampleBatchesSharedStream = SharedSampleStream;
+
+    async fn sample_batches_shared(
+        &self,
+        request: Request<Streaming<proto::SharedSampleRequest>>,
+    ) -> Result<Response<SharedSampleStream>, Status> {
+        use proto::{shared_sample_request::Request as Inbound, shared_sample_response::Response as Outbound};
+        let mut inbound = request.into_inner();
+        let start = match inbound.message().await? {
+            Some(proto::SharedSampleRequest { request: Some(Inbound::Start(start)) }) => start,
+            _ => {
+                return Err(Status::invalid_argument(
+                    "the first SharedSampleRequest must hold `start` (the SampleBatchesRequest); releases come after it",
+                ))
+            }
+        };
+        if start.repeat_first_batch {
+            return Err(Status::invalid_argument(
+                "repeat_first_batch measures the SampleBatches byte stream; it does not apply to shared memory",
+            ));
+        }
+        let spec = convert::sample_spec_from_proto(&start)?;
+        let source = self.manager.replay_source(&start.session_id).await.map_err(to_status)?;
+        let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?;
+        // A slot per batch waiting in the prefetch queue, one being filled and one the learner
+        // reads: the producer never waits on a learner that releases each batch before the next.
+        let slots = producer.prefetch() + 2;
+        let ring = SharedRing::create(slots, producer.observation_bytes()).map_err(|error| {
+            Status::resource_exhausted(format!(
+                "could not create {slots} shared-memory slots of 2 x {} bytes for the batches: {error}",
+                producer.observation_bytes()
+            ))
+        })?;
+        let region = proto::SharedMemoryRegion {
+            path: ring.path(),
+            size: ring.len() as u64,
+            token: ring.token().to_vec(),
+            slots: ring.slots() as u32,
+            slot_bytes: ring.slot_bytes() as u64,
+        };
+        let (mut ready, _recycler) = producer.start(self.augment_pool.clone(), Output::Shared(ring));
+        let (sender, receiver) = mpsc::channel(SHARED_STREAM_BUFFER);
+        sender
+            .send(Ok(proto::SharedSampleResponse { response: Some(Outbound::Region(region)) }))
+            .await
+            .expect("the receiver is still here");
+        let session_id = start.session_id;
+        tokio::spawn(async move {
+            // Slots of batches sent and not yet released; dropping one hands it back to the producer.
+            let mut held: std::collections::HashMap<u64, Slot> = std::collections::HashMap::new();
+            loop {
+                tokio::select! {
+                    batch = ready.recv() => {
+                        let batch = match batch {
+                            None => break,
+                            Some(Ok(batch)) => batch,
+                            Some(Err(error)) => {
+                                let _ = sender.send(Err(replay_status(error))).await;
+                                break;
+                            }
+                        };
+                        let index = batch.index;
+                        let (message, slot) = convert::shared_batch_to_proto(batch, &source.action_space);
+                        held.insert(index, slot);
+                        let response = proto::SharedSampleResponse { response: Some(Outbound::Batch(message)) };
+                        if sender.send(Ok(response)).await.is_err() {
+                            debug!(session = %session_id, "shared sample stream cancelled");
+                            return;
+                        }
+                    }
+                    message = inbound.message() => match message {
+                        Ok(Some(proto::SharedSampleRequest { request: Some(Inbound::Release(index)) })) => {
+                            if held.remove(&index).is_none() {
+                                let mut holding: Vec<_> = held.keys().copied().collect();
+                                holding.sort_unstable();
+                                let _ = sender
+                                    .send(Err(Status::invalid_argument(format!(
+                                        "release of batch {index}, which the client does not hold (it holds {holding:?})"
+                                    ))))
+                                    .await;
+                                return;
+                            }
+                        }
+                        Ok(Some(_)) => {
+                            let _ = sender
+                                .send(Err(Status::invalid_argument(
+                                    "after the first SharedSampleRequest, requests may only release batches",
+                                )))
+                                .await;
+                            return;
+                        }
+                        // The client closed its side or left: dropping `ready` stops the producer.
+                        Ok(None) | Err(_) => {
+                            debug!(session = %session_id, "shared sample stream closed by the client");
+                            return;
+                        }
+                    },
+                    () = sender.closed() => {
+                        debug!(session = %session_id, "shared sample stream cancelled");
+                        return;
+                    }
+                }
+            }
+            debug!(session = %session_id, "shared sample stream ended");
         });
         Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
     }
