@@ -83,6 +83,10 @@ def test_replay_statistics(client, cartpole):
     assert replay["capacity"] == 5000 and replay["inserts"] == len(seen) == replay["size"]
     assert replay["frames_per_transition"] <= 1.1
     assert replay["samples"] >= 4 * 256 and replay["batches"] >= 4
+    with client.sample_batches(envs.session_id, 64, max_batches=3) as stream:
+        assert len(list(stream)) == 3
+    rate = client.describe_session(envs.session_id).replay["batches_per_second"]
+    assert rate > 0, "3 batches just now: a rate over the last 5 seconds"
 
 
 def test_pixel_transitions_and_crop(client, cheetah):

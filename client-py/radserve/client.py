@@ -61,6 +61,7 @@ class SessionInfo:
                 "inserts": message.replay.inserts,
                 "samples": message.replay.samples,
                 "batches": message.replay.batches,
+                "batches_per_second": message.replay.batches_per_second,
                 "memory_bytes": message.replay.memory_bytes,
                 "frames_per_transition": message.replay.frames_per_transition,
                 "active_streams": message.replay.active_streams,

@@ -153,7 +153,7 @@ class ReplayOptions(_message.Message):
     def __init__(self, capacity: _Optional[int] = ..., rollout_steps: _Optional[int] = ...) -> None: ...
 
 class ReplayInfo(_message.Message):
-    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition", "active_streams", "rollout_steps", "batches")
+    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition", "active_streams", "rollout_steps", "batches", "batches_per_second")
     CAPACITY_FIELD_NUMBER: _ClassVar[int]
     SIZE_FIELD_NUMBER: _ClassVar[int]
     INSERTS_FIELD_NUMBER: _ClassVar[int]
@@ -163,6 +163,7 @@ class ReplayInfo(_message.Message):
     ACTIVE_STREAMS_FIELD_NUMBER: _ClassVar[int]
     ROLLOUT_STEPS_FIELD_NUMBER: _ClassVar[int]
     BATCHES_FIELD_NUMBER: _ClassVar[int]
+    BATCHES_PER_SECOND_FIELD_NUMBER: _ClassVar[int]
     capacity: int
     size: int
     inserts: int
@@ -172,7 +173,8 @@ class ReplayInfo(_message.Message):
     active_streams: int
     rollout_steps: int
     batches: int
-    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ..., active_streams: _Optional[int] = ..., rollout_steps: _Optional[int] = ..., batches: _Optional[int] = ...) -> None: ...
+    batches_per_second: float
+    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ..., active_streams: _Optional[int] = ..., rollout_steps: _Optional[int] = ..., batches: _Optional[int] = ..., batches_per_second: _Optional[float] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
     __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay")

@@ -10,6 +10,7 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use rand::Rng;
 
@@ -116,6 +117,33 @@ pub struct ReplayCounters {
     pub batches: u64,
 }
 
+/// Batches over the last few seconds, for the rate the statistics show.
+#[derive(Debug, Default)]
+struct RecentBatches {
+    times: std::collections::VecDeque<Instant>,
+    first: Option<Instant>,
+}
+
+impl RecentBatches {
+    const WINDOW: Duration = Duration::from_secs(5);
+
+    fn record(&mut self, now: Instant) {
+        self.first.get_or_insert(now);
+        self.times.push_back(now);
+        while self.times.front().is_some_and(|&time| now.duration_since(time) > Self::WINDOW) {
+            self.times.pop_front();
+        }
+    }
+
+    /// Batches per second over the last 5 s (or since the first batch, counted as at least 1 s).
+    fn per_second(&self, now: Instant) -> f64 {
+        let Some(first) = self.first else { return 0.0 };
+        let recent = self.times.iter().filter(|&&time| now.duration_since(time) <= Self::WINDOW).count();
+        let span = now.duration_since(first).clamp(Duration::from_secs(1), Self::WINDOW);
+        recent as f64 / span.as_secs_f64()
+    }
+}
+
 pub struct ReplayBuffer {
     layout: ReplayLayout,
     slots: usize,
@@ -132,6 +160,7 @@ pub struct ReplayBuffer {
     /// One past the largest step index recorded.
     steps_recorded: u64,
     counters: ReplayCounters,
+    recent_batches: RecentBatches,
     /// Producers (sample streams) running on this buffer.
     active_producers: Arc<AtomicUsize>,
 }
@@ -168,6 +197,7 @@ impl ReplayBuffer {
             in_episode: vec![false; layout.num_envs],
             steps_recorded: 0,
             counters: ReplayCounters::default(),
+            recent_batches: RecentBatches::default(),
             active_producers: Arc::default(),
         })
     }
@@ -178,6 +208,11 @@ impl ReplayBuffer {
 
     pub fn counters(&self) -> ReplayCounters {
         self.counters
+    }
+
+    /// Minibatches handed out per second, over the last 5 seconds.
+    pub fn batches_per_second(&self) -> f64 {
+        self.recent_batches.per_second(Instant::now())
     }
 
     /// Sample streams producing from this buffer now.
@@ -293,6 +328,7 @@ impl ReplayBuffer {
         }
         self.counters.samples += count as u64;
         self.counters.batches += 1;
+        self.recent_batches.record(Instant::now());
         Ok(())
     }
 
@@ -332,6 +368,7 @@ impl ReplayBuffer {
     pub fn count_samples(&mut self, count: usize) {
         self.counters.samples += count as u64;
         self.counters.batches += 1;
+        self.recent_batches.record(Instant::now());
     }
 
     /// Copy the observation (`next == false`) or next observation stack of a sampled transition
@@ -395,5 +432,32 @@ impl TransitionMetadata {
         self.truncated.resize(len, 0);
         self.env_indices.resize(len, 0);
         self.step_indices.resize(len, 0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_batch_rate_counts_the_last_five_seconds() {
+        let mut recent = RecentBatches::default();
+        let start = Instant::now();
+        assert_eq!(recent.per_second(start), 0.0);
+        // 10 batches per second for 8 seconds.
+        for tenth in 0..80 {
+            recent.record(start + Duration::from_millis(100 * tenth));
+        }
+        let now = start + Duration::from_millis(7950);
+        assert!((recent.per_second(now) - 10.0).abs() <= 0.2, "{}", recent.per_second(now));
+        assert!(recent.times.len() <= 52, "older batches are dropped");
+        // Silence: the rate falls to zero once the window has passed.
+        assert_eq!(recent.per_second(now + Duration::from_secs(6)), 0.0);
+        // A young stream counts at least one second: 3 batches in 0.2 s read as 3 per second.
+        let mut young = RecentBatches::default();
+        for tenth in 0..3 {
+            young.record(start + Duration::from_millis(100 * tenth));
+        }
+        assert_eq!(young.per_second(start + Duration::from_millis(200)), 3.0);
     }
 }

@@ -113,6 +113,7 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
             inserts: replay.inserts,
             samples: replay.samples,
             batches: replay.batches,
+            batches_per_second: replay.batches_per_second,
             memory_bytes: replay.memory_bytes,
             frames_per_transition: replay.frames_per_transition,
             active_streams: replay.active_streams as u32,

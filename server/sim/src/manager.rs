@@ -69,8 +69,10 @@ pub struct ReplayInfo {
     pub size: usize,
     pub inserts: u64,
     pub samples: u64,
-    /// Minibatches sampled (divide the change by the time between two looks for a rate).
+    /// Minibatches sampled since creation.
     pub batches: u64,
+    /// Minibatches sampled per second, over the last 5 seconds.
+    pub batches_per_second: f64,
     pub memory_bytes: u64,
     pub frames_per_transition: f64,
     /// SampleBatches streams producing from it now.
@@ -460,6 +462,7 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
                 inserts: replay.counters().inserts,
                 samples: replay.counters().samples,
                 batches: replay.counters().batches,
+                batches_per_second: replay.batches_per_second(),
                 memory_bytes: layout.memory_bytes() as u64,
                 frames_per_transition: layout.frames_per_transition(),
                 active_streams: replay.active_producers(),
