@@ -379,6 +379,22 @@ impl ReplayBuffer {
         self.copy_stack(transition.env, last, episode_start, out);
     }
 
+    /// Copy the frames of a sampled transition's observation stack followed by its next frame into
+    /// `out` (`(frame_stack + 1) * frame_bytes`): the first `frame_stack` frames are the
+    /// observation, the last `frame_stack` the next observation (stacking pushes one frame per step,
+    /// so the two stacks share all but one frame).
+    pub fn copy_transition(&self, transition: TransitionRef, out: &mut [u8]) {
+        let episode_start = self.episode_starts[self.slot(transition.env, transition.frame)];
+        let stack = self.layout.frame_stack as u64;
+        let frame_bytes = self.layout.frame_bytes;
+        debug_assert_eq!(out.len(), (self.layout.frame_stack + 1) * frame_bytes);
+        for (position, target) in out.chunks_exact_mut(frame_bytes).enumerate() {
+            let frame = (transition.frame + position as u64).saturating_sub(stack).max(episode_start);
+            let slot = self.slot(transition.env, frame);
+            target.copy_from_slice(&self.frames[slot * frame_bytes..(slot + 1) * frame_bytes]);
+        }
+    }
+
     /// Copy the stack of frames ending at absolute frame `last` of `env` into `out`
     /// (`frame_stack * frame_bytes`), padding with the episode's first frame.
     fn copy_stack(&self, env: usize, last: u64, episode_start: u64, out: &mut [u8]) {

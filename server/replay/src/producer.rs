@@ -419,6 +419,23 @@ impl Producer {
         let next_obs = if self.spec.include_next_obs { &mut next_obs[..observation_len] } else { &mut next_obs[..0] };
         let obs = &mut obs[..observation_len];
         match &self.plan {
+            // With next_obs: one gather of stack + 1 frames serves both stacks (a third less reading).
+            Plan::Image(plan) if !next_obs.is_empty() => pool.install(|| {
+                let frame_bytes = buffer.layout().frame_bytes;
+                let (obs_draws, next_draws) = (draws.with_view(View::Obs), draws.with_view(View::NextObs));
+                obs.par_chunks_mut(self.obs_bytes).zip(next_obs.par_chunks_mut(self.obs_bytes)).enumerate().for_each(
+                    |(sample, (obs_dst, next_dst))| {
+                        let key = keys.map_or(sample as u64, |keys| keys[sample]);
+                        STACK.with(|frames| {
+                            let mut frames = frames.borrow_mut();
+                            frames.resize(stack_bytes + frame_bytes, 0);
+                            buffer.copy_transition(refs[sample], &mut frames);
+                            plan.apply_sample(&frames[..stack_bytes], obs_dst, &plan.draw(&obs_draws, key));
+                            plan.apply_sample(&frames[frame_bytes..], next_dst, &plan.draw(&next_draws, key));
+                        });
+                    },
+                );
+            }),
             Plan::Image(plan) => pool.install(|| {
                 for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
                     let draws = draws.with_view(view);
