@@ -283,6 +283,10 @@ def test_outputs_too_large_and_too_many_streams_are_refused(client, cheetah):
         client.sample_batches(envs.session_id, 100, augment="translate(2000)")
     with pytest.raises(radserve.InvalidArgumentError, match="the most allowed"):
         client.make_vec("dmc/cheetah-run", num_envs=1, observation_view="center_translate(100000)")
+    # 66 batches of 512 translated obs + next_obs (107.5 MB each) would be 7 GB held by one stream.
+    for delivery in ("grpc", "shared_memory"):
+        with pytest.raises(radserve.ResourceExhaustedError, match=r"would hold 7094697984 bytes .*prefetch 64 \+ 2.*limits.stream_memory_bytes"):
+            client.sample_batches(envs.session_id, 512, augment="translate(108)", prefetch=64, delivery=delivery)
     streams = [client.sample_batches(envs.session_id, 4, min_size=1000) for _ in range(4)]  # never reached: waits
     try:
         wait_for_streams(client, envs.session_id, 4)

@@ -77,6 +77,7 @@ impl Config {
             || limits.max_envs_per_session == 0
             || limits.max_total_envs == 0
             || limits.max_streams_per_session == 0
+            || limits.stream_memory_bytes == 0
         {
             bail!("limits must all be at least 1, got {limits:?}");
         }

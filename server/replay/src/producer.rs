@@ -231,6 +231,13 @@ impl Producer {
         self.spec.prefetch
     }
 
+    /// Observation bytes the stream may hold at once, whichever the output: `prefetch` batches
+    /// ready, one being filled and one with the transport or the learner.
+    pub fn stream_memory_bytes(&self) -> u64 {
+        let views = if self.spec.include_next_obs { 2 } else { 1 };
+        ((self.spec.prefetch + 2) * views * self.observation_bytes()) as u64
+    }
+
     /// Start producing on a thread of its own, augmenting on `pool`. Batches arrive on the returned
     /// receiver in order, at most `prefetch` ahead. With heap output, observation buffers sent back
     /// on the returned sender once the transport is done with them are reused for later batches;

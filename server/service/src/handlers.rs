@@ -51,6 +51,20 @@ impl RadServeService {
         Ok(convert::step_to_proto(&session.observation_space, outcome))
     }
 
+    /// A stream's batches produced ahead must fit the server's per-stream limit.
+    fn check_stream_memory(&self, producer: &Producer) -> Result<(), Status> {
+        let limit = self.manager.limits().stream_memory_bytes;
+        let needed = producer.stream_memory_bytes();
+        if needed > limit {
+            return Err(Status::resource_exhausted(format!(
+                "this stream would hold {needed} bytes of batches ((prefetch {} + 2) batches of observations), over \
+                 this server's limit of {limit} (limits.stream_memory_bytes): lower prefetch or batch_size",
+                producer.prefetch()
+            )));
+        }
+        Ok(())
+    }
+
     async fn act_once(&self, request: proto::ActRequest) -> Result<proto::ActResponse, Status> {
         let response = match request.request {
             Some(act_request::Request::Reset(reset)) => act_response::Response::Reset(self.reset(reset).await?),
@@ -159,6 +173,7 @@ impl RadServe for RadServeService {
         let source = self.manager.replay_source(&request.session_id).await.map_err(to_status)?;
         // Everything is checked here, before the stream starts.
         let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?;
+        self.check_stream_memory(&producer)?;
         let chunk_bytes = if request.chunk_bytes == 0 { convert::DEFAULT_CHUNK_BYTES } else { request.chunk_bytes as usize };
         let (mut ready, recycler) = producer.start(self.augment_pool.clone(), Output::Heap);
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
@@ -245,6 +260,7 @@ impl RadServe for RadServeService {
         let spec = convert::sample_spec_from_proto(&start)?;
         let source = self.manager.replay_source(&start.session_id).await.map_err(to_status)?;
         let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?;
+        self.check_stream_memory(&producer)?;
         // A slot per batch waiting in the prefetch queue, one being filled and one the learner
         // reads: the producer never waits on a learner that releases each batch before the next.
         let slots = producer.prefetch() + 2;

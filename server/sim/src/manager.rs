@@ -29,6 +29,8 @@ pub struct Limits {
     pub replay_memory_bytes: u64,
     /// SampleBatches streams open at once on one session (each has a sampler thread).
     pub max_streams_per_session: usize,
+    /// Bytes of batches one sample stream may hold at once: (prefetch + 2) batches of observations.
+    pub stream_memory_bytes: u64,
 }
 
 impl Default for Limits {
@@ -39,6 +41,7 @@ impl Default for Limits {
             max_total_envs: 1024,
             replay_memory_bytes: 8 << 30,
             max_streams_per_session: 4,
+            stream_memory_bytes: 4 << 30,
         }
     }
 }
