@@ -157,9 +157,9 @@ fn an_empty_buffer_refuses_to_sample() {
     assert_eq!(refs.len(), 5);
 }
 
-fn producer(buffer: ReplayBuffer, text: &str, batch_size: usize) -> (Producer, Arc<RwLock<ReplayBuffer>>) {
-    let shared = Arc::new(RwLock::new(buffer));
-    let spec = SampleSpec {
+/// Replay batches with next_obs, seed 11, prefetch 2.
+fn replay_spec(batch_size: usize, text: &str, max_batches: Option<u64>) -> SampleSpec {
+    SampleSpec {
         source: Source::Replay,
         include_next_obs: true,
         batch_size,
@@ -170,8 +170,13 @@ fn producer(buffer: ReplayBuffer, text: &str, batch_size: usize) -> (Producer, A
         min_size: 1,
         samples_per_insert: None,
         error_buffer: 0.0,
-        max_batches: Some(3),
-    };
+        max_batches,
+    }
+}
+
+fn producer(buffer: ReplayBuffer, text: &str, batch_size: usize) -> (Producer, Arc<RwLock<ReplayBuffer>>) {
+    let shared = Arc::new(RwLock::new(buffer));
+    let spec = replay_spec(batch_size, text, Some(3));
     (Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap(), shared)
 }
 
@@ -206,19 +211,7 @@ fn the_producer_delivers_batches_in_order_with_real_stacks() {
 fn shared_output_writes_the_same_batches_into_slots_and_waits_for_free_ones() {
     let (buffer, _) = simulate(2, 100, 200, 5);
     let (heap_producer, shared) = producer(buffer, "crop(3)|flip(p=0.5)", 16);
-    let spec = |max_batches| SampleSpec {
-        source: Source::Replay,
-        include_next_obs: true,
-        batch_size: 16,
-        pipeline: Pipeline::parse("crop(3)|flip(p=0.5)").unwrap(),
-        sharing: Sharing::Reference,
-        seed: 11,
-        prefetch: 2,
-        min_size: 1,
-        samples_per_insert: None,
-        error_buffer: 0.0,
-        max_batches,
-    };
+    let spec = |max_batches| replay_spec(16, "crop(3)|flip(p=0.5)", max_batches);
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
     let (mut heap, _recycle) = heap_producer.start(pool.clone(), Output::Heap);
     let expected: Vec<_> = std::iter::from_fn(|| heap.blocking_recv()).map(Result::unwrap).collect();
