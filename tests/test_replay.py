@@ -319,12 +319,15 @@ def test_shared_memory_batches_equal_the_grpc_ones(client, cheetah, source):
     try:
         with client.sample_batches(session, 10, **request) as stream:
             expected = [copies(batch) for batch in stream]
-        with client.sample_batches(session, 10, delivery="shared_memory", **request) as stream:
-            assert isinstance(stream, radserve.SharedBatchStream)
-            got = []
-            for batch in stream:
-                assert batch.obs.base is not None, "obs is a view of the shared memory, not a copy"
-                got.append(copies(batch))
+        stream = client.sample_batches(session, 10, delivery="shared_memory", **request)
+        assert isinstance(stream, radserve.SharedBatchStream)
+        got = []
+        for batch in stream:
+            assert batch.obs.base is not None, "obs is a view of the shared memory, not a copy"
+            got.append(copies(batch))
+        # Run out without close(): the stream ends its request iterator itself (no thread left
+        # waiting on it).
+        assert stream._closed
     finally:
         if envs is not None:
             envs.close()

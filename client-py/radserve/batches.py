@@ -204,6 +204,7 @@ class SharedBatchStream:
     """
 
     def __init__(self, method, request: "pb.SampleBatchesRequest"):
+        self._closed = False
         self._requests: "queue.SimpleQueue" = queue.SimpleQueue()
         self._requests.put(pb.SharedSampleRequest(start=request))
         self._call = method(iter(self._requests.get, _END_OF_REQUESTS))
@@ -229,7 +230,11 @@ class SharedBatchStream:
             self._held = None
         try:
             message = next(self._call).batch
+        except StopIteration:
+            self.close()  # ends the request iterator, whose thread would otherwise wait on it forever
+            raise
         except grpc.RpcError as error:
+            self.close()
             raise from_rpc_error(error) from None
         arrays = {}
         for name, tensor in message.shared.items():
@@ -244,8 +249,10 @@ class SharedBatchStream:
         return Batch(index=message.batch_index, **arrays)
 
     def close(self) -> None:
-        self._requests.put(_END_OF_REQUESTS)
-        self._call.cancel()
+        if not self._closed:
+            self._closed = True
+            self._requests.put(_END_OF_REQUESTS)
+            self._call.cancel()
 
     def __enter__(self) -> "SharedBatchStream":
         return self
