@@ -1,7 +1,8 @@
 """Steps per second through radserve (a Python client, one session) against the same simulator driven
 directly in one Python process, measured in the same run; prints a markdown table with the ratio.
 
-    .venv/bin/python bench/sim_throughput.py [--seconds 8] [--workers 2] [--stream] [--only TEXT]
+    .venv/bin/python bench/sim_throughput.py [--seconds 8] [--workers 2] [--delivery grpc|shared_memory]
+                                             [--stream] [--only TEXT]
 
 Rows marked "pipelined" split the envs into two sessions stepped with step_async/step_wait.
 
@@ -118,8 +119,8 @@ def random_actions(space, num_envs, count=64):
     return [rng.uniform(space.low, space.high, (num_envs,) + space.shape).astype(np.float32) for _ in range(count)]
 
 
-def served(client, env_id, num_envs, seconds, stream, **options):
-    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, stream=stream, **options)
+def served(client, env_id, num_envs, seconds, stream, delivery, **options):
+    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, stream=stream, delivery=delivery, **options)
     envs.reset()
     actions = random_actions(envs.single_action_space, num_envs)
     counter = iter(range(1 << 62))
@@ -132,11 +133,12 @@ def served(client, env_id, num_envs, seconds, stream, **options):
     return rate
 
 
-def served_pipelined(client, env_id, num_envs, seconds, stream, **options):
+def served_pipelined(client, env_id, num_envs, seconds, stream, delivery, **options):
     """num_envs split into two sessions, stepped EnvPool-style: one half's step is in flight while the
     other half's reply is read and its next actions are made (step_async / step_wait)."""
     half = num_envs // 2
-    pair = [client.make_vec(env_id, num_envs=half, seed=0, stream=stream, **options) for _ in range(2)]
+    pair = [client.make_vec(env_id, num_envs=half, seed=0, stream=stream, delivery=delivery, **options)
+            for _ in range(2)]
     for envs in pair:
         envs.reset()
     actions = random_actions(pair[0].single_action_space, half)
@@ -156,11 +158,19 @@ def served_pipelined(client, env_id, num_envs, seconds, stream, **options):
     return rate
 
 
+def acting_label(args):
+    if args.delivery == "shared_memory":
+        return "shared-memory"
+    return "stream" if args.stream else "unary"
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=8.0, help="measuring time per row and side")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
-    parser.add_argument("--stream", action="store_true", help="act over the bidirectional stream")
+    parser.add_argument("--delivery", default="grpc", choices=("grpc", "shared_memory"),
+                        help="act through gRPC or through memory shared with the server (same host)")
+    parser.add_argument("--stream", action="store_true", help="with gRPC, act over the bidirectional stream")
     parser.add_argument("--only", default="", help="run only the rows whose label contains this text")
     args = parser.parse_args()
     s = args.seconds
@@ -190,11 +200,11 @@ def main():
         client = radserve.Client(server.address)
         for label, env_id, num_envs, options, direct, target in rows:
             acting = served_pipelined if "pipelined" in label else served
-            served_rate = acting(client, env_id, num_envs, s, args.stream, **options)
+            served_rate = acting(client, env_id, num_envs, s, args.stream, args.delivery, **options)
             direct_rate = direct()
             results.append((label, num_envs, served_rate, direct_rate, target))
             print(f"{label}: {served_rate:.0f} vs {direct_rate:.0f} steps/s", flush=True)
-    print(f"\nradserve with {args.workers} workers ({'stream' if args.stream else 'unary'} acting) vs one Python process,"
+    print(f"\nradserve with {args.workers} workers ({acting_label(args)} acting) vs one Python process,"
           f" {os.cpu_count()} cores\n")
     print("| workload | envs | radserve steps/s | one process steps/s | ratio | target |")
     print("|---|---:|---:|---:|---:|---:|")

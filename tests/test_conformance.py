@@ -14,9 +14,15 @@ class EnvContract:
     short_episode_options: dict = {}
     num_envs = 2
     max_steps_to_episode_end = 50
+    # How the client acts: gRPC, or shared memory with the server (same host).
+    delivery = "grpc"
 
     def make(self, client, seed=0, **extra):
-        return client.make_vec(self.env_id, num_envs=self.num_envs, seed=seed, **{**self.options, **extra})
+        envs = client.make_vec(
+            self.env_id, num_envs=self.num_envs, seed=seed, delivery=self.delivery, **{**self.options, **extra}
+        )
+        assert envs.delivery == self.delivery
+        return envs
 
     def random_actions(self, envs, rng):
         space = envs.single_action_space
@@ -197,3 +203,20 @@ class TestProcgen(EnvContract):
         np.testing.assert_array_equal(runs[0][0], runs[1][0])
         np.testing.assert_array_equal(runs[0][1], runs[1][1])
         assert runs[0][0][1:].std() > 0  # the frames move, so equality says something
+
+
+# The same contract through shared-memory acting, for a pixel, a state, a discrete and a ProcGen env.
+class TestDmcPixelsSharedMemory(TestDmcPixels):
+    delivery = "shared_memory"
+
+
+class TestGymMujocoSharedMemory(TestGymMujoco):
+    delivery = "shared_memory"
+
+
+class TestGymDiscreteSharedMemory(TestGymDiscrete):
+    delivery = "shared_memory"
+
+
+class TestProcgenSharedMemory(TestProcgen):
+    delivery = "shared_memory"

@@ -415,7 +415,7 @@ def test_shared_memory_token_is_checked():
     try:
         region = radserve.batches.pb.SharedMemoryRegion(path=f"/proc/{os.getpid()}/fd/{fd}", size=8192,
                                                         token=b"\x01" * 16, slots=1, slot_bytes=4096)
-        with pytest.raises(radserve.SharedMemoryError, match="not this stream's batch memory"):
+        with pytest.raises(radserve.SharedMemoryError, match="not the batch memory the server described"):
             radserve.batches._map_region(region)
         with mmap.mmap(fd, 8192) as memory:
             memory[:32] = b"radserve-batches" + b"\x01" * 16

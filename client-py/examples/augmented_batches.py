@@ -35,7 +35,7 @@ class Args:
     initial_steps: int = 250
     """transitions acted before the learner starts (the paper waits for 1000)"""
     delivery: str = "auto"
-    """how minibatches arrive: "shared_memory" (learner on the server's host: written into memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
+    """how minibatches and acting travel: "shared_memory" (learner on the server's host: through memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
     replay_capacity: int = 100_000
     """transitions the server's replay buffer keeps"""
     render_profile: str = "fast"
@@ -66,7 +66,8 @@ def act(envs, stop: threading.Event, counters: dict, seed: int) -> None:
 def run(args: Args, address: str) -> None:
     client = radserve.Client(address)
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, replay_capacity=args.replay_capacity,
-                           observation_view="center_crop(84)", render_profile=args.render_profile)
+                           observation_view="center_crop(84)", render_profile=args.render_profile,
+                           delivery=args.delivery)
     print(f"{args.env}: {args.num_envs} envs acting on {envs.single_observation_space}; "
           f"the learner draws {args.batch_size}-transition batches augmented with {args.augment}")
     counters = {"steps": 0}

@@ -49,7 +49,7 @@ class Args:
     per_env_augmentation: bool = True
     """draw the augmentation once per env for the whole rollout (False: once per sample)"""
     delivery: str = "auto"
-    """how minibatches arrive: "shared_memory" (learner on the server's host: written into memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
+    """how minibatches and acting travel: "shared_memory" (learner on the server's host: through memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
     num_levels: int = 200
     """training levels (the paper trains on 100 or 200)"""
     start_level: int = 0
@@ -200,10 +200,12 @@ def train(args: Args, address: str) -> RunLog:
     client = radserve.Client(address)
     game = {"distribution_mode": args.distribution_mode}
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, rollout_steps=args.num_steps,
-                           observation_view=view, num_levels=args.num_levels, start_level=args.start_level, **game)
+                           observation_view=view, num_levels=args.num_levels, start_level=args.start_level,
+                           delivery=args.delivery, **game)
     # Zero-shot: the full level distribution, seeded away from the training envs.
     eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 16), seed=args.seed + 10_000,
-                                observation_view=view, num_levels=0, start_level=args.start_level + 1_000_000, **game)
+                                observation_view=view, num_levels=0, start_level=args.start_level + 1_000_000,
+                                delivery=args.delivery, **game)
     obs_shape, num_actions = envs.single_observation_space.shape, int(envs.single_action_space.n)
     agent = Agent(obs_shape, num_actions, args.amp).to(device)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)

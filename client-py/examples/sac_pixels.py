@@ -95,7 +95,7 @@ class Args:
     prefetch: int = 2
     """minibatches the server prepares ahead of the learner"""
     delivery: str = "auto"
-    """how minibatches arrive: "shared_memory" (learner on the server's host: written into memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
+    """how minibatches and acting travel: "shared_memory" (learner on the server's host: through memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
     amp: bool = False
     """run the encoder's convs in bfloat16 autocast (2-4x faster on CPUs with AMX/AVX512-BF16 and on recent GPUs; the paper used fp32)"""
     device: str = "auto"
@@ -290,9 +290,9 @@ def train(args: Args, address: str) -> RunLog:
     client = radserve.Client(address)
     # Acting sees the evaluation view (the centre of what the learner trains on); replay keeps raw frames.
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, replay_capacity=args.replay_capacity,
-                           observation_view=view, **options)
+                           observation_view=view, delivery=args.delivery, **options)
     eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 10), seed=args.seed + 10_000,
-                                observation_view=view, **options)
+                                observation_view=view, delivery=args.delivery, **options)
     action_repeat = int(envs.info.options["action_repeat"])
     obs_shape = envs.single_observation_space.shape
     low, high = envs.single_action_space.low, envs.single_action_space.high

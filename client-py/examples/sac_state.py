@@ -79,7 +79,7 @@ class Args:
     prefetch: int = 2
     """minibatches the server prepares ahead of the learner"""
     delivery: str = "auto"
-    """how minibatches arrive: "shared_memory" (learner on the server's host: written into memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
+    """how minibatches and acting travel: "shared_memory" (learner on the server's host: through memory this process maps), "grpc" (bytes through the socket), "auto" (shared memory when it can be mapped)"""
     device: str = "auto"
     """torch device: auto (cuda when present), cpu, cuda ..."""
     torch_threads: int = 0
@@ -256,9 +256,10 @@ def train(args: Args, address: str) -> RunLog:
         torch.set_num_threads(args.torch_threads)
     torch.manual_seed(args.seed)
     client = radserve.Client(address)
-    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed,
+    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, delivery=args.delivery,
                            replay_capacity=min(args.buffer_size, max(args.total_steps, args.batch_size)))
-    eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 10), seed=args.seed + 10_000)
+    eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 10), seed=args.seed + 10_000,
+                                delivery=args.delivery)
     obs_space, action_space = envs.single_observation_space, envs.single_action_space
     if len(obs_space.shape) != 1:
         raise SystemExit(f"{args.env} observes {obs_space.shape}; sac_state.py takes flat state vectors "

@@ -13,7 +13,6 @@ are. The arrays are views of that memory, valid until the next batch is taken fr
 from __future__ import annotations
 
 import mmap
-import os
 import queue
 from dataclasses import dataclass
 from typing import Iterator
@@ -23,6 +22,7 @@ import numpy as np
 
 from ._convert import _NUMPY_DTYPES
 from ._proto import radserve_pb2 as pb
+from ._shm import map_server_memory
 from .errors import SharedMemoryError, from_rpc_error
 
 FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index", "t")
@@ -177,20 +177,7 @@ def _map_region(region: "pb.SharedMemoryRegion") -> mmap.mmap:
     """Map the server's batch memory and check that it is the memory the server described."""
     hint = ("shared-memory batches need the learner on the server's host, in its pid namespace, as the "
             "same user; use delivery='grpc' otherwise")
-    try:
-        fd = os.open(region.path, os.O_RDWR)
-    except OSError as error:
-        raise SharedMemoryError(f"cannot open the server's batch memory {region.path}: {error}; {hint}") from None
-    try:
-        memory = mmap.mmap(fd, region.size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
-    except (OSError, ValueError) as error:
-        raise SharedMemoryError(f"cannot map {region.size} bytes of {region.path}: {error}; {hint}") from None
-    finally:
-        os.close(fd)
-    if memory[:16] != _SHARED_MAGIC or memory[16:32] != region.token:
-        memory.close()
-        raise SharedMemoryError(f"{region.path} is not this stream's batch memory (its token differs); {hint}")
-    return memory
+    return map_server_memory(region.path, region.size, _SHARED_MAGIC, region.token, "batch memory", hint)
 
 
 class SharedBatchStream:

@@ -119,6 +119,7 @@ class Client:
         seed: int = 0,
         *,
         stream: bool = False,
+        delivery: str = "grpc",
         replay_capacity: "int | None" = None,
         rollout_steps: "int | None" = None,
         observation_view: str = "",
@@ -129,6 +130,9 @@ class Client:
         Environment i is seeded with `seed + i`. `options` override the env's defaults (see
         `list_envs()[...].default_options`), e.g. `pixels=False`, `frame_stack=3`, `num_levels=200`.
         With `stream=True`, reset and step go over one bidirectional stream instead of unary calls.
+        `delivery="shared_memory"` acts through memory shared with a server on this host (no message
+        per step; raises SharedMemoryError elsewhere), `"auto"` does so when it can and uses gRPC
+        otherwise; the env's `delivery` attribute says which it got.
         With `replay_capacity`, the server records every transition into a replay buffer of that many
         transitions, to be sampled with `sample_batches(envs.session_id, ...)`; with `rollout_steps`,
         it keeps the last that many steps of every env as a rollout (`source="rollout"`).
@@ -148,7 +152,11 @@ class Client:
             observation_view=observation_view,
         )
         info = SessionInfo.from_proto(self._call("CreateSession", request))
-        return RemoteVectorEnv(self, info, stream=stream)
+        try:
+            return RemoteVectorEnv(self, info, stream=stream, delivery=delivery)
+        except BaseException:
+            self.close_session(info.session_id)  # the session would otherwise outlive the failed env
+            raise
 
     def sample_batches(
         self,

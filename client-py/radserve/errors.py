@@ -37,8 +37,9 @@ class InternalError(RadServeError):
 
 
 class SharedMemoryError(RadServeError):
-    """Shared-memory batches cannot be used here: the server's memory could not be mapped (the
-    learner is on another host, in another pid namespace, or runs as another user)."""
+    """Shared memory (minibatches or acting) cannot be used here: the server's memory could not be
+    mapped or its socket reached (the client is on another host, in another pid or network
+    namespace, or runs as another user)."""
 
 
 _BY_CODE = {
@@ -56,3 +57,12 @@ def from_rpc_error(error: grpc.RpcError) -> RadServeError:
     details = error.details() if hasattr(error, "details") else str(error)
     cls = _BY_CODE.get(code, RadServeError)
     return cls(details or str(code), code)
+
+
+_BY_NUMBER = {code.value[0]: code for code in grpc.StatusCode}
+
+
+def from_status(number: int, message: str) -> RadServeError:
+    """The error for a status that came outside gRPC (the shared-memory acting channel)."""
+    code = _BY_NUMBER.get(number)
+    return _BY_CODE.get(code, RadServeError)(message or str(code), code)

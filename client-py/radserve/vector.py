@@ -9,8 +9,11 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from . import _convert
+from ._acting import SharedActing
 from ._proto import radserve_pb2 as pb
-from .errors import from_rpc_error
+from .errors import InvalidArgumentError, SharedMemoryError, from_rpc_error
+
+DELIVERIES = ("grpc", "shared_memory", "auto")
 
 
 class RemoteVectorEnv(VectorEnv):
@@ -22,12 +25,20 @@ class RemoteVectorEnv(VectorEnv):
     the mask). `infos["episode"]` carries the return `r` and length `l` of ended episodes, and
     `infos["error"]` the simulator's message when it raised or its worker died.
 
-    Observations are read-only numpy arrays over the received message bytes; copy them to modify.
+    Delivery: "grpc" acts through unary calls (or one bidirectional stream with `stream=True`);
+    "shared_memory" acts through memory shared with a server on the same host (rpc ShareActing: the
+    actions and results never become messages, a 16-byte request per step goes over a Unix socket);
+    "auto" uses shared memory when it can be mapped and gRPC otherwise. `delivery` says which is used.
+
+    Over gRPC observations are read-only numpy arrays over the received message bytes (copy them to
+    modify); through shared memory they are this env's own copies.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
 
-    def __init__(self, client, info, *, stream: bool = False):
+    def __init__(self, client, info, *, stream: bool = False, delivery: str = "grpc"):
+        if delivery not in DELIVERIES:
+            raise ValueError(f"delivery must be one of {DELIVERIES}, got {delivery!r}")
         self._client = client
         self.info = info
         self.session_id = info.session_id
@@ -40,7 +51,19 @@ class RemoteVectorEnv(VectorEnv):
         self._requests: "queue.Queue | None" = None
         self._responses = None
         self._pending = None  # the step sent by step_async, until step_wait takes its reply
-        if stream:
+        self._shared: "SharedActing | None" = None
+        if delivery != "grpc":
+            channel = client._call("ShareActing", pb.ShareActingRequest(session_id=self.session_id))
+            action_shape = () if info.action_space.shape == () else info.action_space.shape
+            try:
+                self._shared = SharedActing(
+                    channel, self.num_envs, self.single_observation_space, self._action_dtype, action_shape
+                )
+            except SharedMemoryError:
+                if delivery == "shared_memory":
+                    raise
+        self.delivery = "grpc" if self._shared is None else "shared_memory"
+        if stream and self._shared is None:
             self._requests = queue.Queue()
             self._responses = client._stub.Act(iter(self._requests.get, None))
         self.closed = False
@@ -58,12 +81,22 @@ class RemoteVectorEnv(VectorEnv):
     def reset(self, *, seed: "int | None" = None, options: "dict[str, Any] | None" = None):
         """Resets every environment; with `seed`, environment i is re-seeded with `seed + i`."""
         self._check_idle("reset")
+        if self._shared is not None:
+            if seed is not None and not 0 <= seed < 1 << 64:
+                raise InvalidArgumentError(f"seed must be a non-negative 64-bit integer, got {seed}")
+            self._shared.send(b"R", seed)
+            self._shared.receive()
+            return self._shared.obs.copy(), {}
         request = pb.ResetRequest(session_id=self.session_id, seed=seed)
         response = self._act(pb.ActRequest(reset=request), "reset")
         return _convert.to_numpy(response.obs), {}
 
     def step(self, actions):
         self._check_idle("step")
+        if self._shared is not None:
+            self._write_actions(actions)
+            self._shared.send(b"S")
+            return self._unpack_shared(self._shared.receive())
         return self._unpack(self._act(pb.ActRequest(step=self._step_request(actions)), "step"))
 
     def step_async(self, actions) -> None:
@@ -74,6 +107,11 @@ class RemoteVectorEnv(VectorEnv):
         the workers nor the learner wait for each other. One step may be outstanding per session.
         Errors (a wrong action shape, an unknown session) are raised by `step_wait()`."""
         self._check_idle("step_async")
+        if self._shared is not None:
+            self._write_actions(actions)
+            self._shared.send(b"S")
+            self._pending = self._shared
+            return
         request = self._step_request(actions)
         if self._requests is None:
             self._pending = self._client._stub.Step.future(request)
@@ -86,6 +124,8 @@ class RemoteVectorEnv(VectorEnv):
         if self._pending is None:
             raise RuntimeError("step_wait() without a step_async() before it")
         pending, self._pending = self._pending, None
+        if self._shared is not None:
+            return self._unpack_shared(self._shared.receive())
         try:
             response = pending.result() if self._requests is None else next(pending).step
         except grpc.RpcError as error:
@@ -102,6 +142,27 @@ class RemoteVectorEnv(VectorEnv):
             actions = actions.astype(self._action_dtype)
         return pb.StepRequest(session_id=self.session_id, actions=_convert.to_tensor(actions))
 
+    def _write_actions(self, actions) -> None:
+        actions = np.asarray(actions)
+        target = self._shared.actions
+        if actions.shape != target.shape or not np.can_cast(actions.dtype, target.dtype, "same_kind"):
+            raise InvalidArgumentError(
+                f"actions must be {target.dtype} of shape {list(target.shape)} ({self.num_envs} envs, each "
+                f"{self.single_action_space}); got {actions.dtype} of shape {list(actions.shape)}"
+            )
+        np.copyto(target, actions, casting="same_kind")
+
+    def _unpack_shared(self, errors: "dict[int, str]"):
+        shared = self._shared
+        terminated, truncated = shared.terminated.copy(), shared.truncated.copy()
+        ended = np.flatnonzero(terminated | truncated)
+        infos = {}
+        if len(ended):
+            infos = self._episode_infos(
+                ended, shared.final_obs[ended], shared.episode_return[ended], shared.episode_length[ended], errors
+            )
+        return shared.obs.copy(), shared.reward.copy(), terminated, truncated, infos
+
     def _unpack(self, response: "pb.StepResponse"):
         obs = _convert.to_numpy(response.obs)
         rewards = _convert.to_numpy(response.reward)
@@ -112,23 +173,30 @@ class RemoteVectorEnv(VectorEnv):
     def _infos(self, response: "pb.StepResponse") -> dict:
         if not response.episodes:
             return {}
+        episodes = response.episodes
+        return self._episode_infos(
+            [episode.env_index for episode in episodes],
+            _convert.to_numpy(response.final_obs),
+            [episode.episode_return for episode in episodes],
+            [episode.episode_length for episode in episodes],
+            {episode.env_index: episode.error for episode in episodes if episode.error},
+        )
+
+    def _episode_infos(self, envs, final_rows, episode_returns, episode_lengths, errors: "dict[int, str]") -> dict:
+        """gymnasium's infos for the episodes that ended: env `envs[k]` ended with `final_rows[k]`."""
         n = self.num_envs
         mask = np.zeros(n, dtype=bool)
         final_obs = np.full(n, None, dtype=object)
         final_info = np.full(n, None, dtype=object)
         returns = np.zeros(n, dtype=np.float64)
         lengths = np.zeros(n, dtype=np.int64)
-        errors = np.full(n, None, dtype=object)
-        dense_final = _convert.to_numpy(response.final_obs)
-        for row, episode in enumerate(response.episodes):
-            i = episode.env_index
+        for row, i in enumerate(envs):
             mask[i] = True
-            final_obs[i] = dense_final[row]
-            returns[i], lengths[i] = episode.episode_return, episode.episode_length
+            final_obs[i] = final_rows[row]
+            returns[i], lengths[i] = episode_returns[row], episode_lengths[row]
             final_info[i] = {"episode": {"r": returns[i], "l": lengths[i]}}
-            if episode.error:
-                errors[i] = episode.error
-                final_info[i]["error"] = episode.error
+            if i in errors:
+                final_info[i]["error"] = errors[i]
         infos = {
             "final_obs": final_obs,
             "_final_obs": mask,
@@ -137,9 +205,12 @@ class RemoteVectorEnv(VectorEnv):
             "episode": {"r": returns, "l": lengths, "_r": mask.copy(), "_l": mask.copy()},
             "_episode": mask.copy(),
         }
-        if any(e is not None for e in errors):
-            infos["error"] = errors
-            infos["_error"] = np.array([e is not None for e in errors])
+        if errors:
+            error_array = np.full(n, None, dtype=object)
+            for i, message in errors.items():
+                error_array[i] = message
+            infos["error"] = error_array
+            infos["_error"] = np.array([e is not None for e in error_array])
         return infos
 
     def describe(self):
@@ -150,6 +221,8 @@ class RemoteVectorEnv(VectorEnv):
         if self.closed:
             return
         self.closed = True
+        if self._shared is not None:
+            self._shared.close()
         if self._requests is not None:
             self._requests.put(None)
         try:

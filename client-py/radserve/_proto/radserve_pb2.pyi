@@ -297,6 +297,40 @@ class ActResponse(_message.Message):
     step: StepResponse
     def __init__(self, reset: _Optional[_Union[ResetResponse, _Mapping]] = ..., step: _Optional[_Union[StepResponse, _Mapping]] = ...) -> None: ...
 
+class ShareActingRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class SharedActingChannel(_message.Message):
+    __slots__ = ("path", "size", "token", "socket", "actions_offset", "obs_offset", "final_obs_offset", "reward_offset", "terminated_offset", "truncated_offset", "episode_return_offset", "episode_length_offset")
+    PATH_FIELD_NUMBER: _ClassVar[int]
+    SIZE_FIELD_NUMBER: _ClassVar[int]
+    TOKEN_FIELD_NUMBER: _ClassVar[int]
+    SOCKET_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    OBS_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    FINAL_OBS_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    REWARD_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    TERMINATED_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    TRUNCATED_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_RETURN_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_LENGTH_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    path: str
+    size: int
+    token: bytes
+    socket: str
+    actions_offset: int
+    obs_offset: int
+    final_obs_offset: int
+    reward_offset: int
+    terminated_offset: int
+    truncated_offset: int
+    episode_return_offset: int
+    episode_length_offset: int
+    def __init__(self, path: _Optional[str] = ..., size: _Optional[int] = ..., token: _Optional[bytes] = ..., socket: _Optional[str] = ..., actions_offset: _Optional[int] = ..., obs_offset: _Optional[int] = ..., final_obs_offset: _Optional[int] = ..., reward_offset: _Optional[int] = ..., terminated_offset: _Optional[int] = ..., truncated_offset: _Optional[int] = ..., episode_return_offset: _Optional[int] = ..., episode_length_offset: _Optional[int] = ...) -> None: ...
+
 class AugmentationStage(_message.Message):
     __slots__ = ("name", "args")
     class ArgsEntry(_message.Message):

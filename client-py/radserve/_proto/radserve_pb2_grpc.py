@@ -69,6 +69,11 @@ class RadServeStub:
                 request_serializer=radserve__pb2.ActRequest.SerializeToString,
                 response_deserializer=radserve__pb2.ActResponse.FromString,
                 _registered_method=True)
+        self.ShareActing = channel.unary_unary(
+                '/radserve.v1.RadServe/ShareActing',
+                request_serializer=radserve__pb2.ShareActingRequest.SerializeToString,
+                response_deserializer=radserve__pb2.SharedActingChannel.FromString,
+                _registered_method=True)
         self.SampleBatches = channel.unary_stream(
                 '/radserve.v1.RadServe/SampleBatches',
                 request_serializer=radserve__pb2.SampleBatchesRequest.SerializeToString,
@@ -125,6 +130,16 @@ class RadServeServicer:
 
     def Act(self, request_iterator, context):
         """Vectorized acting over one bidirectional stream: each request gets exactly one response, in order.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def ShareActing(self, request, context):
+        """Same-host acting through shared memory: the reply names a memory region (actions in, step results
+        out) and a Unix socket that carries only a small doorbell message per reset or step, so no
+        observation and no protobuf travels per step. Protocol in SharedActingChannel. The channel lives
+        as long as the socket connection; one per session at a time.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -189,6 +204,11 @@ def add_RadServeServicer_to_server(servicer, server):
                     servicer.Act,
                     request_deserializer=radserve__pb2.ActRequest.FromString,
                     response_serializer=radserve__pb2.ActResponse.SerializeToString,
+            ),
+            'ShareActing': grpc.unary_unary_rpc_method_handler(
+                    servicer.ShareActing,
+                    request_deserializer=radserve__pb2.ShareActingRequest.FromString,
+                    response_serializer=radserve__pb2.SharedActingChannel.SerializeToString,
             ),
             'SampleBatches': grpc.unary_stream_rpc_method_handler(
                     servicer.SampleBatches,
@@ -390,6 +410,33 @@ class RadServe:
             '/radserve.v1.RadServe/Act',
             radserve__pb2.ActRequest.SerializeToString,
             radserve__pb2.ActResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ShareActing(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/ShareActing',
+            radserve__pb2.ShareActingRequest.SerializeToString,
+            radserve__pb2.SharedActingChannel.FromString,
             options,
             channel_credentials,
             insecure,

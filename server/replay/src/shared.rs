@@ -177,7 +177,8 @@ impl std::fmt::Debug for Slot {
     }
 }
 
-fn random_token() -> io::Result<[u8; 16]> {
+/// 16 random bytes from the kernel: a token that tells a client it mapped the memory it was told of.
+pub fn random_token() -> io::Result<[u8; 16]> {
     let mut token = [0u8; 16];
     // SAFETY: writes at most 16 bytes into `token`.
     let written = unsafe { libc::getrandom(token.as_mut_ptr().cast(), token.len(), 0) };

@@ -8,6 +8,7 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 use tracing::debug;
 
+use crate::acting::{self, OpenChannels};
 use crate::convert::{self, observation_tensor};
 use radserve_replay::{Output, Producer, SharedRing, Slot};
 
@@ -28,11 +29,13 @@ pub struct RadServeService {
     manager: Arc<SessionManager>,
     /// Threads that augment minibatches (never a tokio worker).
     augment_pool: Arc<rayon::ThreadPool>,
+    /// Sessions with a shared-memory acting channel open.
+    acting_channels: OpenChannels,
 }
 
 impl RadServeService {
     pub fn new(manager: Arc<SessionManager>, augment_pool: Arc<rayon::ThreadPool>) -> RadServeService {
-        RadServeService { manager, augment_pool }
+        RadServeService { manager, augment_pool, acting_channels: OpenChannels::default() }
     }
 
     async fn reset(&self, request: proto::ResetRequest) -> Result<proto::ResetResponse, Status> {
@@ -160,6 +163,16 @@ impl RadServe for RadServeService {
             debug!("act stream ended");
         });
         Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
+    }
+
+    async fn share_acting(
+        &self,
+        request: Request<proto::ShareActingRequest>,
+    ) -> Result<Response<proto::SharedActingChannel>, Status> {
+        let session_id = request.into_inner().session_id;
+        let (description, channel) = acting::open(self.manager.clone(), &session_id, &self.acting_channels).await?;
+        tokio::spawn(channel.serve(session_id));
+        Ok(Response::new(description))
     }
 
     type SampleBatchesStream = SampleStream;

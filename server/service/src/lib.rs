@@ -1,6 +1,7 @@
 //! The gRPC face of radserve. Handlers here only validate and convert messages, call the core
 //! (`radserve_sim`), and map its errors to statuses; no logic lives in the transport.
 
+pub mod acting;
 pub mod convert;
 pub mod error;
 pub mod handlers;

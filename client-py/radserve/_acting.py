@@ -1,0 +1,94 @@
+"""The client end of a shared-memory acting channel (rpc ShareActing; protocol in the proto's
+SharedActingChannel): actions are written into memory the server maps, a 16-byte request goes over
+a Unix socket, and after an 8-byte answer the results are read where the server wrote them."""
+
+import socket
+import struct
+
+import numpy as np
+
+from ._proto import radserve_pb2 as pb
+from ._shm import map_server_memory
+from .errors import SharedMemoryError, UnavailableError, from_status
+
+_MAGIC = b"radserve-acting\0"
+_REQUEST = struct.Struct("<cB6xQ")
+_ANSWER = struct.Struct("<II")
+_ERROR = struct.Struct("<II")
+_HINT = ("shared-memory acting needs the client on the server's host, in its pid and network namespaces, as "
+         "the same user; use delivery='grpc' otherwise")
+
+
+class SharedActing:
+    """Arrays over the channel's memory, and the socket that says when they may be read."""
+
+    def __init__(self, channel: "pb.SharedActingChannel", num_envs: int, obs_space, action_dtype, action_shape):
+        self._memory = map_server_memory(channel.path, channel.size, _MAGIC, channel.token, "acting memory", _HINT)
+        self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            self._socket.connect("\0" + channel.socket)
+            self._socket.sendall(channel.token)
+        except OSError as error:
+            self.close()
+            raise SharedMemoryError(f"cannot reach the server's acting socket {channel.socket!r}: {error}; {_HINT}") \
+                from None
+        n = num_envs
+        obs_dtype = np.dtype(obs_space.dtype)
+
+        def array(offset, shape, dtype):
+            return np.ndarray(shape, dtype=dtype, buffer=self._memory, offset=offset)
+
+        self.actions = array(channel.actions_offset, (n,) + tuple(action_shape), action_dtype)
+        self.obs = array(channel.obs_offset, (n,) + obs_space.shape, obs_dtype)
+        self.final_obs = array(channel.final_obs_offset, (n,) + obs_space.shape, obs_dtype)
+        self.reward = array(channel.reward_offset, (n,), np.dtype("<f8"))
+        self.terminated = array(channel.terminated_offset, (n,), np.bool_)
+        self.truncated = array(channel.truncated_offset, (n,), np.bool_)
+        self.episode_return = array(channel.episode_return_offset, (n,), np.dtype("<f8"))
+        self.episode_length = array(channel.episode_length_offset, (n,), np.dtype("<u8"))
+
+    def send(self, kind: bytes, seed: "int | None" = None) -> None:
+        """Asks for a step (b"S", after writing `actions`) or a reset (b"R")."""
+        try:
+            self._socket.sendall(_REQUEST.pack(kind, seed is not None, seed or 0))
+        except OSError as error:
+            raise UnavailableError(f"the server's acting channel is gone: {error}") from None
+
+    def receive(self) -> "dict[int, str]":
+        """Waits for the answer to the request sent; returns the simulator errors of ended episodes
+        by env index, or raises the server's error."""
+        code, length = _ANSWER.unpack(self._read(_ANSWER.size))
+        body = self._read(length) if length else b""
+        if code != 0:
+            raise from_status(code, body.decode("utf-8", "replace"))
+        errors, at = {}, 0
+        while at < len(body):
+            env, size = _ERROR.unpack_from(body, at)
+            at += _ERROR.size
+            errors[env] = body[at:at + size].decode("utf-8", "replace")
+            at += size
+        return errors
+
+    def _read(self, size: int) -> bytes:
+        data = b""
+        while len(data) < size:
+            try:
+                more = self._socket.recv(size - len(data))
+            except OSError as error:
+                raise UnavailableError(f"the server's acting channel failed: {error}") from None
+            if not more:
+                raise UnavailableError("the server closed the acting channel (it stopped, or the session was closed)")
+            data += more
+        return data
+
+    def close(self) -> None:
+        """Ends the channel; the server frees it when it sees the socket close."""
+        self._socket.close()
+        for name in ("actions", "obs", "final_obs", "reward", "terminated", "truncated", "episode_return",
+                     "episode_length"):
+            self.__dict__.pop(name, None)
+        try:
+            self._memory.close()
+        except BufferError:  # an array over the memory is still referenced somewhere; it stays mapped
+            pass
+

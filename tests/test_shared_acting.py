@@ -1,0 +1,202 @@
+"""Same-host acting through shared memory (rpc ShareActing): the same results as gRPC, the same
+errors, and a server that keeps serving whatever a client does with the channel. The env contract
+itself also runs through shared memory (test_conformance.py, the *SharedMemory classes)."""
+
+import os
+import signal
+import socket
+import struct
+import time
+
+import numpy as np
+import pytest
+
+import radserve
+from radserve import _acting
+from radserve._proto import radserve_pb2 as pb
+from test_errors import _worker_pids
+
+REQUEST = struct.Struct("<cB6xQ")
+ANSWER = struct.Struct("<II")
+INVALID_ARGUMENT, FAILED_PRECONDITION, NOT_FOUND = 3, 9, 5
+
+
+def assert_same_step(want, have):
+    for a, b in zip(want[:4], have[:4]):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == b.dtype
+    assert want[4].keys() == have[4].keys()
+    if want[4]:
+        for key in ("_final_obs", "_episode"):
+            np.testing.assert_array_equal(want[4][key], have[4][key])
+        for key in ("r", "l"):
+            np.testing.assert_array_equal(want[4]["episode"][key], have[4]["episode"][key])
+        for i in np.flatnonzero(want[4]["_final_obs"]):
+            np.testing.assert_array_equal(want[4]["final_obs"][i], have[4]["final_obs"][i])
+            assert want[4]["final_info"][i] == have[4]["final_info"][i]
+
+
+@pytest.mark.parametrize(
+    "env_id, options",
+    [("gym/HalfCheetah-v5", {"max_episode_steps": 6}), ("dmc/cartpole-balance",
+     {"height": 32, "width": 32, "render_profile": "fast", "action_repeat": 100, "frame_stack": 2})],
+    ids=["gym", "dmc-pixels"],
+)
+def test_shared_memory_gives_what_grpc_gives_step_for_step(client, env_id, options):
+    """Observations, rewards, flags, ended episodes' final observations, returns and lengths; also
+    pipelined (step_async/step_wait) and after a reseeding reset."""
+    grpc_envs = client.make_vec(env_id, num_envs=3, seed=7, **options)
+    shared = client.make_vec(env_id, num_envs=3, seed=7, delivery="shared_memory", **options)
+    try:
+        assert shared.delivery == "shared_memory"
+        np.testing.assert_array_equal(grpc_envs.reset()[0], shared.reset()[0])
+        rng = np.random.default_rng(0)
+        ended = 0
+        for t in range(20):
+            actions = rng.uniform(-1, 1, (3,) + shared.single_action_space.shape).astype(np.float32)
+            want = grpc_envs.step(actions)
+            if t % 2:
+                have = shared.step(actions)
+            else:
+                shared.step_async(actions)
+                have = shared.step_wait()
+            assert_same_step(want, have)
+            ended += int(want[4]["_final_obs"].sum()) if want[4] else 0
+        assert ended > 0  # episodes ended, so the final_obs path was compared
+        np.testing.assert_array_equal(grpc_envs.reset(seed=3)[0], shared.reset(seed=3)[0])
+        actions = np.zeros((3,) + shared.single_action_space.shape, np.float32)
+        assert_same_step(grpc_envs.step(actions), shared.step(actions))
+        # Results are the caller's own arrays: the next step does not change them.
+        obs = shared.step(actions)[0]
+        before = obs.copy()
+        shared.step(actions + 0.5)
+        np.testing.assert_array_equal(obs, before)
+    finally:
+        grpc_envs.close()
+        shared.close()
+
+
+def test_errors_are_the_same_and_change_nothing(client):
+    envs = client.make_vec("gym/Pendulum-v1", num_envs=2, delivery="shared_memory")
+    try:
+        with pytest.raises(radserve.FailedPreconditionError, match="Reset"):
+            envs.step(np.zeros((2, 1), np.float32))
+        envs.reset()
+        with pytest.raises(radserve.InvalidArgumentError, match=r"float32 of shape \[2, 1\].*got float64 of shape \[3, 1\]"):
+            envs.step(np.zeros((3, 1)))
+        with pytest.raises(radserve.InvalidArgumentError, match=r"outside \[-2, 2\]"):
+            envs.step(np.array([[0.0], [7.0]], np.float32))
+        with pytest.raises(radserve.InvalidArgumentError, match="seed"):
+            envs.reset(seed=-1)
+        assert envs.describe().total_env_steps == 0
+        assert envs.step(np.zeros((2, 1), np.float32))[0].shape == (2, 3)
+        assert envs.describe().total_env_steps == 2
+    finally:
+        envs.close()
+
+
+def test_a_dead_worker_ends_its_episodes_with_the_reason(server, client, catalog):
+    # `catalog` first: the transient worker that builds it must be gone before workers are counted.
+    envs = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0, delivery="shared_memory")
+    try:
+        envs.reset()
+        os.kill(_worker_pids(server.process.pid)[0], signal.SIGKILL)
+        time.sleep(0.2)
+        _, _, _, truncated, infos = envs.step(np.zeros((2, 6), np.float32))
+        assert truncated.sum() == 1
+        i = int(np.flatnonzero(truncated)[0])
+        assert "died" in infos["error"][i] and "died" in infos["final_info"][i]["error"]
+        assert infos["final_obs"][i].shape == (17,)
+        envs.step(np.zeros((2, 6), np.float32))
+    finally:
+        envs.close()
+
+
+def _connect(channel: "pb.SharedActingChannel", token: bytes) -> socket.socket:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(20)
+    sock.connect("\0" + channel.socket)
+    sock.sendall(token)
+    return sock
+
+
+def _ask(sock, request: bytes):
+    sock.sendall(request)
+    code, length = ANSWER.unpack(sock.recv(8, socket.MSG_WAITALL))
+    return code, sock.recv(length, socket.MSG_WAITALL).decode() if length else ""
+
+
+def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client):
+    envs = client.make_vec("gym/CartPole-v1", num_envs=2)
+    try:
+        channel = client._stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
+        assert channel.size > channel.episode_length_offset and len(channel.token) == 16
+        # One channel per session at a time.
+        with pytest.raises(radserve.FailedPreconditionError, match="already has"):
+            client._call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
+        # A connection without the token is dropped; the rightful client can still take the channel.
+        stranger = _connect(channel, b"x" * 16)
+        assert stranger.recv(1) == b""
+        sock = _connect(channel, channel.token)
+        assert _ask(sock, REQUEST.pack(b"X", 0, 0))[0] == INVALID_ARGUMENT
+        code, message = _ask(sock, REQUEST.pack(b"R", 7, 0))
+        assert code == INVALID_ARGUMENT and "0 or 1" in message
+        assert _ask(sock, REQUEST.pack(b"R", 0, 0)) == (0, "")
+        # The memory holds the reset's observations, as the gRPC reset would return them.
+        memory = _acting.map_server_memory(channel.path, channel.size, b"radserve-acting\0", channel.token, "m", "")
+        obs = np.ndarray((2, 4), np.float32, buffer=memory, offset=channel.obs_offset).copy()
+        assert np.all(np.abs(obs) <= 0.05)  # CartPole starts near the origin
+        actions = np.ndarray((2,), np.int64, buffer=memory, offset=channel.actions_offset)
+        actions[:] = [5, 0]
+        code, message = _ask(sock, REQUEST.pack(b"S", 0, 0))
+        assert code == INVALID_ARGUMENT and "outside" in message
+        actions[:] = [1, 0]
+        assert _ask(sock, REQUEST.pack(b"S", 0, 0)) == (0, "")
+        assert envs.describe().total_env_steps == 2
+        del obs, actions
+        memory.close()
+        # The channel ends with its connection; then the session can open another.
+        sock.close()
+        for _ in range(100):
+            try:
+                client._call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
+                break
+            except radserve.FailedPreconditionError:
+                time.sleep(0.05)
+        else:
+            pytest.fail("the channel was not freed after its client disconnected")
+    finally:
+        envs.close()
+
+
+def test_unknown_or_closed_sessions(client):
+    with pytest.raises(radserve.NotFoundError, match="unknown session"):
+        client._call("ShareActing", pb.ShareActingRequest(session_id="nope"))
+    envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="shared_memory")
+    envs.reset()
+    client.close_session(envs.session_id)
+    with pytest.raises(radserve.NotFoundError, match="unknown session"):
+        envs.step(np.zeros(1, np.int64))
+    envs.close()
+
+
+def test_auto_falls_back_to_grpc_where_memory_cannot_be_mapped(client, monkeypatch):
+    def unmappable(*args, **kwargs):
+        raise radserve.SharedMemoryError("cannot open the server's acting memory (simulated)")
+
+    monkeypatch.setattr(_acting, "map_server_memory", unmappable)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="auto")
+    try:
+        assert envs.delivery == "grpc"
+        envs.reset()
+        assert envs.step(np.zeros(1, np.int64))[0].shape == (1, 4)
+    finally:
+        envs.close()
+    with pytest.raises(radserve.SharedMemoryError, match="simulated"):
+        client.make_vec("gym/CartPole-v1", num_envs=1, delivery="shared_memory")
+    monkeypatch.undo()
+    envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="auto")
+    assert envs.delivery == "shared_memory"
+    envs.close()
+    with pytest.raises(ValueError, match="delivery"):
+        client.make_vec("gym/CartPole-v1", num_envs=1, delivery="carrier pigeon")
