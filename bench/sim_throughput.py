@@ -179,6 +179,8 @@ def main():
          lambda: dmc_direct("cheetah-run", 4, True, True, s), 1.5),
         ("dmc state cheetah-run", "dmc/cheetah-run", 16, {"pixels": False},
          lambda: dmc_direct("cheetah-run", 16, False, False, s), 1.3),
+        ("dmc state cheetah-run, pipelined 2 x 8", "dmc/cheetah-run", 16, {"pixels": False},
+         lambda: dmc_direct("cheetah-run", 16, False, False, s), 1.3),
         ("gym HalfCheetah-v5", "gym/HalfCheetah-v5", 16, {},
          lambda: gym_direct("HalfCheetah-v5", 16, s), 1.3),
         ("gym HalfCheetah-v5, pipelined 2 x 8", "gym/HalfCheetah-v5", 16, {},

@@ -200,7 +200,7 @@ fn handle(
             if let Some(previous) = groups.remove(&group) {
                 close_group(py, previous);
             }
-            let object = module.getattr("Group")?.call1((family.prefix(), name, options_dict(py, &options)?, seeds))?;
+            let object = module.getattr("make_group")?.call1((family.prefix(), name, options_dict(py, &options)?, seeds))?;
             let spec = extract_spec(&object.call_method0("spec")?)?;
             groups.insert(group, HostedGroup { object: object.unbind(), view: None, frames: None });
             Ok(Response::Created(spec))
