@@ -189,8 +189,8 @@ def main():
          lambda: procgen_direct("bigfish", 64, s), 0.5),
         ("procgen bigfish, pipelined 2 x 32", "procgen/bigfish", 64, {},
          lambda: procgen_direct("bigfish", 64, s), 0.5),
-        # radserve's previous setting, for comparison in the same run: procgen's pool of 4 threads per env
-        ("procgen bigfish (num_threads=4 per env)", "procgen/bigfish", 64, {"num_threads": 4},
+        # procgen's own pool of 4 threads stepping each worker's vector of games, for comparison
+        ("procgen bigfish (num_threads=4)", "procgen/bigfish", 64, {"num_threads": 4},
          lambda: procgen_direct("bigfish", 64, s), 0.5),
     ]
     rows = [row for row in rows if args.only in row[0]]

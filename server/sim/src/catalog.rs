@@ -167,8 +167,8 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
             option("use_sequential_levels", Bool(false), Rule::Any),
             option("paint_vel_info", Bool(false), Rule::Any),
             option("use_generated_assets", Bool(false), Rule::Any),
-            // procgen's own stepping threads per env object; 0 (radserve's default, not procgen's 4)
-            // steps on the worker's thread, 2.6x faster per step here (radserve_worker.py).
+            // procgen's own stepping threads for a worker's vector of games; 0 (radserve's default, not
+            // procgen's 4) steps them on the worker's thread (radserve_worker.py).
             option("num_threads", Int(0), Rule::IntRange(0, 64)),
             option(FRAME_STACK, Int(1), Rule::IntRange(1, MAX_FRAME_STACK)),
         ],
