@@ -1,11 +1,16 @@
 """Steps per second through radserve (a Python client, one session) against the same simulator driven
 directly in one Python process, measured in the same run; prints a markdown table with the ratio.
 
-    .venv/bin/python bench/sim_throughput.py [--seconds 8] [--workers 2] [--stream] [--only TEXT]
-                                             [--delivery both|grpc|shared_memory]
+    .venv/bin/python bench/sim_throughput.py [--seconds 4] [--rounds 3] [--workers 2] [--stream]
+        [--only TEXT] [--delivery both|grpc|shared_memory] [--server-env NAME=VALUE]
 
-Each row is measured through gRPC and through shared-memory acting (`delivery="shared_memory"`, the
-client on the server's host), then the baseline, in the same run.
+Each row is measured in rounds: through gRPC and through shared-memory acting
+(`delivery="shared_memory"`, the client on the server's host), then the baseline. The table gives
+median rates and the median of the rounds' ratios with its range.
+
+The dmc pixel baselines render with `physics.render()`, as dm_control's pixels wrapper and RAD's
+dmc2gym do; the row "baseline with cached Camera" gives the baseline the server's own way of rendering
+(one Camera per env), to show how much of the ratio is that and how much the worker processes.
 
 Rows marked "pipelined" split the envs into two sessions stepped with step_async/step_wait.
 
@@ -16,6 +21,7 @@ Targets on a 2-core machine: dmc pixels >= 1.5x one process; dmc state and gym >
 import argparse
 import contextlib
 import functools
+import logging
 import os
 import tempfile
 import time
@@ -23,6 +29,8 @@ import time
 import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+# dm_control's cheetah warns through absl on every load ("settotalmass is deprecated").
+logging.getLogger("absl").setLevel(logging.ERROR)
 
 import radserve  # noqa: E402
 
@@ -50,7 +58,7 @@ def in_scratch_dir(baseline):
 
 
 @in_scratch_dir
-def dmc_direct(name, num_envs, fast, pixels, seconds):
+def dmc_direct(name, num_envs, fast, pixels, seconds, cached_camera=False):
     from dm_control import suite
 
     domain, task = name.split("-", 1)
@@ -66,6 +74,15 @@ def dmc_direct(name, num_envs, fast, pixels, seconds):
     shape = envs[0].action_spec().shape
     rng = np.random.default_rng(0)
     repeat = 4
+    # physics.render() is how dm_control's pixels wrapper (and RAD's dmc2gym) render; the server's
+    # workers keep one Camera per env instead. cached_camera gives the baseline the same trick.
+    if pixels and cached_camera:
+        from dm_control.mujoco.engine import Camera
+
+        cameras = [Camera(env.physics, height=100, width=100, camera_id=0) for env in envs]
+        render = {id(env): camera.render for env, camera in zip(envs, cameras)}
+    else:
+        render = {id(env): functools.partial(env.physics.render, height=100, width=100, camera_id=0) for env in envs}
 
     def step():
         for env in envs:
@@ -75,7 +92,7 @@ def dmc_direct(name, num_envs, fast, pixels, seconds):
             if time_step.last():
                 env.reset()
             if pixels:
-                env.physics.render(height=100, width=100, camera_id=0)
+                render[id(env)]()
             else:
                 np.concatenate([np.asarray(v, np.float32).reshape(-1) for v in time_step.observation.values()])
 
@@ -163,20 +180,27 @@ def served_pipelined(client, env_id, num_envs, seconds, stream, delivery, **opti
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seconds", type=float, default=8.0, help="measuring time per row and side")
+    parser.add_argument("--seconds", type=float, default=4.0, help="measuring time per round, row and side")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds per row, server and baseline alternating")
     parser.add_argument("--workers", type=int, default=os.cpu_count())
     parser.add_argument("--delivery", default="both", choices=("both", "grpc", "shared_memory"),
                         help="act through gRPC, through memory shared with the server (same host), or both")
     parser.add_argument("--stream", action="store_true", help="with gRPC, act over the bidirectional stream")
     parser.add_argument("--only", default="", help="run only the rows whose label contains this text")
+    parser.add_argument("--server-env", action="append", default=[], metavar="NAME=VALUE",
+                        help="set in the server's (and its workers') environment only, e.g. LP_NUM_THREADS=1")
     args = parser.parse_args()
     s = args.seconds
     rows = [
         # (label, env id, envs, server options, direct baseline, target ratio)
         ("dmc pixels cheetah-run (default look)", "dmc/cheetah-run", 4, {"frame_stack": 1},
          lambda: dmc_direct("cheetah-run", 4, False, True, s), 1.5),
+        ("dmc pixels cheetah-run (default look), baseline with cached Camera", "dmc/cheetah-run", 4,
+         {"frame_stack": 1}, lambda: dmc_direct("cheetah-run", 4, False, True, s, True), None),
         ("dmc pixels cheetah-run (fast look)", "dmc/cheetah-run", 4, {"frame_stack": 1, "render_profile": "fast"},
          lambda: dmc_direct("cheetah-run", 4, True, True, s), 1.5),
+        ("dmc pixels cheetah-run (fast look), baseline with cached Camera", "dmc/cheetah-run", 4,
+         {"frame_stack": 1, "render_profile": "fast"}, lambda: dmc_direct("cheetah-run", 4, True, True, s, True), None),
         ("dmc state cheetah-run", "dmc/cheetah-run", 16, {"pixels": False},
          lambda: dmc_direct("cheetah-run", 16, False, False, s), 1.3),
         ("dmc state cheetah-run, pipelined 2 x 8", "dmc/cheetah-run", 16, {"pixels": False},
@@ -196,28 +220,43 @@ def main():
     rows = [row for row in rows if args.only in row[0]]
     deliveries = ["grpc", "shared_memory"] if args.delivery == "both" else [args.delivery]
     results = []
-    with radserve.LocalServer(workers=args.workers) as server:
+    server_env = dict(item.split("=", 1) for item in args.server_env)
+    with radserve.LocalServer(workers=args.workers, env=server_env) as server:
         client = radserve.Client(server.address)
         # The server builds its catalog in a background worker for ~15 s after starting; measuring
         # during that time would give the first rows less CPU than the others.
         client.list_envs()
         for label, env_id, num_envs, options, direct, target in rows:
             acting = served_pipelined if "pipelined" in label else served
-            rates = {d: acting(client, env_id, num_envs, s, args.stream, d, **options) for d in deliveries}
-            direct_rate = direct()
-            results.append((label, num_envs, rates, direct_rate, target))
-            served_text = ", ".join(f"{rate:.0f} ({d})" for d, rate in rates.items())
-            print(f"{label}: {served_text} vs {direct_rate:.0f} steps/s", flush=True)
+            # Rounds alternate server and baseline, so that a slow spell of this noisy machine lands on
+            # both sides of a round's ratio rather than on one side of the whole row.
+            rates, direct_rates = {d: [] for d in deliveries}, []
+            for round_ in range(args.rounds):
+                for d in deliveries:
+                    rates[d].append(acting(client, env_id, num_envs, s, args.stream, d, **options))
+                direct_rates.append(direct())
+                served_text = ", ".join(f"{r[-1]:.0f} ({d})" for d, r in rates.items())
+                print(f"{label}, round {round_ + 1}: {served_text} vs {direct_rates[-1]:.0f} steps/s", flush=True)
+            results.append((label, num_envs, rates, direct_rates, target))
     names = {"grpc": "gRPC" + (" stream" if args.stream else ""), "shared_memory": "shared memory"}
     print(f"\nradserve with {args.workers} workers vs one Python process, {os.cpu_count()} cores, synchronous acting "
           f"unless pipelined\n")
     print("| workload | envs | " + " | ".join(f"{names[d]} steps/s" for d in deliveries) + " | one process steps/s | "
           + " | ".join(f"ratio ({names[d]})" for d in deliveries) + " | target |")
     print("|---|---:|" + "---:|" * (2 * len(deliveries) + 2))
-    for label, num_envs, rates, direct_rate, target in results:
-        ratios = [rates[d] / direct_rate for d in deliveries]
-        print(f"| {label} | {num_envs} | " + " | ".join(f"{rates[d]:.0f}" for d in deliveries) + f" | {direct_rate:.0f} | "
-              + " | ".join(f"{r:.2f}x" for r in ratios) + f" | {target}x |")
+    for label, num_envs, rates, direct_rates, target in results:
+        served_text = " | ".join(f"{np.median(rates[d]):.0f}" for d in deliveries)
+        ratio_text = " | ".join(ratio_cell(rates[d], direct_rates) for d in deliveries)
+        target_text = f"{target}x" if target else "-"
+        print(f"| {label} | {num_envs} | {served_text} | {np.median(direct_rates):.0f} | {ratio_text} | {target_text} |")
+    if args.rounds > 1:
+        print(f"\nsteps/s: medians of {args.rounds} rounds; ratio: median of the rounds' ratios (lowest-highest)")
+
+
+def ratio_cell(served_rates, direct_rates):
+    ratios = [a / b for a, b in zip(served_rates, direct_rates)]
+    text = f"{np.median(ratios):.2f}x"
+    return text + (f" ({min(ratios):.2f}-{max(ratios):.2f})" if len(ratios) > 1 else "")
 
 if __name__ == "__main__":
     main()

@@ -28,5 +28,17 @@ def test_pixels_equal_dm_control_rendered_in_process(client):
                 reward = sum(env.step(actions[i]).reward for _ in range(action_repeat))
                 np.testing.assert_array_equal(obs[i, -3:], rendered(env))
                 assert rewards[i] == reward
+
+        # Reseeding loads the tasks anew (and the worker its cameras): still dm_control's own pixels.
+        obs, _ = envs.reset(seed=11)
+        direct = [suite.load("cartpole", "swingup", task_kwargs={"random": 11 + i}) for i in range(2)]
+        for i, env in enumerate(direct):
+            env.reset()
+            np.testing.assert_array_equal(obs[i, -3:], rendered(env))
+        obs, _, _, _, _ = envs.step(actions)
+        for i, env in enumerate(direct):
+            for _ in range(action_repeat):
+                env.step(actions[i])
+            np.testing.assert_array_equal(obs[i, -3:], rendered(env))
     finally:
         envs.close()

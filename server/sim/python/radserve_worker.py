@@ -74,13 +74,13 @@ class DmcEnv:
         self.action_repeat = options["action_repeat"]
         self.fast_render = options["render_profile"] == "fast"
         self.env = None
+        self.camera = None
         self._load(seed)
 
     def _load(self, seed):
         from dm_control import suite
 
-        if self.env is not None:
-            self.env.close()
+        self.close()
         self.env = suite.load(self.domain, self.task, task_kwargs={"random": seed})
         if self.fast_render:
             # The fast profile for CPU-only hosts: no shadows, no reflections, no multisampling.
@@ -90,6 +90,13 @@ class DmcEnv:
             model.mat_reflectance[:] = 0
             model.light_castshadow[:] = 0
         self.action_spec = self.env.action_spec()
+        if self.pixels:
+            from dm_control.mujoco.engine import Camera
+
+            # One camera for the env's life. physics.render() builds a Camera, and with it an MjvScene,
+            # for every frame and frees it after; keeping one renders the same pixels (the test
+            # against physics.render checks it) in 34-38 ms instead of 42 ms per default-look frame.
+            self.camera = Camera(self.env.physics, height=self.height, width=self.width, camera_id=self.camera_id)
 
     def spec(self):
         if self.pixels:
@@ -102,8 +109,7 @@ class DmcEnv:
 
     def _observe(self, time_step):
         if self.pixels:
-            frame = self.env.physics.render(height=self.height, width=self.width, camera_id=self.camera_id)
-            return frame.transpose(2, 0, 1)
+            return self.camera.render().transpose(2, 0, 1)
         return np.concatenate([np.asarray(v, dtype=np.float32).reshape(-1) for v in time_step.observation.values()])
 
     def reset(self, seed):
@@ -124,7 +130,13 @@ class DmcEnv:
         return self._observe(time_step), reward, terminated, ended and not terminated
 
     def close(self):
-        self.env.close()
+        if self.camera is not None:
+            # What physics.render() does after each frame: the scene's memory is not garbage-collected.
+            self.camera._scene.free()
+            self.camera = None
+        if self.env is not None:
+            self.env.close()
+            self.env = None
 
 
 class GymEnv:
