@@ -10,6 +10,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .file_descriptor_set_path(&descriptor)
         .bytes(".radserve.v1.Tensor.data")
         .bytes(".radserve.v1.BatchChunk.data")
+        .codec_path("crate::codec::StrictCodec")
         .compile_protos(&[&proto], &[&proto_root])?;
     println!("cargo:rerun-if-changed={}", proto.display());
     Ok(())

@@ -16,6 +16,9 @@ pub enum AugmentError {
     /// non-square frame, an image augmentation on state vectors...).
     #[error("{augmentation} does not fit the observation {observation}: {message}")]
     DoesNotFit { augmentation: &'static str, observation: String, message: String },
+    /// A pipeline longer than the server accepts (text length, number of stages).
+    #[error("{message}")]
+    TooLong { message: String },
     /// The caller's buffers do not match the plan's shapes.
     #[error("buffer does not match the plan: {message}")]
     Buffer { message: String },

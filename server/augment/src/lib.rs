@@ -32,4 +32,5 @@ pub use error::{AugmentError, Result};
 pub use kernels::Isa;
 pub use plan::{ImagePlan, StatePlan, MAX_SAMPLE_BYTES};
 pub use shape::FrameShape;
-pub use spec::{Augmentation, Domain, Pipeline, LUMA_WEIGHTS};
+pub use parse::MAX_TEXT_BYTES as MAX_PIPELINE_TEXT_BYTES;
+pub use spec::{Augmentation, Domain, Pipeline, LUMA_WEIGHTS, MAX_STAGES};

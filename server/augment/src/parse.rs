@@ -10,7 +10,15 @@
 use std::str::FromStr;
 
 use crate::error::{AugmentError, Result};
-use crate::spec::{Augmentation, Pipeline, NAMES};
+use crate::spec::{Augmentation, Pipeline, MAX_STAGES, NAMES};
+
+/// The longest text form accepted (far above any real pipeline: eight stages with every argument
+/// named take under 400 bytes).
+pub const MAX_TEXT_BYTES: usize = 1024;
+
+/// Names longer than any augmentation's (with slack for typos) get no suggestion and are clipped
+/// in the message.
+const MAX_NAME_CHARS: usize = 32;
 
 /// Parameter names of each augmentation, in positional order, with their defaults.
 fn parameters(name: &str) -> &'static [(&'static str, f64)] {
@@ -40,12 +48,21 @@ impl FromStr for Pipeline {
 impl Pipeline {
     /// Parse the text form; every problem is reported with its position and what was expected.
     pub fn parse(text: &str) -> Result<Self> {
+        if text.len() > MAX_TEXT_BYTES {
+            return Err(AugmentError::TooLong {
+                message: format!("a pipeline's text is at most {MAX_TEXT_BYTES} bytes, got {}", text.len()),
+            });
+        }
         let trimmed = text.trim();
         if trimmed.is_empty() || trimmed == "none" || trimmed == "no_aug" {
             return Ok(Self::identity());
         }
         let mut stages = Vec::new();
         let mut offset = 0;
+        let count = text.split('|').count();
+        if count > MAX_STAGES {
+            return Err(AugmentError::TooLong { message: format!("a pipeline has at most {MAX_STAGES} stages, got {count}") });
+        }
         for part in text.split('|') {
             stages.push(parse_stage(text, part, offset)?);
             offset += part.chars().count() + 1;
@@ -175,6 +192,14 @@ fn canonical_name(raw: &str) -> Result<&'static str> {
         if *canonical == lowered || aliases.contains(&lowered.as_str()) {
             return Ok(canonical);
         }
+    }
+    if raw.chars().count() > MAX_NAME_CHARS {
+        let clipped: String = raw.chars().take(MAX_NAME_CHARS).collect();
+        return Err(AugmentError::UnknownAugmentation {
+            name: format!("{clipped}..."),
+            suggestion: String::new(),
+            expected: NAMES.iter().map(|(canonical, _)| *canonical).collect::<Vec<_>>().join(", "),
+        });
     }
     let closest = NAMES
         .iter()

@@ -199,8 +199,17 @@ pub struct Pipeline {
     stages: Vec<Augmentation>,
 }
 
+/// The most stages a pipeline may have. RAD's and DrQ's pipelines have one or two; the cap bounds the
+/// work one sample can ask of the augmentation threads, which every stream shares.
+pub const MAX_STAGES: usize = 8;
+
 impl Pipeline {
     pub fn new(stages: Vec<Augmentation>) -> Result<Self> {
+        if stages.len() > MAX_STAGES {
+            return Err(AugmentError::TooLong {
+                message: format!("a pipeline has at most {MAX_STAGES} stages, got {}", stages.len()),
+            });
+        }
         stages.iter().try_for_each(Augmentation::validate)?;
         Ok(Self { stages })
     }

@@ -1,54 +1,12 @@
 //! The real server on 127.0.0.1:0, real worker processes, talked to over gRPC.
 
-use std::path::PathBuf;
-use std::sync::Arc;
+mod common;
 
-use radserve::ServerSettings;
+use common::{connect, f32_tensor, start_server};
 use radserve_service::proto::{self, rad_serve_client::RadServeClient};
-use radserve_sim::{GlBackend, Limits, SessionManager};
-use tokio::net::TcpListener;
-use tokio::sync::oneshot;
-use tokio::task::JoinHandle;
+use radserve_sim::Limits;
 use tokio_stream::StreamExt;
-use tonic::transport::Channel;
 use tonic::Code;
-
-struct TestServer {
-    address: String,
-    manager: Arc<SessionManager>,
-    stop: oneshot::Sender<()>,
-    task: JoinHandle<anyhow::Result<()>>,
-}
-
-async fn start_server(limits: Limits) -> TestServer {
-    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let address = format!("http://{}", listener.local_addr().unwrap());
-    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let manager = radserve::session_manager(ServerSettings {
-        worker_program: PathBuf::from(env!("CARGO_BIN_EXE_radserve")),
-        venv: repo.join(".venv"),
-        gl: GlBackend::Egl,
-        workers: 2,
-        limits,
-    });
-    let (stop, stopped) = oneshot::channel::<()>();
-    let task = tokio::spawn(radserve::serve(listener, manager.clone(), 1, async {
-        let _ = stopped.await;
-    }));
-    TestServer { address, manager, stop, task }
-}
-
-async fn connect(address: &str) -> Channel {
-    Channel::from_shared(address.to_string()).unwrap().connect().await.unwrap()
-}
-
-fn f32_tensor(shape: &[i64], values: &[f32]) -> proto::Tensor {
-    proto::Tensor {
-        dtype: proto::DType::DtypeFloat32 as i32,
-        shape: shape.to_vec(),
-        data: values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>().into(),
-    }
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serves_health_reflection_and_answers_bad_input() {

@@ -45,32 +45,42 @@ pub struct ReplayLayout {
 impl ReplayLayout {
     /// Slots in each environment's ring: its share of the capacity, plus the `frame_stack` frames
     /// the oldest transition's observation reaches back to.
+    ///
+    /// Sizes here come from request fields, so every product saturates instead of wrapping: a size
+    /// that does not fit in memory stays too large for [`ReplayLayout::validate`] and the budget.
     pub fn slots_per_env(&self) -> usize {
         match self.kind {
-            BufferKind::Replay => self.capacity.div_ceil(self.num_envs) + self.frame_stack,
+            BufferKind::Replay => self.capacity.div_ceil(self.num_envs.max(1)).saturating_add(self.frame_stack),
             // Every step may end an episode and add a first frame: room for two frames a step.
-            BufferKind::Rollout { steps } => 2 * steps + self.frame_stack,
+            BufferKind::Rollout { steps } => steps.saturating_mul(2).saturating_add(self.frame_stack),
         }
     }
 
     /// A rollout buffer for the last `steps` steps of `num_envs` environments.
     pub fn rollout(steps: usize, num_envs: usize, frame_stack: usize, frame_bytes: usize, action_bytes: usize) -> Self {
-        Self { kind: BufferKind::Rollout { steps }, capacity: steps * num_envs, num_envs, frame_stack, frame_bytes, action_bytes }
+        let capacity = steps.saturating_mul(num_envs);
+        Self { kind: BufferKind::Rollout { steps }, capacity, num_envs, frame_stack, frame_bytes, action_bytes }
     }
 
     /// Bytes of one slot: the frame and its transition's metadata.
     pub fn slot_bytes(&self) -> usize {
-        self.frame_bytes + self.action_bytes + SLOT_METADATA_BYTES
+        self.frame_bytes.saturating_add(self.action_bytes).saturating_add(SLOT_METADATA_BYTES)
     }
 
-    /// Everything the buffer allocates, computed before allocating it.
+    /// Slots over all environments.
+    fn total_slots(&self) -> usize {
+        self.num_envs.saturating_mul(self.slots_per_env())
+    }
+
+    /// Everything the buffer allocates, computed before allocating it (saturating: `usize::MAX`
+    /// means "more than can be addressed").
     pub fn memory_bytes(&self) -> usize {
-        self.num_envs * self.slots_per_env() * self.slot_bytes()
+        self.total_slots().saturating_mul(self.slot_bytes())
     }
 
     /// Frames stored per transition when full (frames over transitions, before episode starts).
     pub fn frames_per_transition(&self) -> f64 {
-        (self.num_envs * self.slots_per_env()) as f64 / self.capacity as f64
+        self.total_slots() as f64 / self.capacity.max(1) as f64
     }
 
     pub fn validate(&self) -> Result<()> {
@@ -87,9 +97,34 @@ impl ReplayLayout {
                 self.capacity, self.num_envs
             ));
         }
+        if self.capacity > MAX_CAPACITY {
+            return invalid(format!(
+                "replay capacity {} is above the most a buffer can hold, {MAX_CAPACITY} transitions",
+                self.capacity
+            ));
+        }
+        // Checked again without saturation: every allocation `new` makes must be addressable.
+        let addressable = self
+            .num_envs
+            .checked_mul(self.slots_per_env())
+            .and_then(|slots| slots.checked_mul(self.slot_bytes()))
+            .is_some_and(|bytes| bytes <= isize::MAX as usize);
+        if !addressable {
+            return invalid(format!(
+                "a replay buffer of {} transitions for {} envs of {} bytes per frame cannot be addressed",
+                self.capacity, self.num_envs, self.frame_bytes
+            ));
+        }
         Ok(())
     }
 }
+
+/// The most transitions one buffer may hold (2^40: far above any memory budget at one byte a frame,
+/// far below where slot arithmetic could overflow).
+pub const MAX_CAPACITY: usize = 1 << 40;
+
+/// The least a stored transition takes, whatever its frames and actions: its slot's bookkeeping.
+pub const MIN_BYTES_PER_TRANSITION: usize = SLOT_METADATA_BYTES;
 
 /// reward (f32), flags (u8), episode start (u64), step index (u64).
 const SLOT_METADATA_BYTES: usize = 4 + 1 + 8 + 8;
@@ -165,6 +200,17 @@ pub struct ReplayBuffer {
     active_producers: Arc<AtomicUsize>,
 }
 
+/// One admitted sample stream of a buffer; dropping it frees its place (see
+/// [`ReplayBuffer::admit_producer`]).
+#[derive(Debug)]
+pub struct ProducerPermit(Arc<AtomicUsize>);
+
+impl Drop for ProducerPermit {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
 /// One env's outcome of a step, as the session records it.
 #[derive(Clone, Copy, Debug)]
 pub struct RecordedStep<'a> {
@@ -220,8 +266,15 @@ impl ReplayBuffer {
         self.active_producers.load(Ordering::Relaxed)
     }
 
-    pub(crate) fn producer_counter(&self) -> Arc<AtomicUsize> {
-        self.active_producers.clone()
+    /// Admit one more producer if fewer than `max` are active: the check and the count happen in one
+    /// atomic step, so concurrent requests can never pass the limit together. The permit counts the
+    /// producer until it is dropped (when the stream's thread ends, or at once if the stream never
+    /// starts).
+    pub fn admit_producer(&self, max: usize) -> Option<ProducerPermit> {
+        self.active_producers
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |active| (active < max).then_some(active + 1))
+            .ok()
+            .map(|_| ProducerPermit(self.active_producers.clone()))
     }
 
     /// Transitions that can be sampled now.
@@ -454,6 +507,43 @@ impl TransitionMetadata {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sizes_that_overflow_are_refused_not_wrapped() {
+        let layout = |capacity| ReplayLayout {
+            kind: BufferKind::Replay,
+            capacity,
+            num_envs: 1,
+            frame_stack: 1,
+            frame_bytes: 16,
+            action_bytes: 8,
+        };
+        // (capacity + 1) * 45 wrapped to 29 bytes: the budget passed and the allocation aborted.
+        for capacity in [409_927_646_082_434_480, usize::MAX, MAX_CAPACITY + 1] {
+            assert_eq!(layout(capacity).memory_bytes(), if capacity > MAX_CAPACITY * 2 { usize::MAX } else { (capacity + 1) * 45 });
+            let error = layout(capacity).validate().unwrap_err().to_string();
+            assert!(error.contains("above the most a buffer can hold"), "{error}");
+            assert!(ReplayBuffer::new(layout(capacity)).is_err());
+        }
+        let rollout = ReplayLayout::rollout(usize::MAX, 256, 1, 16, 8);
+        assert_eq!((rollout.capacity, rollout.memory_bytes()), (usize::MAX, usize::MAX));
+        assert!(rollout.validate().is_err());
+        // Within the capacity cap but not addressable: huge frames.
+        let huge_frames = ReplayLayout { frame_bytes: usize::MAX / 2, ..layout(1000) };
+        assert!(huge_frames.validate().unwrap_err().to_string().contains("cannot be addressed"));
+        layout(1000).validate().unwrap();
+    }
+
+    #[test]
+    fn producers_are_admitted_up_to_the_limit_at_once() {
+        let buffer = ReplayBuffer::new(ReplayLayout::rollout(4, 2, 1, 4, 4)).unwrap();
+        let permits: Vec<_> = (0..3).map(|_| buffer.admit_producer(3).expect("room for three")).collect();
+        assert!(buffer.admit_producer(3).is_none());
+        assert_eq!(buffer.active_producers(), 3);
+        drop(permits);
+        assert_eq!(buffer.active_producers(), 0);
+        assert!(buffer.admit_producer(3).is_some());
+    }
 
     #[test]
     fn the_batch_rate_counts_the_last_five_seconds() {

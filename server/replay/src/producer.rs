@@ -14,7 +14,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::buffer::{BufferKind, ReplayBuffer, TransitionMetadata, TransitionRef};
+use crate::buffer::{BufferKind, ProducerPermit, ReplayBuffer, TransitionMetadata, TransitionRef};
 use crate::error::{ReplayError, Result};
 use crate::shared::{SharedRing, Slot};
 
@@ -141,6 +141,8 @@ pub struct Producer {
     plan: Plan,
     obs_shape: Vec<usize>,
     obs_bytes: usize,
+    /// This stream's place among the buffer's producers, reserved at admission.
+    permit: Option<ProducerPermit>,
 }
 
 impl Producer {
@@ -214,7 +216,14 @@ impl Producer {
                 if views == 2 { " (obs and next_obs)" } else { "" },
             ));
         }
-        Ok(Self { buffer, spec, plan, obs_shape, obs_bytes })
+        Ok(Self { buffer, spec, plan, obs_shape, obs_bytes, permit: None })
+    }
+
+    /// Run under `permit`, the place reserved for this stream when it was admitted (without one, the
+    /// producer counts itself when it starts, unlimited).
+    pub fn with_permit(mut self, permit: ProducerPermit) -> Self {
+        self.permit = Some(permit);
+        self
     }
 
     pub fn obs_shape(&self) -> &[usize] {
@@ -258,16 +267,11 @@ impl Producer {
     }
 
     fn run(self, pool: &rayon::ThreadPool, ready: tokio::sync::mpsc::Sender<Result<Batch>>, mut spare: Destination) {
-        /// Counts this producer among the buffer's active ones until the thread ends.
-        struct Active(Arc<std::sync::atomic::AtomicUsize>);
-        impl Drop for Active {
-            fn drop(&mut self) {
-                self.0.fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
-            }
-        }
-        let counter = self.buffer.read().expect("replay lock").producer_counter();
-        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let _active = Active(counter);
+        // Counts this producer among the buffer's active ones until the thread ends.
+        let _permit = match &self.permit {
+            Some(_) => None,
+            None => self.buffer.read().expect("replay lock").admit_producer(usize::MAX),
+        };
         let mut rng = ChaCha8Rng::seed_from_u64(self.spec.seed);
         match self.spec.source {
             Source::Replay => self.run_replay(pool, &ready, &mut rng, &mut spare),

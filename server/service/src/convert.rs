@@ -136,31 +136,68 @@ pub fn buffer_request(options: Option<&proto::ReplayOptions>) -> Option<BufferRe
 /// fastest (measured; one 32 MB message is ~40% slower).
 pub const DEFAULT_CHUNK_BYTES: usize = 2 << 20;
 
+/// The smallest chunk a client may ask for. Each chunk is a message with its own header, field
+/// name and shape (~100 bytes plus tonic's per-message buffers): 1-byte chunks cost the server ~200
+/// bytes of memory per tensor byte.
+pub const MIN_CHUNK_BYTES: usize = 64 << 10;
+
+/// The chunk size a SampleBatches request asks for (0: the default), within
+/// [`MIN_CHUNK_BYTES`, `crate::MAX_MESSAGE_BYTES` / 2].
+pub fn chunk_bytes(requested: u32) -> Result<usize, Status> {
+    let max = crate::MAX_MESSAGE_BYTES / 2;
+    match requested as usize {
+        0 => Ok(DEFAULT_CHUNK_BYTES),
+        bytes if (MIN_CHUNK_BYTES..=max).contains(&bytes) => Ok(bytes),
+        bytes => Err(Status::invalid_argument(format!(
+            "chunk_bytes must be 0 (the default, {DEFAULT_CHUNK_BYTES}) or between {MIN_CHUNK_BYTES} and {max}, got {bytes}"
+        ))),
+    }
+}
+
+/// A typed pipeline's stages in the text form, every name and key checked to be a plain name first
+/// (so that no key can carry text that the parser would read as more stages or arguments).
+fn typed_pipeline_text(typed: &proto::AugmentationPipeline) -> Result<String, Status> {
+    use radserve_sim::bounds::clip;
+    let plain = |text: &str| !text.is_empty() && text.len() <= 32 && text.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+    if typed.stages.len() > radserve_augment::MAX_STAGES {
+        return Err(Status::invalid_argument(format!(
+            "a pipeline has at most {} stages, got {}",
+            radserve_augment::MAX_STAGES,
+            typed.stages.len()
+        )));
+    }
+    let mut stages = Vec::with_capacity(typed.stages.len());
+    for stage in &typed.stages {
+        if !plain(&stage.name) {
+            return Err(Status::invalid_argument(format!(
+                "augmentation stage names are plain names such as \"crop\", got {:?}",
+                clip(&stage.name)
+            )));
+        }
+        if let Some(key) = stage.args.keys().find(|key| !plain(key)) {
+            return Err(Status::invalid_argument(format!(
+                "argument names of {} are plain names such as \"size\", got {:?}",
+                stage.name,
+                clip(key)
+            )));
+        }
+        let mut args: Vec<_> = stage.args.iter().collect();
+        args.sort_by(|a, b| a.0.cmp(b.0));
+        let args: Vec<String> = args.iter().map(|(key, value)| format!("{key}={value}")).collect();
+        stages.push(format!("{}({})", stage.name, args.join(",")));
+    }
+    Ok(stages.join("|"))
+}
+
 /// A SampleBatches request as the producer's spec, every field checked.
 pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<SampleSpec, Status> {
     use proto::sample_batches_request::Augmentation as Choice;
     let pipeline = match &request.augmentation {
         None => Pipeline::identity(),
         Some(Choice::PipelineText(text)) => Pipeline::parse(text).map_err(|e| Status::invalid_argument(e.to_string()))?,
+        // The typed form goes through the text form's parser, so both are checked the same way.
         Some(Choice::Pipeline(typed)) => {
-            // The typed form goes through the text form's parser, so both are checked the same way.
-            let stages: Vec<String> = typed
-                .stages
-                .iter()
-                .map(|stage| {
-                    let mut args: Vec<_> = stage.args.iter().collect();
-                    args.sort_by(|a, b| a.0.cmp(b.0));
-                    let args: Vec<String> = args.iter().map(|(key, value)| format!("{key}={value}")).collect();
-                    format!("{}({})", stage.name, args.join(","))
-                })
-                .collect();
-            if let Some(stage) = typed.stages.iter().find(|stage| !stage.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')) {
-                return Err(Status::invalid_argument(format!(
-                    "augmentation stage names are plain names such as \"crop\", got {:?}",
-                    stage.name
-                )));
-            }
-            Pipeline::parse(&stages.join("|")).map_err(|e| Status::invalid_argument(e.to_string()))?
+            Pipeline::parse(&typed_pipeline_text(typed)?).map_err(|e| Status::invalid_argument(e.to_string()))?
         }
     };
     let sharing = match proto::DrawSharing::try_from(request.sharing) {

@@ -185,9 +185,9 @@ impl RadServe for RadServeService {
         let spec = convert::sample_spec_from_proto(&request)?;
         let source = self.manager.replay_source(&request.session_id).await.map_err(to_status)?;
         // Everything is checked here, before the stream starts.
-        let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?;
+        let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?.with_permit(source.permit);
         self.check_stream_memory(&producer)?;
-        let chunk_bytes = if request.chunk_bytes == 0 { convert::DEFAULT_CHUNK_BYTES } else { request.chunk_bytes as usize };
+        let chunk_bytes = convert::chunk_bytes(request.chunk_bytes)?;
         let (mut ready, recycler) = producer.start(self.augment_pool.clone(), Output::Heap);
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
         let session_id = request.session_id;
@@ -272,7 +272,7 @@ impl RadServe for RadServeService {
         }
         let spec = convert::sample_spec_from_proto(&start)?;
         let source = self.manager.replay_source(&start.session_id).await.map_err(to_status)?;
-        let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?;
+        let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?.with_permit(source.permit);
         self.check_stream_memory(&producer)?;
         // A slot per batch waiting in the prefetch queue, one being filled and one the learner
         // reads: the producer never waits on a learner that releases each batch before the next.

@@ -2,6 +2,7 @@
 //! (`radserve_sim`), and map its errors to statuses; no logic lives in the transport.
 
 pub mod acting;
+pub mod codec;
 pub mod convert;
 pub mod error;
 pub mod handlers;

@@ -183,6 +183,14 @@ pub fn default_options(env: &EnvId) -> Options {
 /// Applies `overrides` to the defaults of `env`, rejecting unknown names, wrong types and values
 /// out of range with a message that says what was expected.
 pub fn resolve_options(env: &EnvId, overrides: &Options) -> Result<Options, SimError> {
+    use crate::bounds::{check_count, check_len, clip, MAX_OPTIONS, MAX_OPTION_NAME_BYTES, MAX_OPTION_TEXT_BYTES};
+    check_count("options", overrides.len(), MAX_OPTIONS)?;
+    for (name, value) in overrides {
+        check_len("an option name", name, MAX_OPTION_NAME_BYTES)?;
+        if let OptionValue::Str(text) = value {
+            check_len(&format!("option '{}'", clip(name)), text, MAX_OPTION_TEXT_BYTES)?;
+        }
+    }
     let pixels = match overrides.get("pixels") {
         Some(OptionValue::Bool(value)) => *value,
         _ => true,
@@ -256,10 +264,13 @@ impl EnvNames {
             let names = self.by_family.get(&family)?;
             names.iter().any(|known| known == name).then(|| EnvId { family, name: name.to_string() })
         });
-        known.ok_or_else(|| SimError::UnknownEnv {
-            id: id.to_string(),
-            suggestions: closest(id, self.all_ids().iter().map(EnvId::full)),
-        })
+        // Suggestions cost an edit distance per known id: only for ids of a plausible length.
+        let suggestions = if id.len() <= crate::bounds::MAX_ID_BYTES {
+            closest(id, self.all_ids().iter().map(EnvId::full))
+        } else {
+            Vec::new()
+        };
+        known.ok_or_else(|| SimError::UnknownEnv { id: id.to_string(), suggestions })
     }
 }
 

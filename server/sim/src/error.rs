@@ -4,7 +4,7 @@ use thiserror::Error;
 /// on purpose (no catch-all arm), so a new variant has to be placed there.
 #[derive(Debug, Error)]
 pub enum SimError {
-    #[error("unknown environment id '{id}'{}", suggestion_text(.suggestions))]
+    #[error("unknown environment id '{}'{}", crate::bounds::clip(.id), suggestion_text(.suggestions))]
     UnknownEnv { id: String, suggestions: Vec<String> },
 
     #[error("{0}")]
@@ -14,7 +14,7 @@ pub enum SimError {
     #[error("{0}")]
     InvalidArgument(String),
 
-    #[error("unknown session '{0}' (it was never created, or it was closed)")]
+    #[error("unknown session '{}' (it was never created, or it was closed)", crate::bounds::clip(.0))]
     UnknownSession(String),
 
     /// The request is valid but the session is not in a state to take it.

@@ -2,6 +2,7 @@
 //! environment adapters for dm_control, gymnasium and ProcGen, and vectorized sessions with frame
 //! stacking and same-step autoreset. No transport here: the service crate maps this onto gRPC.
 
+pub mod bounds;
 pub mod catalog;
 pub mod error;
 pub mod manager;

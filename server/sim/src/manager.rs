@@ -5,12 +5,13 @@ use std::hash::{BuildHasher, Hasher};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, RwLock};
 
-use radserve_replay::{BufferKind, ObservationFormat, ReplayBuffer, ReplayLayout};
+use radserve_replay::{BufferKind, ObservationFormat, ProducerPermit, ReplayBuffer, ReplayLayout};
 
 use serde::{Deserialize, Serialize};
 use tokio::sync::{Mutex, OnceCell};
 use tracing::info;
 
+use crate::bounds;
 use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
 use crate::error::SimError;
 use crate::pool::WorkerPool;
@@ -84,12 +85,13 @@ pub struct ReplayInfo {
     pub rollout_steps: Option<usize>,
 }
 
-/// What a sampler needs of a session: its buffer and what its observations and actions are.
-#[derive(Clone)]
+/// What a sampler needs of a session: its buffer, what its observations and actions are, and the
+/// stream's place among the session's streams (reserved; dropping it frees the place).
 pub struct ReplaySource {
     pub buffer: Arc<RwLock<ReplayBuffer>>,
     pub format: ObservationFormat,
     pub action_space: Space,
+    pub permit: ProducerPermit,
 }
 
 /// A catalog entry: an id with its default options and the spaces they give.
@@ -239,6 +241,13 @@ impl SessionManager {
             )));
         }
         check_seed(seed, num_envs)?;
+        bounds::check_len("env_id", env_id, bounds::MAX_ID_BYTES)?;
+        if let Some(view) = &extras.observation_view {
+            bounds::check_len("observation_view", view, radserve_augment::MAX_PIPELINE_TEXT_BYTES)?;
+        }
+        if let Some(buffer) = extras.buffer {
+            self.precheck_buffer(buffer, num_envs)?;
+        }
         let env = self.names().await?.parse(env_id)?;
         let options = catalog::resolve_options(&env, overrides)?;
         let frame_stack = options[FRAME_STACK].as_int().unwrap_or(1) as usize;
@@ -256,6 +265,7 @@ impl SessionManager {
             Some(view) => session.set_view(view),
             None => Ok(()),
         };
+        let prepared = prepared.and_then(|()| check_observation_bytes(&session));
         let prepared = prepared.and_then(|()| match extras.buffer {
             Some(buffer) => self.attach_replay(&mut session, buffer),
             None => Ok(()),
@@ -311,6 +321,34 @@ impl SessionManager {
         Ok(())
     }
 
+    /// What can be known of a buffer before any environment is built (its frame size comes from the
+    /// simulator): a capacity in range, and at least the bookkeeping bytes of every transition within
+    /// the replay budget. The exact size is checked again once the frames are known.
+    fn precheck_buffer(&self, buffer: BufferRequest, num_envs: usize) -> Result<(), SimError> {
+        let capacity = match buffer {
+            BufferRequest::Replay { capacity } => capacity,
+            BufferRequest::Rollout { steps } => steps.saturating_mul(num_envs),
+        };
+        if capacity > radserve_replay::MAX_CAPACITY {
+            return Err(SimError::InvalidArgument(format!(
+                "replay capacity {capacity} is above the most a buffer can hold, {} transitions",
+                radserve_replay::MAX_CAPACITY
+            )));
+        }
+        let least = (capacity as u64).saturating_mul(radserve_replay::MIN_BYTES_PER_TRANSITION as u64);
+        let budget = self.limits.replay_memory_bytes;
+        if least > budget {
+            return Err(SimError::LimitExceeded(format!(
+                "a replay buffer of {capacity} transitions takes at least {:.2} GiB ({} bytes per transition \
+                 before its frames), above this server's replay budget of {:.2} GiB (limits.replay_memory_bytes)",
+                gib(least),
+                radserve_replay::MIN_BYTES_PER_TRANSITION,
+                gib(budget)
+            )));
+        }
+        Ok(())
+    }
+
     /// Give `session` a replay (or rollout) buffer if the server's budget allows it.
     fn attach_replay(&self, session: &mut Session, buffer: BufferRequest) -> Result<(), SimError> {
         let frame = &session.frame_spec.observation;
@@ -335,9 +373,11 @@ impl SessionManager {
         {
             let mut registry = self.sessions.lock().expect("registry lock");
             let budget = self.limits.replay_memory_bytes;
-            if registry.reserved_replay_bytes + bytes > budget {
+            if registry.reserved_replay_bytes.saturating_add(bytes) > budget {
                 return Err(SimError::LimitExceeded(format!(
-                    "a replay buffer of {capacity} transitions for {} envs of {} takes {:.2} GiB ({} bytes per frame,                      {:.3} frames per transition); with the {:.2} GiB already reserved it would exceed this server's                      replay budget of {:.2} GiB (limits.replay_memory_bytes)",
+                    "a replay buffer of {capacity} transitions for {} envs of {} takes {:.2} GiB ({} bytes per frame, \
+                     {:.3} frames per transition); with the {:.2} GiB already reserved it would exceed this server's \
+                     replay budget of {:.2} GiB (limits.replay_memory_bytes)",
                     layout.num_envs,
                     session.config.env.full(),
                     gib(bytes),
@@ -377,13 +417,15 @@ impl SessionManager {
                 "session {session_id} keeps no replay buffer; create it with a replay capacity"
             )));
         };
-        let active = buffer.read().expect("replay lock").active_producers();
-        if active >= self.limits.max_streams_per_session {
+        // Reserved here, atomically: concurrent requests cannot all pass a check made before any
+        // of them is counted.
+        let max = self.limits.max_streams_per_session;
+        let Some(permit) = buffer.read().expect("replay lock").admit_producer(max) else {
             return Err(SimError::LimitExceeded(format!(
-                "session {session_id} already has {active} sample streams open, this server's limit \
+                "session {session_id} already has {max} sample streams open, this server's limit \
                  (limits.max_streams_per_session); close one first"
             )));
-        }
+        };
         let frame = &session.frame_spec.observation;
         let format = match (frame.dtype(), frame.shape()) {
             (DType::Uint8, &[channels, height, width]) => {
@@ -391,7 +433,7 @@ impl SessionManager {
             }
             _ => ObservationFormat::State(session.config.frame_stack * frame.num_elements()),
         };
-        Ok(ReplaySource { buffer: buffer.clone(), format, action_space: session.frame_spec.action.clone() })
+        Ok(ReplaySource { buffer: buffer.clone(), format, action_space: session.frame_spec.action.clone(), permit })
     }
 
     fn release(&self, num_envs: usize, sessions: usize) {
@@ -476,6 +518,27 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
             }
         }),
     }
+}
+
+/// The most bytes of observations one step may return for all of a session's envs. A step's
+/// response carries them and, when every episode ends at once, as many final observations; both
+/// must fit in one gRPC message (the service's 256 MiB).
+pub const MAX_STEP_OBSERVATION_BYTES: usize = 96 << 20;
+
+/// Refuses a session whose step observations could not be sent in one response.
+fn check_observation_bytes(session: &Session) -> Result<(), SimError> {
+    let per_env = session.observation_space.num_bytes();
+    let total = per_env.saturating_mul(session.num_envs());
+    if total > MAX_STEP_OBSERVATION_BYTES {
+        return Err(SimError::LimitExceeded(format!(
+            "{} envs of {} observe {per_env} bytes each ({} as viewed), {total} bytes a step; the most a step \
+             may return is {MAX_STEP_OBSERVATION_BYTES} bytes: use fewer envs, smaller frames or a smaller frame_stack",
+            session.num_envs(),
+            session.config.env.full(),
+            session.observation_space.describe(),
+        )));
+    }
+    Ok(())
 }
 
 fn gib(bytes: u64) -> f64 {

@@ -1,0 +1,51 @@
+//! The real server on 127.0.0.1:0 with real worker processes, shared by the integration tests.
+#![allow(dead_code)] // each test binary uses its own part
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use radserve::ServerSettings;
+use radserve_service::proto;
+use radserve_sim::{GlBackend, Limits, SessionManager};
+use tokio::net::TcpListener;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use tonic::transport::Channel;
+
+pub struct TestServer {
+    pub address: String,
+    pub manager: Arc<SessionManager>,
+    pub stop: oneshot::Sender<()>,
+    pub task: JoinHandle<anyhow::Result<()>>,
+}
+
+pub async fn start_server(limits: Limits) -> TestServer {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = format!("http://{}", listener.local_addr().unwrap());
+    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let manager = radserve::session_manager(ServerSettings {
+        worker_program: PathBuf::from(env!("CARGO_BIN_EXE_radserve")),
+        venv: repo.join(".venv"),
+        gl: GlBackend::Egl,
+        workers: 2,
+        limits,
+    });
+    let (stop, stopped) = oneshot::channel::<()>();
+    let task = tokio::spawn(radserve::serve(listener, manager.clone(), 1, async {
+        let _ = stopped.await;
+    }));
+    TestServer { address, manager, stop, task }
+}
+
+pub async fn connect(address: &str) -> Channel {
+    Channel::from_shared(address.to_string()).unwrap().connect().await.unwrap()
+}
+
+pub fn f32_tensor(shape: &[i64], values: &[f32]) -> proto::Tensor {
+    proto::Tensor {
+        dtype: proto::DType::DtypeFloat32 as i32,
+        shape: shape.to_vec(),
+        data: values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>().into(),
+    }
+}
+

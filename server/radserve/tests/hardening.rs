@@ -1,0 +1,223 @@
+//! Hostile requests replayed against the real server (issue: "no request, client or fault can crash,
+//! freeze or exhaust the server"). Each test sends what broke an earlier build through the generated
+//! stubs and checks both the answer and that the server still serves everyone else.
+
+mod common;
+
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+use common::{connect, start_server};
+use radserve_service::proto::{self, rad_serve_client::RadServeClient};
+use radserve_sim::Limits;
+use tonic::transport::Channel;
+use tonic::Code;
+
+fn cartpole(replay: Option<proto::ReplayOptions>) -> proto::CreateSessionRequest {
+    proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 1, replay, ..Default::default() }
+}
+
+fn replay_capacity(capacity: u64) -> Option<proto::ReplayOptions> {
+    Some(proto::ReplayOptions { capacity, ..Default::default() })
+}
+
+/// The server still creates, resets and closes a session.
+async fn still_serves(client: &mut RadServeClient<Channel>) {
+    let session = client.create_session(cartpole(None)).await.expect("the server still serves").into_inner();
+    client.reset(proto::ResetRequest { session_id: session.session_id.clone(), seed: Some(1) }).await.unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id: session.session_id }).await.unwrap();
+}
+
+/// A CartPole session with a replay buffer holding a few transitions.
+async fn session_with_replay(client: &mut RadServeClient<Channel>) -> String {
+    let session = client.create_session(cartpole(replay_capacity(1000))).await.unwrap().into_inner();
+    let session_id = session.session_id;
+    client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: Some(0) }).await.unwrap();
+    for _ in 0..20 {
+        let actions = proto::Tensor {
+            dtype: proto::DType::DtypeInt64 as i32,
+            shape: vec![1],
+            data: 0i64.to_le_bytes().to_vec().into(),
+        };
+        client.step(proto::StepRequest { session_id: session_id.clone(), actions: Some(actions) }).await.unwrap();
+    }
+    session_id
+}
+
+fn sample_request(session_id: &str) -> proto::SampleBatchesRequest {
+    proto::SampleBatchesRequest { session_id: session_id.into(), batch_size: 4, ..Default::default() }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replay_sizes_that_overflow_are_refused_and_the_server_lives() {
+    let server = start_server(Limits::default()).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    // (capacity + 1) * 45 bytes wraps to 29 bytes in 64 bits: this aborted the server.
+    for capacity in [409_927_646_082_434_480u64, u64::MAX, 1 << 41] {
+        let status = client.create_session(cartpole(replay_capacity(capacity))).await.unwrap_err();
+        assert!(
+            matches!(status.code(), Code::InvalidArgument | Code::ResourceExhausted),
+            "capacity {capacity}: {status:?}"
+        );
+        assert!(status.message().contains("capacity") || status.message().contains("GiB"), "{}", status.message());
+    }
+    // Rollouts: steps * num_envs and 2 * steps are the products here.
+    let rollout = Some(proto::ReplayOptions { rollout_steps: u32::MAX, ..Default::default() });
+    let status = client.create_session(proto::CreateSessionRequest { num_envs: 256, ..cartpole(rollout) }).await.unwrap_err();
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    still_serves(&mut client).await;
+    // Nothing was reserved by the refused requests: the whole budget is still free.
+    let info = server.manager.describe(&session_with_replay(&mut client).await).await.unwrap();
+    assert_eq!(info.replay.unwrap().size, 20);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn huge_text_fields_are_refused_before_any_work() {
+    let server = start_server(Limits::default()).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    still_serves(&mut client).await; // the env names are known: the next call does no set-up work
+    // 8 MB of unknown env id took 163 s of a tokio worker in edit distances, freezing the server.
+    let started = Instant::now();
+    let huge = "x".repeat(8 << 20);
+    let status = client
+        .create_session(proto::CreateSessionRequest { env_id: huge.clone(), num_envs: 1, ..Default::default() })
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{}", status.message());
+    assert_eq!(status.message(), format!("env_id is {} bytes long; the most accepted is 256", huge.len()));
+    // A long id under the cap gets its answer without suggestions work blowing up, clipped.
+    let long = format!("gym/{}", "y".repeat(250));
+    let status = client
+        .create_session(proto::CreateSessionRequest { env_id: long, num_envs: 1, ..Default::default() })
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::NotFound);
+    assert!(status.message().len() < 400, "{}", status.message());
+    // Unknown sessions: a 100 KB id is answered NOT_FOUND with the id clipped (not as a trailer
+    // that is too large for clients to read).
+    let status = client.describe_session(proto::DescribeSessionRequest { session_id: huge[..100_000].into() }).await.unwrap_err();
+    assert_eq!(status.code(), Code::NotFound);
+    assert!(status.message().contains("(100000 bytes in all)") && status.message().len() < 300, "{}", status.message());
+    // Options: too many, too long a name, too long a value.
+    let many: HashMap<String, proto::OptionValue> = (0..1000)
+        .map(|i| (format!("option{i}"), proto::OptionValue { value: Some(proto::option_value::Value::BoolValue(true)) }))
+        .collect();
+    let status = client.create_session(proto::CreateSessionRequest { options: many, ..cartpole(None) }).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(status.message().contains("options has 1000 entries; the most accepted is 32"), "{}", status.message());
+    let long_value = HashMap::from([(
+        "render_profile".to_string(),
+        proto::OptionValue { value: Some(proto::option_value::Value::StringValue("z".repeat(1 << 20))) },
+    )]);
+    let request = proto::CreateSessionRequest { env_id: "dmc/cheetah-run".into(), num_envs: 1, options: long_value, ..Default::default() };
+    let status = client.create_session(request).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(status.message().len() < 200, "{}", status.message());
+    // Views and pipelines in text form are bounded too.
+    let request = proto::CreateSessionRequest { observation_view: "center_crop(84)|".repeat(100_000), ..cartpole(None) };
+    let status = client.create_session(request).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(status.message().starts_with("observation_view is 1600000 bytes long"), "{}", status.message());
+    assert!(started.elapsed() < Duration::from_secs(30), "took {:?}", started.elapsed());
+    still_serves(&mut client).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_streams_cannot_pass_the_per_session_limit() {
+    let server = start_server(Limits { max_streams_per_session: 4, ..Limits::default() }).await;
+    let channel = connect(&server.address).await;
+    let mut client = RadServeClient::new(channel.clone());
+    let session_id = session_with_replay(&mut client).await;
+    // 40 at once: the count was checked before any of them was counted (33-40 got through).
+    let calls = (0..40).map(|_| {
+        let mut client = RadServeClient::new(channel.clone());
+        let request = sample_request(&session_id);
+        tokio::spawn(async move { client.sample_batches(request).await })
+    });
+    let mut accepted = Vec::new();
+    let mut refused = 0;
+    for call in calls.collect::<Vec<_>>() {
+        match call.await.unwrap() {
+            Ok(stream) => accepted.push(stream.into_inner()),
+            Err(status) => {
+                assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+                assert!(status.message().contains("already has 4 sample streams open"), "{}", status.message());
+                refused += 1;
+            }
+        }
+    }
+    assert_eq!((accepted.len(), refused), (4, 36));
+    // Closing the streams frees their places.
+    drop(accepted);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let active = server.manager.describe(&session_id).await.unwrap().replay.unwrap().active_streams;
+        if active == 0 {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{active} streams still counted");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let stream = client.sample_batches(sample_request(&session_id)).await.expect("a place is free again");
+    drop(stream);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn amplifying_sizes_are_refused() {
+    let server = start_server(Limits::default()).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let session_id = session_with_replay(&mut client).await;
+    // 1-byte chunks made ~195 bytes of server memory per tensor byte.
+    for chunk_bytes in [1, 1000, u32::MAX] {
+        let request = proto::SampleBatchesRequest { chunk_bytes, ..sample_request(&session_id) };
+        let status = client.sample_batches(request).await.unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument);
+        assert!(status.message().contains("chunk_bytes must be 0"), "{}", status.message());
+    }
+    // A view 18x the frame on a 16-frame stack: 2.1 GB of observations per Reset.
+    let options = HashMap::from([(
+        "frame_stack".to_string(),
+        proto::OptionValue { value: Some(proto::option_value::Value::IntValue(16)) },
+    )]);
+    let request = proto::CreateSessionRequest {
+        env_id: "procgen/bigfish".into(),
+        num_envs: 32,
+        options,
+        observation_view: "center_translate(1182)".into(),
+        ..Default::default()
+    };
+    let status = client.create_session(request).await.unwrap_err();
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert!(status.message().contains("the most a step may return"), "{}", status.message());
+    still_serves(&mut client).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pipelines_are_bounded_and_typed_keys_cannot_smuggle_stages() {
+    let server = start_server(Limits::default()).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let session_id = session_with_replay(&mut client).await;
+    use proto::sample_batches_request::Augmentation;
+    let with = |augmentation| proto::SampleBatchesRequest { augmentation: Some(augmentation), ..sample_request(&session_id) };
+    // 3000 colour-jitter stages starved every other stream of the augmentation threads.
+    let text = vec!["noise"; 3000].join("|");
+    let status = client.sample_batches(with(Augmentation::PipelineText(text))).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(status.message().contains("at most 1024 bytes"), "{}", status.message());
+    let status = client.sample_batches(with(Augmentation::PipelineText(vec!["noise"; 9].join("|")))).await.unwrap_err();
+    assert!(status.message().contains("at most 8 stages, got 9"), "{}", status.message());
+    let stage = |name: &str, args: &[(&str, f64)]| proto::AugmentationStage {
+        name: name.into(),
+        args: args.iter().map(|(key, value)| (key.to_string(), *value)).collect(),
+    };
+    let typed = |stages| Augmentation::Pipeline(proto::AugmentationPipeline { stages });
+    // A key that closes the stage and opens another one.
+    let smuggled = typed(vec![stage("noise", &[("std=1)|noise(std", 2.0)])]);
+    let status = client.sample_batches(with(smuggled)).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(status.message().contains("argument names of noise are plain names"), "{}", status.message());
+    let status = client.sample_batches(with(typed(vec![stage("noise", &[]); 3000]))).await.unwrap_err();
+    assert!(status.message().contains("at most 8 stages, got 3000"), "{}", status.message());
+    let fine = client.sample_batches(with(typed(vec![stage("noise", &[("std", 0.5)])]))).await;
+    assert!(fine.is_ok(), "{fine:?}");
+}
