@@ -1,6 +1,9 @@
 """Hostile requests through grpcio, the client most learners use: malformed messages and oversized
 fields get the status that names the client's mistake, in a message a client can read."""
 
+import subprocess
+import sys
+
 import grpc
 import pytest
 
@@ -69,5 +72,36 @@ def test_typed_requests_with_wrong_enum_values_are_refused(server, client):
                 next(iter(sample(request, timeout=10)))
         assert raised.value.code() == grpc.StatusCode.INVALID_ARGUMENT
         assert "unknown DrawSharing value 77" in raised.value.details()
+    finally:
+        envs.close()
+
+
+def test_sessions_of_a_process_that_exits_are_closed(server, client):
+    script = (
+        "import sys, radserve\n"
+        "client = radserve.Client(sys.argv[1])\n"
+        "kept = [client.make_vec('gym/CartPole-v1', num_envs=2) for _ in range(2)]\n"
+        "closed = client.make_vec('gym/Pendulum-v1'); closed.close()\n"
+        "print(' '.join(envs.session_id for envs in kept), flush=True)\n"
+        "listed = {s.session_id for s in client.list_sessions()}\n"
+        "assert all(envs.session_id in listed for envs in kept), listed\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script, server.address], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    ids = done.stdout.split()
+    assert len(ids) == 2
+    open_ids = {summary.session_id for summary in client.list_sessions()}
+    assert not open_ids & set(ids), "the exiting process closed the sessions it left open"
+
+
+def test_list_sessions_reports_what_each_session_holds(client):
+    envs = client.make_vec("gym/CartPole-v1", num_envs=3, replay_capacity=1000)
+    try:
+        envs.reset()
+        summary = next(s for s in client.list_sessions() if s.session_id == envs.session_id)
+        assert (summary.env_id, summary.num_envs, summary.open_streams) == ("gym/CartPole-v1", 3, 0)
+        assert summary.memory_bytes == client.describe_session(envs.session_id).replay["memory_bytes"]
+        assert 0 <= summary.idle_seconds < 5 and summary.age_seconds >= summary.idle_seconds
+        assert summary.idle_timeout_seconds == 300
     finally:
         envs.close()

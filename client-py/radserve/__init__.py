@@ -4,7 +4,7 @@ Public names only; the generated gRPC code lives in the private `radserve._proto
 """
 
 from .batches import Batch, BatchStream, SharedBatchStream
-from .client import Client, EnvInfo, SessionInfo
+from .client import Client, EnvInfo, SessionInfo, SessionSummary
 from .errors import (
     FailedPreconditionError,
     InternalError,
@@ -19,7 +19,7 @@ from .server import LocalServer
 from .vector import RemoteVectorEnv
 
 __all__ = [
-    "Client", "EnvInfo", "SessionInfo", "Batch", "BatchStream", "SharedBatchStream", "RemoteVectorEnv",
+    "Client", "EnvInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "SharedBatchStream", "RemoteVectorEnv",
     "LocalServer",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",

@@ -1,5 +1,7 @@
 """The radserve client: environments listed, sessions created, vector environments handed out."""
 
+import atexit
+import weakref
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -72,6 +74,43 @@ class SessionInfo:
         )
 
 
+@dataclass(frozen=True)
+class SessionSummary:
+    """One open session as `Client.list_sessions()` reports it."""
+
+    session_id: str
+    env_id: str
+    num_envs: int
+    memory_bytes: int
+    idle_seconds: float
+    open_streams: int
+    age_seconds: float
+    idle_timeout_seconds: float
+
+    @staticmethod
+    def from_proto(message: "pb.SessionSummary", idle_timeout_seconds: float) -> "SessionSummary":
+        return SessionSummary(
+            session_id=message.session_id,
+            env_id=message.env_id,
+            num_envs=message.num_envs,
+            memory_bytes=message.memory_bytes,
+            idle_seconds=message.idle_seconds,
+            open_streams=message.open_streams,
+            age_seconds=message.age_seconds,
+            idle_timeout_seconds=idle_timeout_seconds,
+        )
+
+
+# Clients not yet closed; at exit each closes the sessions it created (weak: no client is kept alive).
+_LIVE_CLIENTS: "weakref.WeakSet[Client]" = weakref.WeakSet()
+
+
+@atexit.register
+def _close_sessions_at_exit() -> None:
+    for client in list(_LIVE_CLIENTS):
+        client._close_open_sessions()
+
+
 class Client:
     """A connection to one radserve server.
 
@@ -83,6 +122,10 @@ class Client:
         self.address = address
         self._channel = grpc.insecure_channel(address, options=_CHANNEL_OPTIONS)
         self._stub = pb_grpc.RadServeStub(self._channel)
+        # Sessions this client created and has not closed: closed when the process exits normally,
+        # so that they do not wait on the server for their lease to expire.
+        self._open_sessions: "set[str]" = set()
+        _LIVE_CLIENTS.add(self)
         if wait_ready:
             try:
                 grpc.channel_ready_future(self._channel).result(timeout=wait_ready)
@@ -152,6 +195,7 @@ class Client:
             observation_view=observation_view,
         )
         info = SessionInfo.from_proto(self._call("CreateSession", request))
+        self._open_sessions.add(info.session_id)
         try:
             return RemoteVectorEnv(self, info, stream=stream, delivery=delivery)
         except BaseException:
@@ -257,9 +301,30 @@ class Client:
         return SessionInfo.from_proto(self._call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id)))
 
     def close_session(self, session_id: str) -> None:
+        self._open_sessions.discard(session_id)
         self._call("CloseSession", pb.CloseSessionRequest(session_id=session_id))
 
+    def list_sessions(self) -> "list[SessionSummary]":
+        """Every session open on the server (all clients'), oldest first: what each holds and how
+        long it has been idle. The server closes a session idle for longer than its
+        `limits.session_idle_timeout_s` (`SessionSummary.idle_timeout_seconds`)."""
+        response = self._call("ListSessions", pb.ListSessionsRequest())
+        return [SessionSummary.from_proto(s, response.idle_timeout_seconds) for s in response.sessions]
+
+    def _close_open_sessions(self, timeout: float = 2.0) -> None:
+        for session_id in list(self._open_sessions):
+            self._open_sessions.discard(session_id)
+            try:
+                self._stub.CloseSession(pb.CloseSessionRequest(session_id=session_id), timeout=timeout)
+            except grpc.RpcError as error:
+                # NOT_FOUND: already gone (closed, reaped). A server that is gone or does not answer
+                # frees the sessions itself (shutdown, leases): do not wait on it once per session.
+                if error.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+                    self._open_sessions.clear()
+                    return
+
     def close(self) -> None:
+        _LIVE_CLIENTS.discard(self)
         self._channel.close()
 
     def __enter__(self) -> "Client":

@@ -227,6 +227,36 @@ class CloseSessionResponse(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
 
+class ListSessionsRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class SessionSummary(_message.Message):
+    __slots__ = ("session_id", "env_id", "num_envs", "memory_bytes", "idle_seconds", "open_streams", "age_seconds")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    ENV_ID_FIELD_NUMBER: _ClassVar[int]
+    NUM_ENVS_FIELD_NUMBER: _ClassVar[int]
+    MEMORY_BYTES_FIELD_NUMBER: _ClassVar[int]
+    IDLE_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    OPEN_STREAMS_FIELD_NUMBER: _ClassVar[int]
+    AGE_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    env_id: str
+    num_envs: int
+    memory_bytes: int
+    idle_seconds: float
+    open_streams: int
+    age_seconds: float
+    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., idle_seconds: _Optional[float] = ..., open_streams: _Optional[int] = ..., age_seconds: _Optional[float] = ...) -> None: ...
+
+class ListSessionsResponse(_message.Message):
+    __slots__ = ("sessions", "idle_timeout_seconds")
+    SESSIONS_FIELD_NUMBER: _ClassVar[int]
+    IDLE_TIMEOUT_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    sessions: _containers.RepeatedCompositeFieldContainer[SessionSummary]
+    idle_timeout_seconds: float
+    def __init__(self, sessions: _Optional[_Iterable[_Union[SessionSummary, _Mapping]]] = ..., idle_timeout_seconds: _Optional[float] = ...) -> None: ...
+
 class ResetRequest(_message.Message):
     __slots__ = ("session_id", "seed")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]

@@ -54,6 +54,11 @@ class RadServeStub:
                 request_serializer=radserve__pb2.CloseSessionRequest.SerializeToString,
                 response_deserializer=radserve__pb2.CloseSessionResponse.FromString,
                 _registered_method=True)
+        self.ListSessions = channel.unary_unary(
+                '/radserve.v1.RadServe/ListSessions',
+                request_serializer=radserve__pb2.ListSessionsRequest.SerializeToString,
+                response_deserializer=radserve__pb2.ListSessionsResponse.FromString,
+                _registered_method=True)
         self.Reset = channel.unary_unary(
                 '/radserve.v1.RadServe/Reset',
                 request_serializer=radserve__pb2.ResetRequest.SerializeToString,
@@ -111,6 +116,15 @@ class RadServeServicer:
 
     def CloseSession(self, request, context):
         """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def ListSessions(self, request, context):
+        """Every open session with what it holds and how long it has been idle, for operators. A session
+        that no call and no open stream has used for `limits.session_idle_timeout_s` is closed by the
+        server (its lease expired), with a log line that says so.
+        """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
@@ -189,6 +203,11 @@ def add_RadServeServicer_to_server(servicer, server):
                     servicer.CloseSession,
                     request_deserializer=radserve__pb2.CloseSessionRequest.FromString,
                     response_serializer=radserve__pb2.CloseSessionResponse.SerializeToString,
+            ),
+            'ListSessions': grpc.unary_unary_rpc_method_handler(
+                    servicer.ListSessions,
+                    request_deserializer=radserve__pb2.ListSessionsRequest.FromString,
+                    response_serializer=radserve__pb2.ListSessionsResponse.SerializeToString,
             ),
             'Reset': grpc.unary_unary_rpc_method_handler(
                     servicer.Reset,
@@ -329,6 +348,33 @@ class RadServe:
             '/radserve.v1.RadServe/CloseSession',
             radserve__pb2.CloseSessionRequest.SerializeToString,
             radserve__pb2.CloseSessionResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ListSessions(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/ListSessions',
+            radserve__pb2.ListSessionsRequest.SerializeToString,
+            radserve__pb2.ListSessionsResponse.FromString,
             options,
             channel_credentials,
             insecure,

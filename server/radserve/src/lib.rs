@@ -64,6 +64,9 @@ pub async fn serve(
         }
     });
 
+    // Sessions whose lease expired (a learner that died without closing them) are closed here.
+    let reaper = tokio::spawn(manager.clone().run_reaper());
+
     let reporter = health_reporter.clone();
     let graceful = async move {
         shutdown.await;
@@ -77,6 +80,7 @@ pub async fn serve(
         // Small request/response pairs (acting) stall ~40 ms on Nagle + delayed ACK without NODELAY.
         .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), graceful)
         .await?;
+    reaper.abort();
     manager.shutdown().await;
     info!("stopped");
     Ok(())

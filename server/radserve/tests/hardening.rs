@@ -221,3 +221,40 @@ async fn pipelines_are_bounded_and_typed_keys_cannot_smuggle_stages() {
     let fine = client.sample_batches(with(typed(vec![stage("noise", &[("std", 0.5)])]))).await;
     assert!(fine.is_ok(), "{fine:?}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn abandoned_sessions_are_reaped_and_open_streams_keep_theirs() {
+    let server = start_server(Limits { session_idle_timeout_s: 1, ..Limits::default() }).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let abandoned = client.create_session(cartpole(None)).await.unwrap().into_inner().session_id;
+    let streamed = session_with_replay(&mut client).await;
+    let stream = client.sample_batches(sample_request(&streamed)).await.unwrap().into_inner();
+    let used = client.create_session(cartpole(None)).await.unwrap().into_inner().session_id;
+    let listed = client.list_sessions(proto::ListSessionsRequest {}).await.unwrap().into_inner();
+    assert_eq!(listed.idle_timeout_seconds, 1.0);
+    assert_eq!(listed.sessions.len(), 3);
+    let summary = listed.sessions.iter().find(|s| s.session_id == streamed).unwrap();
+    assert_eq!((summary.env_id.as_str(), summary.num_envs, summary.open_streams), ("gym/CartPole-v1", 1, 1));
+    assert!(summary.memory_bytes > 0);
+    // 2.5 s: `used` gets a call every 250 ms, `streamed` has its (unread) stream open.
+    for _ in 0..10 {
+        tokio::time::sleep(Duration::from_millis(250)).await;
+        client.describe_session(proto::DescribeSessionRequest { session_id: used.clone() }).await.unwrap();
+    }
+    let status = client.describe_session(proto::DescribeSessionRequest { session_id: abandoned.clone() }).await.unwrap_err();
+    assert_eq!(status.code(), Code::NotFound, "the abandoned session was reaped");
+    let listed = client.list_sessions(proto::ListSessionsRequest {}).await.unwrap().into_inner();
+    let mut ids: Vec<_> = listed.sessions.iter().map(|s| s.session_id.clone()).collect();
+    ids.sort();
+    let mut expected = vec![streamed.clone(), used.clone()];
+    expected.sort();
+    assert_eq!(ids, expected);
+    assert!(listed.sessions.iter().all(|s| s.idle_seconds < 1.0), "{:?}", listed.sessions);
+    // The stream closed, its session's lease runs out too; the freed places are usable again.
+    drop(stream);
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    let status = client.describe_session(proto::DescribeSessionRequest { session_id: streamed }).await.unwrap_err();
+    assert_eq!(status.code(), Code::NotFound);
+    assert!(client.list_sessions(proto::ListSessionsRequest {}).await.unwrap().into_inner().sessions.is_empty());
+    still_serves(&mut client).await;
+}

@@ -19,7 +19,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use radserve_sim::shm::SharedFrames;
-use radserve_sim::SessionManager;
+use radserve_sim::{LeaseHold, SessionManager};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{UnixListener, UnixStream};
 use tokio::time::{timeout_at, Instant};
@@ -114,6 +114,8 @@ pub struct ActingChannel {
     token: [u8; 16],
     listener: UnixListener,
     _claim: ChannelClaim,
+    /// An open channel keeps its session's lease alive.
+    _lease: LeaseHold,
 }
 
 /// Creates the region and the socket for `session_id`; the description goes to the client, the
@@ -159,7 +161,8 @@ pub async fn open(
         episode_return_offset: layout.episode_return as u64,
         episode_length_offset: layout.episode_length as u64,
     };
-    let channel = ActingChannel { manager, layout, memory, token, listener, _claim: claim };
+    let lease = manager.hold(session_id).map_err(to_status)?;
+    let channel = ActingChannel { manager, layout, memory, token, listener, _claim: claim, _lease: lease };
     Ok((description, channel))
 }
 

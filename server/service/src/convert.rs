@@ -5,7 +5,9 @@ use std::sync::Arc;
 
 use radserve_augment::{Pipeline, Sharing};
 use radserve_replay::{Batch, SampleSpec, Slot, Source};
-use radserve_sim::{BufferRequest, CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, Space, StepOutcome};
+use radserve_sim::{
+    BufferRequest, CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, SessionSummary, Space, StepOutcome,
+};
 use tonic::Status;
 
 use crate::proto;
@@ -119,6 +121,18 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
             active_streams: replay.active_streams as u32,
             rollout_steps: replay.rollout_steps.unwrap_or(0) as u32,
         }),
+    }
+}
+
+pub fn session_summary_to_proto(summary: &SessionSummary) -> proto::SessionSummary {
+    proto::SessionSummary {
+        session_id: summary.session_id.clone(),
+        env_id: summary.env_id.clone(),
+        num_envs: summary.num_envs as u32,
+        memory_bytes: summary.memory_bytes,
+        idle_seconds: summary.idle.as_secs_f64(),
+        open_streams: summary.open_streams as u32,
+        age_seconds: summary.age.as_secs_f64(),
     }
 }
 

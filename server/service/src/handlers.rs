@@ -118,6 +118,15 @@ impl RadServe for RadServeService {
         Ok(Response::new(convert::session_info_to_proto(&info)))
     }
 
+    async fn list_sessions(
+        &self,
+        _request: Request<proto::ListSessionsRequest>,
+    ) -> Result<Response<proto::ListSessionsResponse>, Status> {
+        let sessions = self.manager.list_sessions().iter().map(convert::session_summary_to_proto).collect();
+        let idle_timeout_seconds = self.manager.idle_timeout().map_or(0.0, |timeout| timeout.as_secs_f64());
+        Ok(Response::new(proto::ListSessionsResponse { sessions, idle_timeout_seconds }))
+    }
+
     async fn describe_session(
         &self,
         request: Request<proto::DescribeSessionRequest>,
@@ -184,6 +193,7 @@ impl RadServe for RadServeService {
         let request = request.into_inner();
         let spec = convert::sample_spec_from_proto(&request)?;
         let source = self.manager.replay_source(&request.session_id).await.map_err(to_status)?;
+        let lease = self.manager.hold(&request.session_id).map_err(to_status)?;
         // Everything is checked here, before the stream starts.
         let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?.with_permit(source.permit);
         self.check_stream_memory(&producer)?;
@@ -193,6 +203,8 @@ impl RadServe for RadServeService {
         let session_id = request.session_id;
         let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
         tokio::spawn(async move {
+            // The open stream keeps the session's lease alive.
+            let _lease = lease;
             // Observation buffers of sent batches, handed back to the producer once tonic has
             // dropped every chunk that points into them.
             let mut in_flight: Vec<Arc<Vec<u8>>> = Vec::new();
@@ -272,6 +284,7 @@ impl RadServe for RadServeService {
         }
         let spec = convert::sample_spec_from_proto(&start)?;
         let source = self.manager.replay_source(&start.session_id).await.map_err(to_status)?;
+        let lease = self.manager.hold(&start.session_id).map_err(to_status)?;
         let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?.with_permit(source.permit);
         self.check_stream_memory(&producer)?;
         // A slot per batch waiting in the prefetch queue, one being filled and one the learner
@@ -298,6 +311,7 @@ impl RadServe for RadServeService {
             .expect("the receiver is still here");
         let session_id = start.session_id;
         tokio::spawn(async move {
+            let _lease = lease;
             // Slots of batches sent and not yet released; dropping one hands it back to the producer.
             let mut held: std::collections::HashMap<u64, Slot> = std::collections::HashMap::new();
             loop {

@@ -15,7 +15,9 @@ pub mod worker;
 
 pub use catalog::{EnvId, EnvNames, Family, OptionValue, Options};
 pub use error::SimError;
-pub use manager::{BufferRequest, CatalogEntry, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager};
+pub use manager::{
+    BufferRequest, CatalogEntry, LeaseHold, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
+};
 pub use pool::{WorkerLauncher, WorkerPool};
 pub use session::{EpisodeEnd, StepOutcome};
 pub use space::{DType, Space};

@@ -2,8 +2,9 @@
 
 use std::collections::HashMap;
 use std::hash::{BuildHasher, Hasher};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, RwLock};
+use std::time::{Duration, Instant};
 
 use radserve_replay::{BufferKind, ObservationFormat, ProducerPermit, ReplayBuffer, ReplayLayout};
 
@@ -32,6 +33,9 @@ pub struct Limits {
     pub max_streams_per_session: usize,
     /// Bytes of batches one sample stream may hold at once: (prefetch + 2) batches of observations.
     pub stream_memory_bytes: u64,
+    /// Seconds a session may go without a call on it and without an open stream before the server
+    /// closes it (a learner that crashed leaves its sessions behind); 0 keeps sessions until closed.
+    pub session_idle_timeout_s: u64,
 }
 
 impl Default for Limits {
@@ -43,6 +47,7 @@ impl Default for Limits {
             replay_memory_bytes: 8 << 30,
             max_streams_per_session: 4,
             stream_memory_bytes: 4 << 30,
+            session_idle_timeout_s: 300,
         }
     }
 }
@@ -121,6 +126,54 @@ pub struct SessionInfo {
 
 pub type SharedSession = Arc<Mutex<Session>>;
 
+/// When a session was last used, and what keeps it in use now: any call on it renews the lease, an
+/// open stream or acting channel holds it.
+#[derive(Debug)]
+pub struct Lease {
+    /// Milliseconds after the manager's start.
+    last_used_ms: AtomicU64,
+    holds: AtomicUsize,
+}
+
+/// A stream's hold on its session's lease: the session is not reaped while one exists.
+#[derive(Debug)]
+pub struct LeaseHold {
+    lease: Arc<Lease>,
+    clock: Instant,
+}
+
+impl Drop for LeaseHold {
+    fn drop(&mut self) {
+        self.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
+        self.lease.holds.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+fn elapsed_ms(clock: Instant) -> u64 {
+    clock.elapsed().as_millis() as u64
+}
+
+/// One open session as an operator sees it (ListSessions).
+#[derive(Clone, Debug, PartialEq)]
+pub struct SessionSummary {
+    pub session_id: String,
+    pub env_id: String,
+    pub num_envs: usize,
+    pub memory_bytes: u64,
+    pub idle: Duration,
+    pub open_streams: usize,
+    pub age: Duration,
+}
+
+struct Entry {
+    session: SharedSession,
+    lease: Arc<Lease>,
+    env_id: String,
+    num_envs: usize,
+    memory_bytes: u64,
+    created: Instant,
+}
+
 pub struct SessionManager {
     pool: WorkerPool,
     limits: Limits,
@@ -129,11 +182,13 @@ pub struct SessionManager {
     sessions: StdMutex<Registry>,
     next_id: AtomicU64,
     id_salt: std::collections::hash_map::RandomState,
+    /// The time base of leases.
+    clock: Instant,
 }
 
 #[derive(Default)]
 struct Registry {
-    sessions: HashMap<String, SharedSession>,
+    sessions: HashMap<String, Entry>,
     /// Environments of live sessions plus those being created.
     reserved_envs: usize,
     reserved_sessions: usize,
@@ -151,6 +206,7 @@ impl SessionManager {
             sessions: StdMutex::new(Registry::default()),
             next_id: AtomicU64::new(1),
             id_salt: std::collections::hash_map::RandomState::new(),
+            clock: Instant::now(),
         }
     }
 
@@ -283,7 +339,16 @@ impl SessionManager {
             if registry.closing {
                 true
             } else {
-                registry.sessions.insert(session_id.clone(), shared.clone());
+                let lease = Lease { last_used_ms: AtomicU64::new(elapsed_ms(self.clock)), holds: AtomicUsize::new(0) };
+                let entry = Entry {
+                    session: shared.clone(),
+                    lease: Arc::new(lease),
+                    env_id: info.env_id.clone(),
+                    num_envs,
+                    memory_bytes: info.replay.as_ref().map_or(0, |replay| replay.memory_bytes),
+                    created: Instant::now(),
+                };
+                registry.sessions.insert(session_id.clone(), entry);
                 false
             }
         };
@@ -449,9 +514,100 @@ impl SessionManager {
         format!("s{counter}-{:016x}", hasher.finish())
     }
 
+    /// The session, its lease renewed: every call on a session goes through here.
     pub fn get(&self, session_id: &str) -> Result<SharedSession, SimError> {
         let registry = self.sessions.lock().expect("registry lock");
-        registry.sessions.get(session_id).cloned().ok_or_else(|| SimError::UnknownSession(session_id.to_string()))
+        let entry = registry.sessions.get(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?;
+        entry.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
+        Ok(entry.session.clone())
+    }
+
+    /// Keep the session's lease alive for as long as the returned hold lives (a stream on it).
+    pub fn hold(&self, session_id: &str) -> Result<LeaseHold, SimError> {
+        let registry = self.sessions.lock().expect("registry lock");
+        let entry = registry.sessions.get(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?;
+        entry.lease.holds.fetch_add(1, Ordering::AcqRel);
+        entry.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
+        Ok(LeaseHold { lease: entry.lease.clone(), clock: self.clock })
+    }
+
+    /// Every open session, oldest first.
+    pub fn list_sessions(&self) -> Vec<SessionSummary> {
+        let now = elapsed_ms(self.clock);
+        let registry = self.sessions.lock().expect("registry lock");
+        let mut sessions: Vec<SessionSummary> = registry
+            .sessions
+            .iter()
+            .map(|(id, entry)| {
+                let open_streams = entry.lease.holds.load(Ordering::Acquire);
+                let idle_ms = if open_streams > 0 {
+                    0
+                } else {
+                    now.saturating_sub(entry.lease.last_used_ms.load(Ordering::Relaxed))
+                };
+                SessionSummary {
+                    session_id: id.clone(),
+                    env_id: entry.env_id.clone(),
+                    num_envs: entry.num_envs,
+                    memory_bytes: entry.memory_bytes,
+                    idle: Duration::from_millis(idle_ms),
+                    open_streams,
+                    age: entry.created.elapsed(),
+                }
+            })
+            .collect();
+        sessions.sort_by(|a, b| b.age.cmp(&a.age).then_with(|| a.session_id.cmp(&b.session_id)));
+        sessions
+    }
+
+    /// The idle time after which a session is reaped (None: never).
+    pub fn idle_timeout(&self) -> Option<Duration> {
+        (self.limits.session_idle_timeout_s > 0).then(|| Duration::from_secs(self.limits.session_idle_timeout_s))
+    }
+
+    /// Closes every session whose lease expired: no open stream, and no call for longer than the
+    /// idle timeout. Returns the ids closed.
+    pub async fn reap_idle(&self) -> Vec<String> {
+        let Some(timeout) = self.idle_timeout() else { return Vec::new() };
+        let expired: Vec<SessionSummary> =
+            self.list_sessions().into_iter().filter(|session| session.open_streams == 0 && session.idle > timeout).collect();
+        let mut reaped = Vec::new();
+        for session in expired {
+            // Checked again under the registry lock: a call may have renewed the lease meanwhile.
+            let still_expired = {
+                let registry = self.sessions.lock().expect("registry lock");
+                registry.sessions.get(&session.session_id).is_some_and(|entry| {
+                    let idle = elapsed_ms(self.clock).saturating_sub(entry.lease.last_used_ms.load(Ordering::Relaxed));
+                    entry.lease.holds.load(Ordering::Acquire) == 0 && Duration::from_millis(idle) > timeout
+                })
+            };
+            if still_expired && self.close_session_because(&session.session_id, "its lease expired").await.is_ok() {
+                info!(
+                    session = %session.session_id,
+                    env = %session.env_id,
+                    envs = session.num_envs,
+                    idle_s = session.idle.as_secs(),
+                    timeout_s = timeout.as_secs(),
+                    "session reaped: no call and no open stream for longer than limits.session_idle_timeout_s"
+                );
+                reaped.push(session.session_id);
+            }
+        }
+        reaped
+    }
+
+    /// Reaps idle sessions until the manager is dropped or shut down, checking a few times per
+    /// timeout.
+    pub async fn run_reaper(self: Arc<Self>) {
+        let Some(timeout) = self.idle_timeout() else { return };
+        let period = (timeout / 4).clamp(Duration::from_millis(100), Duration::from_secs(10));
+        loop {
+            tokio::time::sleep(period).await;
+            if self.sessions.lock().expect("registry lock").closing {
+                return;
+            }
+            self.reap_idle().await;
+        }
     }
 
     pub async fn describe(&self, session_id: &str) -> Result<SessionInfo, SimError> {
@@ -461,15 +617,19 @@ impl SessionManager {
     }
 
     pub async fn close_session(&self, session_id: &str) -> Result<(), SimError> {
-        let session = {
+        self.close_session_because(session_id, "the client closed it").await
+    }
+
+    async fn close_session_because(&self, session_id: &str, reason: &str) -> Result<(), SimError> {
+        let entry = {
             let mut registry = self.sessions.lock().expect("registry lock");
             registry.sessions.remove(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?
         };
-        let mut session = session.lock().await;
+        let mut session = entry.session.lock().await;
         session.close().await;
         self.release(session.num_envs(), 1);
         self.release_replay(&session);
-        info!(session = %session_id, "session closed");
+        info!(session = %session_id, reason, "session closed");
         Ok(())
     }
 
