@@ -3,6 +3,8 @@
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
+
 
 use anyhow::{bail, Context};
 use figment::providers::{Env, Format, Serialized, Toml};
@@ -30,11 +32,17 @@ pub struct AugmentConfig {
 #[serde(default, deny_unknown_fields)]
 pub struct ServerConfig {
     pub address: String,
+    /// Seconds from SIGTERM (or SIGINT) to exit, at most: streams end, calls finish, sessions close.
+    /// A second signal exits at once.
+    pub drain_timeout_s: f64,
+    /// Seconds the server keeps answering after the signal (health NOT_SERVING, new sessions
+    /// refused) before it closes its listener, so that probes and load balancers see it leave.
+    pub shutdown_notice_s: f64,
 }
 
 impl Default for ServerConfig {
     fn default() -> Self {
-        ServerConfig { address: "127.0.0.1:50051".into() }
+        ServerConfig { address: "127.0.0.1:50051".into(), drain_timeout_s: 20.0, shutdown_notice_s: 1.0 }
     }
 }
 
@@ -72,6 +80,15 @@ impl Config {
             .address
             .parse::<SocketAddr>()
             .with_context(|| format!("server.address '{}' is not a host:port socket address", self.server.address))?;
+        let server = &self.server;
+        let seconds = |value: f64| value.is_finite() && (0.0..=86_400.0).contains(&value);
+        if !seconds(server.drain_timeout_s) || !seconds(server.shutdown_notice_s) {
+            bail!(
+                "server.drain_timeout_s and server.shutdown_notice_s are seconds in [0, 86400], got {} and {}",
+                server.drain_timeout_s,
+                server.shutdown_notice_s
+            );
+        }
         let limits = &self.limits;
         if limits.max_sessions == 0
             || limits.max_envs_per_session == 0
@@ -82,6 +99,14 @@ impl Config {
             bail!("limits must all be at least 1, got {limits:?}");
         }
         Ok(())
+    }
+
+    pub fn serve_options(&self) -> crate::ServeOptions {
+        crate::ServeOptions {
+            augment_threads: self.augment.threads,
+            drain_timeout: Duration::from_secs_f64(self.server.drain_timeout_s),
+            shutdown_notice: Duration::from_secs_f64(self.server.shutdown_notice_s),
+        }
     }
 
     pub fn worker_count(&self) -> usize {

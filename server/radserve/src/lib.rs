@@ -7,12 +7,13 @@ pub mod config;
 use std::future::Future;
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::time::Duration;
 
 use radserve_service::{proto::FILE_DESCRIPTOR_SET, RadServeServer, RadServeService, MAX_MESSAGE_BYTES};
 use radserve_sim::{GlBackend, Limits, SessionManager, WorkerLauncher, WorkerPool};
 use tokio::net::TcpListener;
 use tonic::transport::server::TcpIncoming;
-use tracing::info;
+use tracing::{info, warn};
 
 /// Everything the server needs to start its workers.
 pub struct ServerSettings {
@@ -30,18 +31,39 @@ pub fn session_manager(settings: ServerSettings) -> Arc<SessionManager> {
     Arc::new(SessionManager::new(pool, settings.limits))
 }
 
-/// Serves on `listener` until `shutdown` resolves; then reports NOT_SERVING, stops accepting, drains
-/// the calls in flight and closes every session.
+/// How the server serves and stops (the `[server]` and `[augment]` sections of the configuration).
+#[derive(Clone, Debug)]
+pub struct ServeOptions {
+    /// Threads that sample and augment minibatches; 0: one per core.
+    pub augment_threads: usize,
+    /// From the shutdown signal to exit, at most.
+    pub drain_timeout: Duration,
+    /// How long the server keeps answering (NOT_SERVING, new sessions refused) before it stops
+    /// accepting connections, so that health probes and load balancers see it leave.
+    pub shutdown_notice: Duration,
+}
+
+impl Default for ServeOptions {
+    fn default() -> Self {
+        ServeOptions { augment_threads: 0, drain_timeout: Duration::from_secs(20), shutdown_notice: Duration::from_secs(1) }
+    }
+}
+
+/// Serves on `listener` until `shutdown` resolves, then drains within `options.drain_timeout`:
+/// health turns NOT_SERVING at once and new sessions are refused (UNAVAILABLE); open streams end with
+/// an UNAVAILABLE status; after `shutdown_notice` the listener closes and calls in flight finish;
+/// then every session is closed and its workers' envs released. Whatever is still running at the
+/// deadline is dropped.
 pub async fn serve(
     listener: TcpListener,
     manager: Arc<SessionManager>,
-    augment_threads: usize,
-    shutdown: impl Future<Output = ()> + Send,
+    options: ServeOptions,
+    shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
     // Minibatch augmentation runs here, never on tokio's workers; 0 threads: one per core.
     let augment_pool = Arc::new(
         rayon::ThreadPoolBuilder::new()
-            .num_threads(augment_threads)
+            .num_threads(options.augment_threads)
             .thread_name(|index| format!("radserve-augment-{index}"))
             .build()?,
     );
@@ -51,7 +73,8 @@ pub async fn serve(
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let service = RadServeServer::new(RadServeService::new(manager.clone(), augment_pool))
+    let (service, streams) = RadServeService::new(manager.clone(), augment_pool);
+    let service = RadServeServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
 
@@ -67,21 +90,60 @@ pub async fn serve(
     // Sessions whose lease expired (a learner that died without closing them) are closed here.
     let reaper = tokio::spawn(manager.clone().run_reaper());
 
+    let (stop_accepting, accepting_stopped) = tokio::sync::oneshot::channel::<()>();
+    let (signalled, signal_seen) = tokio::sync::oneshot::channel::<tokio::time::Instant>();
     let reporter = health_reporter.clone();
-    let graceful = async move {
+    let draining = manager.clone();
+    let notice = options.shutdown_notice.min(options.drain_timeout);
+    tokio::spawn(async move {
         shutdown.await;
-        info!("shutting down: not serving, draining calls");
+        let started = tokio::time::Instant::now();
+        let _ = signalled.send(started);
+        info!(notice_s = notice.as_secs_f64(), "shutting down: not serving, new sessions refused, streams ending");
         reporter.set_not_serving::<RadServeServer<RadServeService>>().await;
+        reporter.set_service_status("", tonic_health::ServingStatus::NotServing).await;
+        draining.refuse_new_sessions();
+        streams.stop();
+        tokio::time::sleep_until(started + notice).await;
+        let _ = stop_accepting.send(());
+    });
+    let graceful = async move {
+        let _ = accepting_stopped.await;
+        info!("shutting down: listener closed, finishing the calls in flight");
     };
-    tonic::transport::Server::builder()
+    let server = tonic::transport::Server::builder()
         .add_service(health_service)
         .add_service(reflection)
         .add_service(service)
         // Small request/response pairs (acting) stall ~40 ms on Nagle + delayed ACK without NODELAY.
-        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), graceful)
-        .await?;
+        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), graceful);
+    tokio::pin!(server);
+    let mut signal_seen = signal_seen;
+    let deadline = tokio::select! {
+        result = &mut server => {
+            result?;
+            None
+        }
+        started = &mut signal_seen => started.ok().map(|started| started + options.drain_timeout),
+    };
+    if let Some(deadline) = deadline {
+        // Past the deadline, calls still in flight (a client that never reads its stream, a health
+        // Watch) are dropped with their connections.
+        match tokio::time::timeout_at(deadline, &mut server).await {
+            Ok(result) => result?,
+            Err(_) => warn!("shutting down: calls still in flight at the drain deadline were dropped"),
+        }
+    }
     reaper.abort();
-    manager.shutdown().await;
+    let closing = manager.shutdown();
+    match deadline {
+        Some(deadline) => {
+            if tokio::time::timeout_at(deadline.max(tokio::time::Instant::now() + Duration::from_secs(1)), closing).await.is_err() {
+                warn!("shutting down: sessions still closing at the drain deadline were left to the workers' exit");
+            }
+        }
+        None => closing.await,
+    }
     info!("stopped");
     Ok(())
 }

@@ -144,7 +144,21 @@ async fn run(command: Command) -> anyhow::Result<()> {
             // The one line on stdout: launchers (the Python client's, the tests') read the port here.
             println!("radserve listening on {bound}");
             let manager = radserve::session_manager(settings);
-            radserve::serve(listener, manager, config.augment.threads, shutdown_signal()).await
+            let (first_signal, signalled) = tokio::sync::oneshot::channel::<()>();
+            let workers = manager.clone();
+            tokio::spawn(async move {
+                shutdown_signal().await;
+                let _ = first_signal.send(());
+                // A second signal while draining: exit now, taking the workers along.
+                shutdown_signal().await;
+                tracing::warn!("second signal: exiting without draining");
+                workers.pool().kill_all();
+                std::process::exit(130);
+            });
+            radserve::serve(listener, manager, config.serve_options(), async {
+                let _ = signalled.await;
+            })
+            .await
         }
         Command::Envs { prefix, config } => {
             let mut config = Config::load(config.as_deref())?;

@@ -2,7 +2,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 
 use radserve_sim::{SessionExtras, SessionManager};
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
@@ -31,11 +31,52 @@ pub struct RadServeService {
     augment_pool: Arc<rayon::ThreadPool>,
     /// Sessions with a shared-memory acting channel open.
     acting_channels: OpenChannels,
+    /// Becomes true when the server starts shutting down: every open stream then ends.
+    stopping: watch::Receiver<bool>,
+}
+
+/// Ends the streams of a service: `stop()` when the server begins to shut down.
+pub struct StreamStopper(watch::Sender<bool>);
+
+impl StreamStopper {
+    pub fn stop(&self) {
+        self.0.send_replace(true);
+    }
+}
+
+/// The status an open stream ends with when the server shuts down.
+fn shutting_down() -> Status {
+    Status::unavailable("the server is shutting down; this stream ended (its session is closed at exit)")
+}
+
+/// Resolves once `stopping` turns true (never, if its sender is gone without stopping).
+async fn stopped(mut stopping: watch::Receiver<bool>) {
+    if stopping.wait_for(|stop| *stop).await.is_err() {
+        std::future::pending::<()>().await;
+    }
+}
+
+/// Ends a stream with the shutdown status; a client that does not read within a second misses it
+/// (its stream then just ends: nothing it would read is lost).
+async fn end_with_shutdown<T>(sender: &mpsc::Sender<Result<T, Status>>) {
+    let _ = tokio::time::timeout(std::time::Duration::from_secs(1), sender.send(Err(shutting_down()))).await;
+}
+
+/// Sends `item` unless the server stops or the client leaves first; false when it was not sent.
+async fn send_or_stop<T>(sender: &mpsc::Sender<Result<T, Status>>, item: T, stopping: &watch::Receiver<bool>) -> bool {
+    tokio::select! {
+        sent = sender.send(Ok(item)) => sent.is_ok(),
+        () = stopped(stopping.clone()) => {
+            end_with_shutdown(sender).await;
+            false
+        }
+    }
 }
 
 impl RadServeService {
-    pub fn new(manager: Arc<SessionManager>, augment_pool: Arc<rayon::ThreadPool>) -> RadServeService {
-        RadServeService { manager, augment_pool, acting_channels: OpenChannels::default() }
+    pub fn new(manager: Arc<SessionManager>, augment_pool: Arc<rayon::ThreadPool>) -> (RadServeService, StreamStopper) {
+        let (stop, stopping) = watch::channel(false);
+        (RadServeService { manager, augment_pool, acting_channels: OpenChannels::default(), stopping }, StreamStopper(stop))
     }
 
     async fn reset(&self, request: proto::ResetRequest) -> Result<proto::ResetResponse, Status> {
@@ -157,15 +198,30 @@ impl RadServe for RadServeService {
         let mut inbound = request.into_inner();
         let (sender, receiver) = mpsc::channel(ACT_STREAM_BUFFER);
         let service = self.clone();
+        let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            while let Some(message) = inbound.next().await {
+            loop {
+                let message = tokio::select! {
+                    message = inbound.next() => message,
+                    () = stopped(stopping.clone()) => {
+                        end_with_shutdown(&sender).await;
+                        break;
+                    }
+                };
+                let Some(message) = message else { break };
                 let outcome = match message {
                     Ok(request) => service.act_once(request).await,
                     Err(status) => Err(status),
                 };
-                let failed = outcome.is_err();
-                // A failed send means the client left: stop reading its requests.
-                if sender.send(outcome).await.is_err() || failed {
+                let outcome = match outcome {
+                    Ok(response) => response,
+                    Err(status) => {
+                        let _ = sender.send(Err(status)).await;
+                        break;
+                    }
+                };
+                // Not sent: the client left or the server stops; stop reading its requests.
+                if !send_or_stop(&sender, outcome, &stopping).await {
                     break;
                 }
             }
@@ -202,6 +258,7 @@ impl RadServe for RadServeService {
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
         let session_id = request.session_id;
         let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
+        let stopping = self.stopping.clone();
         tokio::spawn(async move {
             // The open stream keeps the session's lease alive.
             let _lease = lease;
@@ -224,6 +281,10 @@ impl RadServe for RadServeService {
                         debug!(session = %session_id, "sample stream cancelled while waiting");
                         return;
                     }
+                    () = stopped(stopping.clone()) => {
+                        end_with_shutdown(&sender).await;
+                        return;
+                    }
                 };
                 let Some(batch) = batch else { break };
                 let batch = match batch {
@@ -241,7 +302,7 @@ impl RadServe for RadServeService {
                     for index in 0..max_batches.unwrap_or(u64::MAX) {
                         for chunk in &chunks {
                             let chunk = proto::BatchChunk { batch_index: index, ..chunk.clone() };
-                            if sender.send(Ok(chunk)).await.is_err() {
+                            if !send_or_stop(&sender, chunk, &stopping).await {
                                 return;
                             }
                         }
@@ -249,9 +310,9 @@ impl RadServe for RadServeService {
                     return;
                 }
                 for chunk in chunks {
-                    // A failed send means the client left: dropping `ready` stops the producer.
-                    if sender.send(Ok(chunk)).await.is_err() {
-                        debug!(session = %session_id, "sample stream cancelled");
+                    // Not sent: the client left or the server stops; dropping `ready` stops the producer.
+                    if !send_or_stop(&sender, chunk, &stopping).await {
+                        debug!(session = %session_id, "sample stream ended before its batch was sent");
                         return;
                     }
                 }
@@ -310,6 +371,7 @@ impl RadServe for RadServeService {
             .await
             .expect("the receiver is still here");
         let session_id = start.session_id;
+        let stopping = self.stopping.clone();
         tokio::spawn(async move {
             let _lease = lease;
             // Slots of batches sent and not yet released; dropping one hands it back to the producer.
@@ -329,7 +391,7 @@ impl RadServe for RadServeService {
                         let (message, slot) = convert::shared_batch_to_proto(batch, &source.action_space);
                         held.insert(index, slot);
                         let response = proto::SharedSampleResponse { response: Some(Outbound::Batch(message)) };
-                        if sender.send(Ok(response)).await.is_err() {
+                        if !send_or_stop(&sender, response, &stopping).await {
                             debug!(session = %session_id, "shared sample stream cancelled");
                             return;
                         }
@@ -363,6 +425,10 @@ impl RadServe for RadServeService {
                     },
                     () = sender.closed() => {
                         debug!(session = %session_id, "shared sample stream cancelled");
+                        return;
+                    }
+                    () = stopped(stopping.clone()) => {
+                        end_with_shutdown(&sender).await;
                         return;
                     }
                 }

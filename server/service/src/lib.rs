@@ -14,7 +14,7 @@ pub mod proto {
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("radserve_descriptor");
 }
 
-pub use handlers::RadServeService;
+pub use handlers::{RadServeService, StreamStopper};
 pub use proto::rad_serve_server::RadServeServer;
 
 /// Largest message the server sends or accepts. A session's batched observations (64 dm_control

@@ -633,6 +633,12 @@ impl SessionManager {
         Ok(())
     }
 
+    /// From now on, CreateSession is refused with UNAVAILABLE (the server is shutting down); open
+    /// sessions keep working until `shutdown`.
+    pub fn refuse_new_sessions(&self) {
+        self.sessions.lock().expect("registry lock").closing = true;
+    }
+
     /// Refuses new sessions and closes every open one.
     pub async fn shutdown(&self) {
         let ids: Vec<String> = {

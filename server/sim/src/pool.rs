@@ -1,7 +1,7 @@
 //! Worker processes as seen from the server: each is driven by one actor task that owns its pipes,
 //! handles requests in order, and replaces the process when it dies.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashSet};
 use std::io;
 use std::path::PathBuf;
 use std::process::Stdio;
@@ -44,7 +44,7 @@ impl WorkerLauncher {
             .spawn()?;
         let stdin = child.stdin.take().expect("stdin is piped");
         let stdout = child.stdout.take().expect("stdout is piped");
-        Ok(WorkerProcess { child, stdin, stdout })
+        Ok(WorkerProcess { child, stdin, stdout, registration: None })
     }
 }
 
@@ -52,6 +52,22 @@ pub struct WorkerProcess {
     child: Child,
     stdin: ChildStdin,
     stdout: ChildStdout,
+    /// A transient worker's entry among the pool's, removed when the process is dropped (killed).
+    registration: Option<Registration>,
+}
+
+/// Pids of the transient workers alive now, for `WorkerPool::kill_all`.
+type TransientPids = Arc<std::sync::Mutex<HashSet<u32>>>;
+
+struct Registration {
+    pids: TransientPids,
+    pid: u32,
+}
+
+impl Drop for Registration {
+    fn drop(&mut self) {
+        self.pids.lock().expect("transient pid lock").remove(&self.pid);
+    }
 }
 
 impl WorkerProcess {
@@ -158,6 +174,7 @@ pub async fn await_reply(receiver: oneshot::Receiver<Result<Response, WorkerFaul
 pub struct WorkerPool {
     workers: Vec<WorkerHandle>,
     launcher: WorkerLauncher,
+    transient: TransientPids,
 }
 
 impl WorkerPool {
@@ -171,7 +188,7 @@ impl WorkerPool {
                 WorkerHandle { index, jobs, state }
             })
             .collect();
-        WorkerPool { workers, launcher }
+        WorkerPool { workers, launcher, transient: TransientPids::default() }
     }
 
     pub fn len(&self) -> usize {
@@ -186,6 +203,18 @@ impl WorkerPool {
         &self.workers
     }
 
+    /// Kills every worker process now (SIGKILL), for an exit that cannot wait for them.
+    pub fn kill_all(&self) {
+        let transient: Vec<u32> = self.transient.lock().expect("transient pid lock").iter().copied().collect();
+        for pid in self.workers.iter().map(WorkerHandle::pid).chain(transient) {
+            if pid > 0 {
+                // SAFETY: kill only reads its integer arguments; the pid is this pool's child (a
+                // process that already exited and was reaped makes it fail with ESRCH).
+                unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+            }
+        }
+    }
+
     /// The `count` workers hosting the fewest environments, least loaded first.
     pub fn least_loaded(&self, count: usize) -> Vec<WorkerHandle> {
         let mut workers = self.workers.clone();
@@ -197,8 +226,10 @@ impl WorkerPool {
     /// A worker outside the pool for a one-off background job (the catalog), at the lowest CPU priority;
     /// dropped (killed) when done.
     pub async fn spawn_transient(&self) -> io::Result<WorkerProcess> {
-        let worker = self.launcher.spawn().await?;
+        let mut worker = self.launcher.spawn().await?;
         if let Some(pid) = worker.pid() {
+            self.transient.lock().expect("transient pid lock").insert(pid);
+            worker.registration = Some(Registration { pids: self.transient.clone(), pid });
             // SAFETY: setpriority only reads its integer arguments. The worker was just spawned and is
             // owned (kill_on_drop) by `worker`, so the pid names it. Python threads it starts later
             // inherit the niceness.

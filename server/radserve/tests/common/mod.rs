@@ -31,7 +31,8 @@ pub async fn start_server(limits: Limits) -> TestServer {
         limits,
     });
     let (stop, stopped) = oneshot::channel::<()>();
-    let task = tokio::spawn(radserve::serve(listener, manager.clone(), 1, async {
+    let options = radserve::ServeOptions { augment_threads: 1, ..radserve::ServeOptions::default() };
+    let task = tokio::spawn(radserve::serve(listener, manager.clone(), options, async {
         let _ = stopped.await;
     }));
     TestServer { address, manager, stop, task }

@@ -1,0 +1,106 @@
+"""SIGTERM drains: NOT_SERVING at once, new sessions refused, open streams ended with a status, exit
+within the drain deadline with no worker left; a second signal exits at once."""
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+import radserve
+
+
+def _workers(server_pid):
+    children = {int(pid) for task in Path(f"/proc/{server_pid}/task").iterdir()
+                for pid in (task / "children").read_text().split()}
+    return sorted(pid for pid in children if b"\0worker\0" in Path(f"/proc/{pid}/cmdline").read_bytes())
+
+
+def _running(pid):
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state not in ("Z", "X")
+
+
+def _health(address):
+    with grpc.insecure_channel(address) as channel:
+        reply = health_pb2_grpc.HealthStub(channel).Check(
+            health_pb2.HealthCheckRequest(service="radserve.v1.RadServe"), timeout=5)
+        return reply.status
+
+
+def _busy_server(notice, drain):
+    server = radserve.LocalServer(workers=2, env={
+        "RADSERVE__SERVER__SHUTDOWN_NOTICE_S": str(notice), "RADSERVE__SERVER__DRAIN_TIMEOUT_S": str(drain)})
+    server.start()
+    client = radserve.Client(server.address)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=2, replay_capacity=1000)
+    envs.reset(seed=0)
+    for _ in range(20):
+        envs.step(np.zeros(2, dtype=np.int64))
+    stream = client.sample_batches(envs.session_id, batch_size=4)
+    next(iter(stream))
+    return server, client, envs, stream
+
+
+def _wait_for_workers(pid, count=2, timeout=60):
+    deadline = time.monotonic() + timeout
+    while len(_workers(pid)) < count:
+        assert time.monotonic() < deadline, "workers did not start"
+        time.sleep(0.1)
+    return _workers(pid)
+
+
+def test_sigterm_drains_with_statuses_and_exits_within_the_deadline():
+    server, client, envs, stream = _busy_server(notice=2.0, drain=10.0)
+    try:
+        workers = _wait_for_workers(server.process.pid)
+        assert _health(server.address) == health_pb2.HealthCheckResponse.SERVING
+        started = time.monotonic()
+        server.process.send_signal(signal.SIGTERM)
+        time.sleep(0.3)
+        # During the notice: still answering, but not serving and refusing new sessions.
+        assert _health(server.address) == health_pb2.HealthCheckResponse.NOT_SERVING
+        with pytest.raises(radserve.UnavailableError, match="shutting down"):
+            client.make_vec("gym/CartPole-v1")
+        # The open stream ends with a status, not silently and not never.
+        with pytest.raises(radserve.UnavailableError, match="shutting down"):
+            for _ in stream:
+                pass
+        code = server.process.wait(timeout=15)
+        elapsed = time.monotonic() - started
+        assert code == 0
+        assert elapsed < 10.0, f"exit took {elapsed:.1f} s, past the drain deadline"
+        assert not [pid for pid in workers if _running(pid)], "a worker outlived the server"
+    finally:
+        client.close()
+        server.stop()
+
+
+def test_a_second_signal_exits_at_once():
+    # A long notice and drain: only the second signal can make it exit quickly.
+    server, client, envs, stream = _busy_server(notice=60.0, drain=120.0)
+    try:
+        workers = _wait_for_workers(server.process.pid)
+        server.process.send_signal(signal.SIGTERM)
+        time.sleep(0.5)
+        assert server.process.poll() is None, "still draining after the first signal"
+        started = time.monotonic()
+        server.process.send_signal(signal.SIGINT)
+        code = server.process.wait(timeout=10)
+        assert time.monotonic() - started < 5
+        assert code != 0
+        deadline = time.monotonic() + 5
+        while [pid for pid in workers if _running(pid)] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not [pid for pid in workers if _running(pid)], "a worker outlived the server"
+    finally:
+        stream.close()
+        client.close()
+        server.stop()
