@@ -38,15 +38,32 @@ pub struct ServerConfig {
     /// Seconds the server keeps answering after the signal (health NOT_SERVING, new sessions
     /// refused) before it closes its listener, so that probes and load balancers see it leave.
     pub shutdown_notice_s: f64,
+    /// Connections open at once; more are closed as they arrive (lowered at start-up if the
+    /// open-file limit cannot hold them).
+    pub max_connections: usize,
+    /// Seconds a connection may stay silent (no bytes from the peer) before it is closed. Live
+    /// clients answer the keepalive pings, so only dead or non-gRPC peers reach it.
+    pub idle_connection_timeout_s: f64,
+    /// Seconds between the server's HTTP/2 pings on each connection, and how long an answer may take.
+    pub keepalive_interval_s: f64,
+    pub keepalive_timeout_s: f64,
 }
 
 impl Default for ServerConfig {
     fn default() -> Self {
-        ServerConfig { address: "127.0.0.1:50051".into(), drain_timeout_s: 20.0, shutdown_notice_s: 1.0 }
+        ServerConfig {
+            address: "127.0.0.1:50051".into(),
+            drain_timeout_s: 20.0,
+            shutdown_notice_s: 1.0,
+            max_connections: 1024,
+            idle_connection_timeout_s: 120.0,
+            keepalive_interval_s: 30.0,
+            keepalive_timeout_s: 20.0,
+        }
     }
 }
 
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimConfig {
     /// Worker processes; 0 means one per core.
@@ -56,6 +73,18 @@ pub struct SimConfig {
     /// The virtualenv whose Python the workers embed. Unset: $VIRTUAL_ENV, then a `.venv` found
     /// walking up from the executable (the layout `make setup` creates).
     pub venv: Option<PathBuf>,
+    /// Seconds a worker may take to answer a reset, step or close before it is killed and replaced
+    /// and the episodes it hosted end as truncated. Generous: a step of 64 default-look dm_control
+    /// pixel envs renders for ~10 s on two cores.
+    pub worker_call_timeout_s: f64,
+    /// The same for building environments (creating a session's envs, the catalog at start-up).
+    pub worker_create_timeout_s: f64,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        SimConfig { workers: 0, gl: GlBackend::default(), venv: None, worker_call_timeout_s: 60.0, worker_create_timeout_s: 300.0 }
+    }
 }
 
 impl Config {
@@ -82,11 +111,38 @@ impl Config {
             .with_context(|| format!("server.address '{}' is not a host:port socket address", self.server.address))?;
         let server = &self.server;
         let seconds = |value: f64| value.is_finite() && (0.0..=86_400.0).contains(&value);
+        let positive = |value: f64| seconds(value) && value > 0.0;
+        if !positive(server.idle_connection_timeout_s) || !positive(server.keepalive_interval_s) || !positive(server.keepalive_timeout_s) {
+            bail!(
+                "server.idle_connection_timeout_s, keepalive_interval_s and keepalive_timeout_s are seconds in (0, 86400], got {}, {} and {}",
+                server.idle_connection_timeout_s,
+                server.keepalive_interval_s,
+                server.keepalive_timeout_s
+            );
+        }
+        if server.keepalive_interval_s >= server.idle_connection_timeout_s {
+            bail!(
+                "server.keepalive_interval_s ({}) must be below server.idle_connection_timeout_s ({}): the pings are what keeps a live but quiet client from being idle",
+                server.keepalive_interval_s,
+                server.idle_connection_timeout_s
+            );
+        }
+        if server.max_connections == 0 {
+            bail!("server.max_connections must be at least 1");
+        }
         if !seconds(server.drain_timeout_s) || !seconds(server.shutdown_notice_s) {
             bail!(
                 "server.drain_timeout_s and server.shutdown_notice_s are seconds in [0, 86400], got {} and {}",
                 server.drain_timeout_s,
                 server.shutdown_notice_s
+            );
+        }
+        let positive = |value: f64| value.is_finite() && value > 0.0 && value <= 86_400.0;
+        if !positive(self.sim.worker_call_timeout_s) || !positive(self.sim.worker_create_timeout_s) {
+            bail!(
+                "sim.worker_call_timeout_s and sim.worker_create_timeout_s are seconds in (0, 86400], got {} and {}",
+                self.sim.worker_call_timeout_s,
+                self.sim.worker_create_timeout_s
             );
         }
         let limits = &self.limits;
@@ -106,6 +162,10 @@ impl Config {
             augment_threads: self.augment.threads,
             drain_timeout: Duration::from_secs_f64(self.server.drain_timeout_s),
             shutdown_notice: Duration::from_secs_f64(self.server.shutdown_notice_s),
+            max_connections: self.server.max_connections,
+            idle_connection_timeout: Duration::from_secs_f64(self.server.idle_connection_timeout_s),
+            keepalive_interval: Duration::from_secs_f64(self.server.keepalive_interval_s),
+            keepalive_timeout: Duration::from_secs_f64(self.server.keepalive_timeout_s),
         }
     }
 

@@ -3,6 +3,7 @@
 
 pub mod augment_cli;
 pub mod config;
+pub mod incoming;
 
 use std::future::Future;
 use std::path::PathBuf;
@@ -12,7 +13,6 @@ use std::time::Duration;
 use radserve_service::{proto::FILE_DESCRIPTOR_SET, RadServeServer, RadServeService, MAX_MESSAGE_BYTES};
 use radserve_sim::{GlBackend, Limits, SessionManager, WorkerLauncher, WorkerPool};
 use tokio::net::TcpListener;
-use tonic::transport::server::TcpIncoming;
 use tracing::{info, warn};
 
 /// Everything the server needs to start its workers.
@@ -23,10 +23,18 @@ pub struct ServerSettings {
     pub gl: GlBackend,
     pub workers: usize,
     pub limits: Limits,
+    /// A worker that does not answer a reset, step or close within this is killed and replaced.
+    pub worker_call_timeout: Duration,
+    /// The same for building environments.
+    pub worker_create_timeout: Duration,
 }
 
 pub fn session_manager(settings: ServerSettings) -> Arc<SessionManager> {
-    let launcher = WorkerLauncher { program: settings.worker_program, venv: settings.venv, gl: settings.gl };
+    let launcher = WorkerLauncher {
+        call_timeout: settings.worker_call_timeout,
+        create_timeout: settings.worker_create_timeout,
+        ..WorkerLauncher::new(settings.worker_program, settings.venv, settings.gl)
+    };
     let pool = WorkerPool::start(launcher, settings.workers);
     Arc::new(SessionManager::new(pool, settings.limits))
 }
@@ -41,11 +49,27 @@ pub struct ServeOptions {
     /// How long the server keeps answering (NOT_SERVING, new sessions refused) before it stops
     /// accepting connections, so that health probes and load balancers see it leave.
     pub shutdown_notice: Duration,
+    /// Connections open at once (more are closed as they arrive).
+    pub max_connections: usize,
+    /// A connection whose peer sends nothing for this long is closed.
+    pub idle_connection_timeout: Duration,
+    /// The server pings every connection this often (HTTP/2 PING) and closes one that does not
+    /// answer within `keepalive_timeout`.
+    pub keepalive_interval: Duration,
+    pub keepalive_timeout: Duration,
 }
 
 impl Default for ServeOptions {
     fn default() -> Self {
-        ServeOptions { augment_threads: 0, drain_timeout: Duration::from_secs(20), shutdown_notice: Duration::from_secs(1) }
+        ServeOptions {
+            augment_threads: 0,
+            drain_timeout: Duration::from_secs(20),
+            shutdown_notice: Duration::from_secs(1),
+            max_connections: 1024,
+            idle_connection_timeout: Duration::from_secs(120),
+            keepalive_interval: Duration::from_secs(30),
+            keepalive_timeout: Duration::from_secs(20),
+        }
     }
 }
 
@@ -111,12 +135,25 @@ pub async fn serve(
         let _ = accepting_stopped.await;
         info!("shutting down: listener closed, finishing the calls in flight");
     };
+    // Every connection costs a file descriptor: keep the limit well inside what the process may
+    // open, leaving room for sessions (memfds, worker pipes, acting sockets).
+    let files = incoming::raise_file_limit();
+    let fd_room = usize::try_from(files.saturating_sub(256) / 2).unwrap_or(usize::MAX).max(1);
+    let max_connections = options.max_connections.min(fd_room);
+    if max_connections < options.max_connections {
+        warn!(configured = options.max_connections, max_connections, open_files = files, "server.max_connections lowered to fit the open-file limit");
+    }
+    let connections = incoming::incoming(
+        listener,
+        incoming::ConnectionLimits { max_connections, idle_timeout: options.idle_connection_timeout },
+    );
     let server = tonic::transport::Server::builder()
+        .http2_keepalive_interval(Some(options.keepalive_interval))
+        .http2_keepalive_timeout(Some(options.keepalive_timeout))
         .add_service(health_service)
         .add_service(reflection)
         .add_service(service)
-        // Small request/response pairs (acting) stall ~40 ms on Nagle + delayed ACK without NODELAY.
-        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), graceful);
+        .serve_with_incoming_shutdown(connections, graceful);
     tokio::pin!(server);
     let mut signal_seen = signal_seen;
     let deadline = tokio::select! {

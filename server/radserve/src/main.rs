@@ -121,6 +121,8 @@ fn settings(config: &Config) -> anyhow::Result<ServerSettings> {
         gl: config.sim.gl,
         workers: config.worker_count(),
         limits: config.limits.clone(),
+        worker_call_timeout: std::time::Duration::from_secs_f64(config.sim.worker_call_timeout_s),
+        worker_create_timeout: std::time::Duration::from_secs_f64(config.sim.worker_create_timeout_s),
     })
 }
 

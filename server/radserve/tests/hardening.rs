@@ -5,9 +5,10 @@
 mod common;
 
 use std::collections::HashMap;
+use std::error::Error as _;
 use std::time::{Duration, Instant};
 
-use common::{connect, start_server};
+use common::{connect, start_server, start_server_with};
 use radserve_service::proto::{self, rad_serve_client::RadServeClient};
 use radserve_sim::Limits;
 use tonic::transport::Channel;
@@ -257,4 +258,53 @@ async fn abandoned_sessions_are_reaped_and_open_streams_keep_theirs() {
     assert_eq!(status.code(), Code::NotFound);
     assert!(client.list_sessions(proto::ListSessionsRequest {}).await.unwrap().into_inner().sessions.is_empty());
     still_serves(&mut client).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_connections_are_bounded_and_closed_while_live_clients_stay() {
+    let server = start_server_with(Limits::default(), |_, options| {
+        options.max_connections = 50;
+        options.idle_connection_timeout = Duration::from_secs(1);
+        options.keepalive_interval = Duration::from_millis(300);
+        options.keepalive_timeout = Duration::from_secs(5);
+    })
+    .await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    still_serves(&mut client).await;
+    // 1000 TCP connections that never speak: they used to stay open forever, and at the fd limit
+    // the accept loop spun at 100 % of a core.
+    let address = server.address.trim_start_matches("http://").to_string();
+    let mut idle = Vec::new();
+    for _ in 0..1000 {
+        idle.push(tokio::net::TcpStream::connect(&address).await.unwrap());
+    }
+    // The live client keeps working; a new one is refused while the limit is reached.
+    still_serves(&mut client).await;
+    let refused = Channel::from_shared(server.address.clone()).unwrap().connect().await;
+    if let Ok(channel) = refused {
+        let status = RadServeClient::new(channel).list_sessions(proto::ListSessionsRequest {}).await.unwrap_err();
+        // The connection was closed at once: tonic reports a transport error (grpcio: UNAVAILABLE).
+        assert!(matches!(status.code(), Code::Unavailable | Code::Unknown | Code::Cancelled), "{status:?}");
+        assert!(status.source().is_some(), "a transport failure, not an answer of the server: {status:?}");
+    }
+    // Past the idle timeout the silent ones are closed (the server's end reads as end-of-stream)...
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    use tokio::io::AsyncReadExt;
+    let mut closed = 0;
+    for stream in &mut idle {
+        // Accepted ones got the server's HTTP/2 preface before it closed them: read past it.
+        let mut bytes = [0u8; 256];
+        let ended = tokio::time::timeout(Duration::from_millis(200), async {
+            while let Ok(1..) = stream.read(&mut bytes).await {}
+        });
+        if ended.await.is_ok() {
+            closed += 1;
+        }
+    }
+    assert_eq!(closed, idle.len(), "every silent connection was closed");
+    drop(idle);
+    // ...while the live client, quiet as long, answered the keepalive pings and still works.
+    still_serves(&mut client).await;
+    let mut fresh = RadServeClient::new(connect(&server.address).await);
+    still_serves(&mut fresh).await;
 }

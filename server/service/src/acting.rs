@@ -141,7 +141,8 @@ pub async fn open(
         ChannelClaim { open: open.clone(), session_id: session_id.to_string() }
     };
     let internal = |what: &str, error: io::Error| Status::internal(format!("{what}: {error}"));
-    let mut memory = SharedFrames::create(layout.len).map_err(|error| internal("creating the acting memory", error))?;
+    let mut memory = SharedFrames::create(layout.len)
+        .map_err(|error| to_status(radserve_sim::session::resource_error("creating the acting memory", &error)))?;
     let token = radserve_replay::random_token().map_err(|error| internal("drawing a token", error))?;
     memory.as_mut_slice()[..16].copy_from_slice(ACTING_MAGIC);
     memory.as_mut_slice()[16..32].copy_from_slice(&token);

@@ -1,5 +1,6 @@
 use std::pin::Pin;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use radserve_sim::{SessionExtras, SessionManager};
 use tokio::sync::{mpsc, watch};
@@ -56,10 +57,49 @@ async fn stopped(mut stopping: watch::Receiver<bool>) {
     }
 }
 
+/// Runs `work` on a task of its own and waits for it: dropping the caller's future (tonic does when
+/// the client's deadline passes or the client leaves) does not stop `work` halfway.
+async fn run_to_end<T: Send + 'static>(
+    work: impl std::future::Future<Output = Result<T, Status>> + Send + 'static,
+) -> Result<T, Status> {
+    tokio::spawn(work).await.unwrap_or_else(|error| Err(Status::internal(format!("the call's task failed: {error}"))))
+}
+
+/// When the client stops waiting, from its `grpc-timeout` header (gRPC over HTTP/2: an ASCII
+/// integer of at most 8 digits and a unit, H M S m u n), measured from now.
+pub fn client_deadline<T>(request: &Request<T>) -> Option<Instant> {
+    let value = request.metadata().get("grpc-timeout")?.to_str().ok()?;
+    let (digits, unit) = value.split_at(value.len().checked_sub(1)?);
+    if digits.is_empty() || digits.len() > 8 {
+        return None;
+    }
+    let amount: u64 = digits.parse().ok()?;
+    let timeout = match unit {
+        "H" => Duration::from_secs(amount.checked_mul(3600)?),
+        "M" => Duration::from_secs(amount.checked_mul(60)?),
+        "S" => Duration::from_secs(amount),
+        "m" => Duration::from_millis(amount),
+        "u" => Duration::from_micros(amount),
+        "n" => Duration::from_nanos(amount),
+        _ => return None,
+    };
+    Instant::now().checked_add(timeout)
+}
+
+fn check_deadline(deadline: Option<Instant>, what: &str) -> Result<(), Status> {
+    match deadline {
+        Some(deadline) if Instant::now() >= deadline => Err(Status::deadline_exceeded(format!(
+            "the {what} waited for the session (another call on it was running) past the client's deadline; it was \
+             not sent to the simulators, and the session is as it was"
+        ))),
+        _ => Ok(()),
+    }
+}
+
 /// Ends a stream with the shutdown status; a client that does not read within a second misses it
 /// (its stream then just ends: nothing it would read is lost).
 async fn end_with_shutdown<T>(sender: &mpsc::Sender<Result<T, Status>>) {
-    let _ = tokio::time::timeout(std::time::Duration::from_secs(1), sender.send(Err(shutting_down()))).await;
+    let _ = tokio::time::timeout(Duration::from_secs(1), sender.send(Err(shutting_down()))).await;
 }
 
 /// Sends `item` unless the server stops or the client leaves first; false when it was not sent.
@@ -79,20 +119,33 @@ impl RadServeService {
         (RadServeService { manager, augment_pool, acting_channels: OpenChannels::default(), stopping }, StreamStopper(stop))
     }
 
-    async fn reset(&self, request: proto::ResetRequest) -> Result<proto::ResetResponse, Status> {
+    /// Resets and steps run to their end in a task of their own, even when the caller stops waiting
+    /// (its deadline passed, it left): cut short after the workers got it, a step would leave the envs
+    /// a step ahead of the session's stacks and replay. What the deadline can still prevent is
+    /// checked once the session is free: a request whose client deadline has passed by then is
+    /// answered DEADLINE_EXCEEDED without being sent.
+    async fn reset(&self, request: proto::ResetRequest, deadline: Option<Instant>) -> Result<proto::ResetResponse, Status> {
         let session = self.manager.get(&request.session_id).map_err(to_status)?;
-        let mut session = session.lock().await;
-        let obs = session.reset(request.seed).await.map_err(to_status)?;
-        Ok(proto::ResetResponse { obs: Some(observation_tensor(&session.observation_space, session.num_envs(), obs)) })
+        run_to_end(async move {
+            let mut session = session.lock().await;
+            check_deadline(deadline, "Reset")?;
+            let obs = session.reset(request.seed).await.map_err(to_status)?;
+            Ok(proto::ResetResponse { obs: Some(observation_tensor(&session.observation_space, session.num_envs(), obs)) })
+        })
+        .await
     }
 
-    async fn step(&self, request: proto::StepRequest) -> Result<proto::StepResponse, Status> {
+    async fn step(&self, request: proto::StepRequest, deadline: Option<Instant>) -> Result<proto::StepResponse, Status> {
         let (dtype, shape) = convert::tensor_header(request.actions.as_ref(), "actions")?;
         let actions = request.actions.map(|tensor| tensor.data).unwrap_or_default();
         let session = self.manager.get(&request.session_id).map_err(to_status)?;
-        let mut session = session.lock().await;
-        let outcome = session.step(dtype, &shape, &actions).await.map_err(to_status)?;
-        Ok(convert::step_to_proto(&session.observation_space, outcome))
+        run_to_end(async move {
+            let mut session = session.lock().await;
+            check_deadline(deadline, "Step")?;
+            let outcome = session.step(dtype, &shape, &actions).await.map_err(to_status)?;
+            Ok(convert::step_to_proto(&session.observation_space, outcome))
+        })
+        .await
     }
 
     /// A stream's batches produced ahead must fit the server's per-stream limit.
@@ -111,8 +164,8 @@ impl RadServeService {
 
     async fn act_once(&self, request: proto::ActRequest) -> Result<proto::ActResponse, Status> {
         let response = match request.request {
-            Some(act_request::Request::Reset(reset)) => act_response::Response::Reset(self.reset(reset).await?),
-            Some(act_request::Request::Step(step)) => act_response::Response::Step(self.step(step).await?),
+            Some(act_request::Request::Reset(reset)) => act_response::Response::Reset(self.reset(reset, None).await?),
+            Some(act_request::Request::Step(step)) => act_response::Response::Step(self.step(step, None).await?),
             None => return Err(Status::invalid_argument("ActRequest must hold a reset or a step")),
         };
         Ok(proto::ActResponse { response: Some(response) })
@@ -185,11 +238,13 @@ impl RadServe for RadServeService {
     }
 
     async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {
-        Ok(Response::new(RadServeService::reset(self, request.into_inner()).await?))
+        let deadline = client_deadline(&request);
+        Ok(Response::new(RadServeService::reset(self, request.into_inner(), deadline).await?))
     }
 
     async fn step(&self, request: Request<proto::StepRequest>) -> Result<Response<proto::StepResponse>, Status> {
-        Ok(Response::new(RadServeService::step(self, request.into_inner()).await?))
+        let deadline = client_deadline(&request);
+        Ok(Response::new(RadServeService::step(self, request.into_inner(), deadline).await?))
     }
 
     type ActStream = ActStream;

@@ -17,7 +17,7 @@ use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
 use crate::error::SimError;
 use crate::pool::WorkerPool;
 use crate::protocol::{Request, Response};
-use crate::session::{check_seed, Session, SessionConfig};
+use crate::session::{check_seed, Session, SessionConfig, SessionStats};
 use crate::space::{DType, Space};
 
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -167,6 +167,11 @@ pub struct SessionSummary {
 
 struct Entry {
     session: SharedSession,
+    /// What Describe answers, without waiting for the session's lock (a step may hold it for as
+    /// long as a worker takes): the parts fixed at creation, the live counters, the replay buffer.
+    info: SessionInfo,
+    stats: Arc<SessionStats>,
+    replay: Option<Arc<RwLock<ReplayBuffer>>>,
     lease: Arc<Lease>,
     env_id: String,
     num_envs: usize,
@@ -272,7 +277,7 @@ impl SessionManager {
             .spawn_transient()
             .await
             .map_err(|err| SimError::WorkersUnavailable(format!("cannot start a catalog worker: {err}")))?;
-        match worker.call(&request).await {
+        match worker.call_within(&request, self.pool.create_timeout()).await {
             Ok(Response::Failed(message)) => Err(SimError::Simulator(message)),
             Ok(response) => Ok(response),
             Err(err) => Err(SimError::WorkersUnavailable(format!("catalog worker failed: {err}"))),
@@ -333,6 +338,7 @@ impl SessionManager {
         }
         let session_id = self.new_session_id();
         let info = describe(&session_id, &session);
+        let (stats, replay) = (session.stats.clone(), session.replay().cloned());
         let shared = Arc::new(Mutex::new(session));
         let rejected = {
             let mut registry = self.sessions.lock().expect("registry lock");
@@ -342,6 +348,9 @@ impl SessionManager {
                 let lease = Lease { last_used_ms: AtomicU64::new(elapsed_ms(self.clock)), holds: AtomicUsize::new(0) };
                 let entry = Entry {
                     session: shared.clone(),
+                    info: info.clone(),
+                    stats,
+                    replay,
                     lease: Arc::new(lease),
                     env_id: info.env_id.clone(),
                     num_envs,
@@ -610,10 +619,19 @@ impl SessionManager {
         }
     }
 
+    /// Never waits for the session's lock: a step in progress (or a stuck worker) does not delay it.
     pub async fn describe(&self, session_id: &str) -> Result<SessionInfo, SimError> {
-        let session = self.get(session_id)?;
-        let session = session.lock().await;
-        Ok(describe(session_id, &session))
+        let (mut info, stats, replay) = {
+            let registry = self.sessions.lock().expect("registry lock");
+            let entry = registry.sessions.get(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?;
+            entry.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
+            (entry.info.clone(), entry.stats.clone(), entry.replay.clone())
+        };
+        info.seed = stats.seed.load(Ordering::Relaxed);
+        info.total_env_steps = stats.total_env_steps.load(Ordering::Relaxed);
+        info.episodes_completed = stats.episodes_completed.load(Ordering::Relaxed);
+        info.replay = replay.map(|replay| replay_info(&replay.read().expect("replay lock")));
+        Ok(info)
     }
 
     pub async fn close_session(&self, session_id: &str) -> Result<(), SimError> {
@@ -664,25 +682,26 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
         frame_stack: session.config.frame_stack,
         total_env_steps: session.total_env_steps,
         episodes_completed: session.episodes_completed,
-        replay: session.replay().map(|replay| {
-            let replay = replay.read().expect("replay lock");
-            let layout = replay.layout();
-            ReplayInfo {
-                capacity: layout.capacity,
-                size: replay.len(),
-                inserts: replay.counters().inserts,
-                samples: replay.counters().samples,
-                batches: replay.counters().batches,
-                batches_per_second: replay.batches_per_second(),
-                memory_bytes: layout.memory_bytes() as u64,
-                frames_per_transition: layout.frames_per_transition(),
-                active_streams: replay.active_producers(),
-                rollout_steps: match layout.kind {
-                    BufferKind::Rollout { steps } => Some(steps),
-                    BufferKind::Replay => None,
-                },
-            }
-        }),
+        replay: session.replay().map(|replay| replay_info(&replay.read().expect("replay lock"))),
+    }
+}
+
+fn replay_info(replay: &ReplayBuffer) -> ReplayInfo {
+    let layout = replay.layout();
+    ReplayInfo {
+        capacity: layout.capacity,
+        size: replay.len(),
+        inserts: replay.counters().inserts,
+        samples: replay.counters().samples,
+        batches: replay.counters().batches,
+        batches_per_second: replay.batches_per_second(),
+        memory_bytes: layout.memory_bytes() as u64,
+        frames_per_transition: layout.frames_per_transition(),
+        active_streams: replay.active_producers(),
+        rollout_steps: match layout.kind {
+            BufferKind::Rollout { steps } => Some(steps),
+            BufferKind::Replay => None,
+        },
     }
 }
 

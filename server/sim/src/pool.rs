@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use std::process::Stdio;
 use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::process::{Child, ChildStdin, ChildStdout, Command};
@@ -22,6 +23,26 @@ pub struct WorkerLauncher {
     pub program: PathBuf,
     pub venv: PathBuf,
     pub gl: GlBackend,
+    /// How long a worker may take to answer a reset, step or close before it is killed and replaced.
+    pub call_timeout: Duration,
+    /// The same for building environments (CreateGroup, rebuilding groups in a new process, the
+    /// catalog), which loads simulators and can take seconds per env.
+    pub create_timeout: Duration,
+}
+
+impl WorkerLauncher {
+    /// Defaults: 60 s per call (a step of 64 default-look dm_control envs renders for ~10 s on two
+    /// cores), 300 s to build.
+    pub fn new(program: PathBuf, venv: PathBuf, gl: GlBackend) -> WorkerLauncher {
+        WorkerLauncher { program, venv, gl, call_timeout: Duration::from_secs(60), create_timeout: Duration::from_secs(300) }
+    }
+
+    fn timeout_for(&self, request: &Request) -> Duration {
+        match request {
+            Request::CreateGroup(_) | Request::ListNames | Request::Specs { .. } | Request::Attach { .. } => self.create_timeout,
+            Request::Reset { .. } | Request::Step { .. } | Request::CloseGroup { .. } | Request::Abort => self.call_timeout,
+        }
+    }
 }
 
 /// The niceness of the catalog worker: the catalog is built in the background at start-up (about 14 s
@@ -30,7 +51,7 @@ pub struct WorkerLauncher {
 const BACKGROUND_NICENESS: libc::c_int = 19;
 
 impl WorkerLauncher {
-    pub async fn spawn(&self) -> io::Result<WorkerProcess> {
+    pub(crate) async fn spawn(&self) -> io::Result<WorkerProcess> {
         let mut child = Command::new(&self.program)
             .arg("worker")
             .arg("--venv")
@@ -71,6 +92,15 @@ impl Drop for Registration {
 }
 
 impl WorkerProcess {
+    /// Sends one request and waits at most `limit` for its response. An error means the worker is
+    /// gone or stuck (`TimedOut`); either way it must not be used again.
+    pub async fn call_within(&mut self, request: &Request, limit: Duration) -> io::Result<Response> {
+        match tokio::time::timeout(limit, self.call(request)).await {
+            Ok(result) => result,
+            Err(_) => Err(io::Error::new(io::ErrorKind::TimedOut, format!("no answer within {} s", limit.as_secs_f64()))),
+        }
+    }
+
     /// Sends one request and waits for its response. An I/O error means the worker is gone.
     pub async fn call(&mut self, request: &Request) -> io::Result<Response> {
         self.stdin.write_all(&protocol::encode(request)?).await?;
@@ -106,9 +136,15 @@ pub enum WorkerFault {
     Unavailable(String),
 }
 
+/// A worker's answer and the generation of the process that gave it (the worker's restarts so far).
+pub type Reply = Result<(Response, u64), WorkerFault>;
+
 struct Job {
     request: Request,
-    reply: oneshot::Sender<Result<Response, WorkerFault>>,
+    /// Run only in this generation of the worker: a group built in an earlier process was rebuilt
+    /// unreset in this one, and its session must learn that before stepping it.
+    generation: Option<u64>,
+    reply: oneshot::Sender<Reply>,
 }
 
 /// A handle on one worker's actor; cheap to clone.
@@ -133,9 +169,19 @@ impl WorkerHandle {
 
     /// Queues a request; the returned receiver resolves when the worker has answered. Queue requests to
     /// several workers before awaiting any of them to run them in parallel.
-    pub async fn submit(&self, request: Request) -> oneshot::Receiver<Result<Response, WorkerFault>> {
+    pub async fn submit(&self, request: Request) -> oneshot::Receiver<Reply> {
+        self.submit_job(request, None).await
+    }
+
+    /// Like `submit`, but the worker refuses the request (`WorkerFault::Crashed`) unless its process
+    /// is still of `generation`.
+    pub async fn submit_in(&self, request: Request, generation: u64) -> oneshot::Receiver<Reply> {
+        self.submit_job(request, Some(generation)).await
+    }
+
+    async fn submit_job(&self, request: Request, generation: Option<u64>) -> oneshot::Receiver<Reply> {
         let (reply, receiver) = oneshot::channel();
-        if let Err(mpsc::error::SendError(job)) = self.jobs.send(Job { request, reply }).await {
+        if let Err(mpsc::error::SendError(job)) = self.jobs.send(Job { request, generation, reply }).await {
             let _ = job.reply.send(Err(WorkerFault::Unavailable("the worker pool has stopped".into())));
         }
         receiver
@@ -143,6 +189,11 @@ impl WorkerHandle {
 
     pub async fn call(&self, request: Request) -> Result<Response, WorkerFault> {
         await_reply(self.submit(request).await).await
+    }
+
+    /// A call whose reply carries the generation that answered.
+    pub async fn call_generation(&self, request: Request) -> Reply {
+        await_generation(self.submit(request).await).await
     }
 
     pub fn hosted_envs(&self) -> usize {
@@ -167,7 +218,11 @@ impl WorkerHandle {
     }
 }
 
-pub async fn await_reply(receiver: oneshot::Receiver<Result<Response, WorkerFault>>) -> Result<Response, WorkerFault> {
+pub async fn await_reply(receiver: oneshot::Receiver<Reply>) -> Result<Response, WorkerFault> {
+    await_generation(receiver).await.map(|(response, _)| response)
+}
+
+pub async fn await_generation(receiver: oneshot::Receiver<Reply>) -> Reply {
     receiver.await.unwrap_or_else(|_| Err(WorkerFault::Unavailable("the worker pool has stopped".into())))
 }
 
@@ -201,6 +256,11 @@ impl WorkerPool {
 
     pub fn workers(&self) -> &[WorkerHandle] {
         &self.workers
+    }
+
+    /// How long building environments may take in a worker.
+    pub fn create_timeout(&self) -> Duration {
+        self.launcher.create_timeout
     }
 
     /// Kills every worker process now (SIGKILL), for an exit that cannot wait for them.
@@ -246,7 +306,18 @@ async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Recei
     // The requests that built each hosted group, replayed into a replacement process.
     let mut replay: BTreeMap<u64, Vec<Request>> = BTreeMap::new();
     let mut process = start(index, &launcher, &state, &replay).await.ok();
+    // Why the current process replaced the previous one, for sessions that learn of it later.
+    let mut last_restart = String::new();
     while let Some(job) = jobs.recv().await {
+        let generation = state.restarts.load(Ordering::Acquire);
+        if job.generation.is_some_and(|expected| expected != generation) {
+            let fault = format!(
+                "simulator worker {index} was restarted since this session last used it ({last_restart}); its \
+                 environments were rebuilt"
+            );
+            let _ = job.reply.send(Err(WorkerFault::Crashed(fault)));
+            continue;
+        }
         if process.is_none() {
             match start(index, &launcher, &state, &replay).await {
                 Ok(started) => process = Some(started),
@@ -257,20 +328,32 @@ async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Recei
             }
         }
         let worker = process.as_mut().expect("started above");
-        match worker.call(&job.request).await {
+        match worker.call_within(&job.request, launcher.timeout_for(&job.request)).await {
             Ok(response) => {
                 remember(&mut replay, &job.request, &response);
-                let _ = job.reply.send(Ok(response));
+                let _ = job.reply.send(Ok((response, generation)));
             }
             Err(err) => {
+                let stuck = err.kind() == io::ErrorKind::TimedOut;
                 let status = process.take().expect("present").reap().await;
-                warn!(worker = index, error = %err, status = %status, "worker died, replacing it");
-                state.restarts.fetch_add(1, Ordering::Relaxed);
+                if stuck {
+                    warn!(worker = index, error = %err, "worker did not answer in time, killed it; replacing it");
+                } else {
+                    warn!(worker = index, error = %err, status = %status, "worker died, replacing it");
+                }
                 if let Request::CloseGroup { group } = &job.request {
                     replay.remove(group);
                 }
+                let fault = if stuck {
+                    format!("simulator worker {index} did not answer within {} s ({err}); it was killed and restarted",
+                        launcher.timeout_for(&job.request).as_secs_f64())
+                } else {
+                    format!("simulator worker {index} died ({status}); it was restarted")
+                };
+                last_restart.clone_from(&fault);
+                // The generation changes before the new process exists: requests of the old one are refused.
+                state.restarts.fetch_add(1, Ordering::AcqRel);
                 process = start(index, &launcher, &state, &replay).await.ok();
-                let fault = format!("simulator worker {index} died ({status}); it was restarted");
                 let _ = job.reply.send(Err(WorkerFault::Crashed(fault)));
             }
         }
@@ -288,10 +371,13 @@ async fn start(
     info!(worker = index, pid = process.pid().unwrap_or(0), groups = replay.len(), "worker started");
     for (group, requests) in replay {
         for request in requests {
-            match process.call(request).await {
+            match process.call_within(request, launcher.create_timeout).await {
                 Ok(Response::Failed(message)) => warn!(worker = index, group, %message, "could not rebuild group"),
                 Ok(_) => {}
-                Err(err) => return Err(err),
+                Err(err) => {
+                    let _ = process.reap().await;
+                    return Err(err);
+                }
             }
         }
     }

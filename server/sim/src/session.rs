@@ -14,7 +14,7 @@ use radserve_replay::{RecordedStep, ReplayBuffer};
 
 use crate::catalog::{EnvId, Options};
 use crate::error::SimError;
-use crate::pool::{await_reply, WorkerFault, WorkerHandle, WorkerPool};
+use crate::pool::{await_generation, await_reply, WorkerFault, WorkerHandle, WorkerPool};
 use crate::protocol::{EnvSpec, GroupConfig, Request, Response};
 use crate::shm::{FrameLayout, SharedFrames};
 use crate::space::{DType, Space};
@@ -23,6 +23,14 @@ use crate::space::{DType, Space};
 pub const MAX_SEED: u64 = i32::MAX as u64;
 
 static NEXT_GROUP: AtomicU64 = AtomicU64::new(1);
+
+/// The counters of a session that change as it acts, readable without its lock.
+#[derive(Debug, Default)]
+pub struct SessionStats {
+    pub seed: AtomicU64,
+    pub total_env_steps: AtomicU64,
+    pub episodes_completed: AtomicU64,
+}
 
 pub struct SessionConfig {
     pub env: EnvId,
@@ -39,6 +47,9 @@ struct Group {
     envs: Range<usize>,
     seeds: Vec<u64>,
     frames: SharedFrames,
+    /// The worker process generation whose envs this session's stacks follow: a step is refused by a
+    /// newer process (which rebuilt the group unreset), and the episodes end instead.
+    generation: u64,
 }
 
 /// An episode that ended in a step.
@@ -83,6 +94,8 @@ pub struct Session {
     pub step_calls: u64,
     /// Where every frame and transition is recorded, when the session keeps a replay buffer.
     replay: Option<Arc<RwLock<ReplayBuffer>>>,
+    /// What Describe reads while a step holds the session (no lock needed).
+    pub stats: Arc<SessionStats>,
     /// The evaluation view observations are returned through (replay keeps the raw frames).
     view: Option<ImagePlan>,
 }
@@ -112,16 +125,19 @@ impl Session {
         let mut failure = None;
         let mut spec = None;
         for (worker, group, envs, seeds, receiver) in pending {
-            match await_reply(receiver).await {
-                Ok(Response::Created(group_spec)) => {
+            match await_generation(receiver).await {
+                Ok((Response::Created(group_spec), generation)) => {
                     spec.get_or_insert(group_spec);
-                    created.push((worker, group, envs, seeds));
+                    created.push((worker, group, envs, seeds, generation));
                 }
-                Ok(Response::Failed(message)) => {
+                Ok((Response::Failed(message), _)) => {
                     failure.get_or_insert(SimError::CreateFailed { env_id: config.env.full(), message });
                 }
-                other => {
-                    failure.get_or_insert(unexpected(other));
+                Ok((other, _)) => {
+                    failure.get_or_insert(unexpected(Ok(other)));
+                }
+                Err(fault) => {
+                    failure.get_or_insert(unexpected(Err(fault)));
                 }
             }
         }
@@ -135,17 +151,25 @@ impl Session {
         let layout = FrameLayout { frame_bytes: frame_spec.observation.num_bytes() };
 
         let mut groups = Vec::new();
-        for (worker, id, envs, seeds) in &created {
+        for (worker, id, envs, seeds, generation) in &created {
             match SharedFrames::create(layout.segment_len(envs.len())) {
-                Ok(frames) => groups.push(Group { worker: worker.clone(), id: *id, envs: envs.clone(), seeds: seeds.clone(), frames }),
+                Ok(frames) => groups.push(Group {
+                    worker: worker.clone(),
+                    id: *id,
+                    envs: envs.clone(),
+                    seeds: seeds.clone(),
+                    frames,
+                    generation: *generation,
+                }),
                 Err(err) => {
                     for (worker, group, ..) in &created {
                         let _ = worker.call(Request::CloseGroup { group: *group }).await;
                     }
-                    return Err(SimError::Simulator(format!("allocating shared memory: {err}")));
+                    return Err(resource_error("allocating the session's shared frames", &err));
                 }
             }
         }
+        let config_seed = config.seed;
         let mut session = Session {
             observation_space: frame_spec.observation.stacked(config.frame_stack),
             stacks: vec![0; config.num_envs * config.frame_stack * layout.frame_bytes],
@@ -160,6 +184,7 @@ impl Session {
             episodes_completed: 0,
             step_calls: 0,
             replay: None,
+            stats: Arc::new(SessionStats { seed: AtomicU64::new(config_seed), ..SessionStats::default() }),
             view: None,
         };
         let attached = session.attach_all().await;
@@ -262,6 +287,7 @@ impl Session {
         if let Some(seed) = seed {
             check_seed(seed, self.num_envs())?;
             self.config.seed = seed;
+            self.stats.seed.store(seed, Ordering::Relaxed);
             for group in &mut self.groups {
                 group.seeds = group.envs.clone().map(|i| seed + i as u64).collect();
             }
@@ -272,11 +298,12 @@ impl Session {
             pending.push(group.worker.submit(Request::Reset { group: group.id, seeds }).await);
         }
         for (index, receiver) in pending.into_iter().enumerate() {
-            match await_reply(receiver).await {
-                Ok(Response::Reset) => {}
+            match await_generation(receiver).await {
+                Ok((Response::Reset, generation)) => self.groups[index].generation = generation,
                 // The worker was replaced and the group rebuilt from its seeds: reset that one again.
                 Err(WorkerFault::Crashed(_)) => self.reset_group(index).await?,
-                other => return Err(unexpected(other)),
+                Ok((other, _)) => return Err(unexpected(Ok(other))),
+                Err(fault) => return Err(unexpected(Err(fault))),
             }
         }
         for index in 0..self.groups.len() {
@@ -292,9 +319,13 @@ impl Session {
     async fn reset_group(&mut self, index: usize) -> Result<(), SimError> {
         let group = &self.groups[index];
         let request = Request::Reset { group: group.id, seeds: Some(group.seeds.clone()) };
-        match group.worker.call(request).await {
-            Ok(Response::Reset) => Ok(()),
-            other => Err(unexpected(other)),
+        match group.worker.call_generation(request).await {
+            Ok((Response::Reset, generation)) => {
+                self.groups[index].generation = generation;
+                Ok(())
+            }
+            Ok((other, _)) => Err(unexpected(Ok(other))),
+            Err(fault) => Err(unexpected(Err(fault))),
         }
     }
 
@@ -320,7 +351,9 @@ impl Session {
         let mut pending = Vec::new();
         for group in &self.groups {
             let slice = actions[group.envs.start * action_bytes..group.envs.end * action_bytes].to_vec();
-            pending.push(group.worker.submit(Request::Step { group: group.id, actions: slice }).await);
+            // Refused by a newer process of the worker: the group was rebuilt there (another
+            // session's step crashed it, or it was stuck) and its episodes end here instead.
+            pending.push(group.worker.submit_in(Request::Step { group: group.id, actions: slice }, group.generation).await);
         }
         let num_envs = self.num_envs();
         let mut outcome = StepOutcome {
@@ -393,6 +426,8 @@ impl Session {
             }
         }
         self.total_env_steps += num_envs as u64;
+        self.stats.total_env_steps.store(self.total_env_steps, Ordering::Relaxed);
+        self.stats.episodes_completed.store(self.episodes_completed, Ordering::Relaxed);
         self.step_calls += 1;
         outcome.obs = self.viewed(&self.stacks);
         outcome.final_obs = self.viewed(&outcome.final_obs);
@@ -477,6 +512,18 @@ pub fn check_seed(seed: u64, num_envs: usize) -> Result<(), SimError> {
         )));
     }
     Ok(())
+}
+
+/// An allocation that failed: out of file descriptors or memory is a limit of this server
+/// (RESOURCE_EXHAUSTED, worth retrying elsewhere or later), anything else a server failure.
+pub fn resource_error(what: &str, error: &std::io::Error) -> SimError {
+    match error.raw_os_error() {
+        Some(libc::EMFILE | libc::ENFILE) => {
+            SimError::LimitExceeded(format!("{what}: the server is out of file descriptors ({error}); try again later"))
+        }
+        Some(libc::ENOMEM | libc::ENOSPC) => SimError::LimitExceeded(format!("{what}: the server is out of memory ({error})")),
+        _ => SimError::Simulator(format!("{what}: {error}")),
+    }
 }
 
 fn unexpected(outcome: Result<Response, WorkerFault>) -> SimError {

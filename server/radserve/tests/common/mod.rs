@@ -3,6 +3,7 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::time::Duration;
 
 use radserve::ServerSettings;
 use radserve_service::proto;
@@ -20,18 +21,28 @@ pub struct TestServer {
 }
 
 pub async fn start_server(limits: Limits) -> TestServer {
+    start_server_with(limits, |_, _| {}).await
+}
+
+/// A server whose settings and serving options `adjust` changes first (worker timeouts, connection
+/// limits...).
+pub async fn start_server_with(limits: Limits, adjust: impl FnOnce(&mut ServerSettings, &mut radserve::ServeOptions)) -> TestServer {
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = format!("http://{}", listener.local_addr().unwrap());
     let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let manager = radserve::session_manager(ServerSettings {
+    let mut settings = ServerSettings {
         worker_program: PathBuf::from(env!("CARGO_BIN_EXE_radserve")),
         venv: repo.join(".venv"),
         gl: GlBackend::Egl,
         workers: 2,
         limits,
-    });
+        worker_call_timeout: Duration::from_secs(60),
+        worker_create_timeout: Duration::from_secs(300),
+    };
+    let mut options = radserve::ServeOptions { augment_threads: 1, ..radserve::ServeOptions::default() };
+    adjust(&mut settings, &mut options);
+    let manager = radserve::session_manager(settings);
     let (stop, stopped) = oneshot::channel::<()>();
-    let options = radserve::ServeOptions { augment_threads: 1, ..radserve::ServeOptions::default() };
     let task = tokio::spawn(radserve::serve(listener, manager.clone(), options, async {
         let _ = stopped.await;
     }));

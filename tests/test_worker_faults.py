@@ -1,0 +1,142 @@
+"""Workers that hang or are replaced: a deadline on every worker call ends the stuck worker's episodes
+as truncated instead of hanging the sessions that touch it; Describe never waits for a step; a
+session whose worker was replaced while it was idle sees its episodes end; a client deadline that
+passed while the call waited for its session keeps the step from being sent at all."""
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+
+import radserve
+from radserve import _convert
+from radserve._proto import radserve_pb2 as pb
+
+CALL_TIMEOUT_S = 2.0
+
+
+def _workers(server_pid):
+    children = {int(pid) for task in Path(f"/proc/{server_pid}/task").iterdir()
+                for pid in (task / "children").read_text().split()}
+    return sorted(pid for pid in children if b"\0worker\0" in Path(f"/proc/{pid}/cmdline").read_bytes())
+
+
+@pytest.fixture(scope="module")
+def strict_server():
+    env = {"RADSERVE__SIM__WORKER_CALL_TIMEOUT_S": str(CALL_TIMEOUT_S)}
+    with radserve.LocalServer(workers=2, env=env) as server:
+        with radserve.Client(server.address) as client:
+            client.list_envs()  # the catalog (a transient worker) is built before workers are counted
+        yield server
+
+
+def _pool_workers(server):
+    deadline = time.monotonic() + 30
+    while len(workers := _workers(server.process.pid)) != 2:
+        assert time.monotonic() < deadline, workers
+        time.sleep(0.1)
+    return workers
+
+
+def _threaded(function):
+    result = {}
+
+    def run():
+        try:
+            result["value"] = function()
+        except BaseException as error:  # noqa: BLE001 - handed to the test thread
+            result["error"] = error
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    return thread, result
+
+
+def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it(strict_server):
+    client = radserve.Client(strict_server.address)
+    victim = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0)  # one env per worker
+    idle = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0)
+    try:
+        victim.reset(seed=0)
+        idle.reset(seed=0)
+        for _ in range(3):
+            idle.step(np.zeros(2, dtype=np.int64))
+        stuck = _pool_workers(strict_server)[0]
+        os.kill(stuck, signal.SIGSTOP)
+        try:
+            started = time.monotonic()
+            thread, result = _threaded(lambda: victim.step(np.zeros((2, 6), dtype=np.float32)))
+            time.sleep(0.3)
+            # Describe reads what the session has without waiting for the step that holds it.
+            before = time.monotonic()
+            assert client.describe_session(victim.session_id).total_env_steps == 0
+            assert time.monotonic() - before < 1.0
+            thread.join(timeout=CALL_TIMEOUT_S + 20)
+            assert not thread.is_alive(), "the step still hangs past the worker deadline"
+            elapsed = time.monotonic() - started
+        finally:
+            try:
+                os.kill(stuck, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+        assert "error" not in result, result.get("error")
+        _, _, terminated, truncated, infos = result["value"]
+        assert elapsed < CALL_TIMEOUT_S + 15
+        assert truncated.sum() == 1 and not terminated.any()
+        env = int(np.flatnonzero(truncated)[0])
+        assert f"did not answer within {CALL_TIMEOUT_S:g} s" in infos["error"][env], infos["error"]
+        assert stuck not in _pool_workers(strict_server), "the stuck worker was replaced"
+        # The idle session had an env on the replaced worker: its next step ends that episode
+        # (truncated, with the reason) instead of stepping a fresh, unreset env.
+        _, _, terminated, truncated, infos = idle.step(np.zeros(2, dtype=np.int64))
+        assert truncated[env] and not terminated[env]
+        assert "was restarted since this session last used it" in infos["error"][env]
+        assert infos["episode"]["l"][env] == 4
+        assert not truncated[1 - env] and not terminated[1 - env]
+        # Both sessions keep acting afterwards.
+        for _ in range(3):
+            victim.step(np.zeros((2, 6), dtype=np.float32))
+            idle.step(np.zeros(2, dtype=np.int64))
+    finally:
+        victim.close()
+        idle.close()
+        client.close()
+
+
+def test_a_step_whose_deadline_passed_while_waiting_is_never_sent(strict_server):
+    client = radserve.Client(strict_server.address)
+    envs = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0)
+    try:
+        envs.reset(seed=0)
+        stuck = _pool_workers(strict_server)[0]
+        os.kill(stuck, signal.SIGSTOP)
+        try:
+            # The first step holds the session until the worker deadline kills the stuck worker.
+            thread, result = _threaded(lambda: envs.step(np.zeros((2, 6), dtype=np.float32)))
+            time.sleep(0.3)
+            request = pb.StepRequest(session_id=envs.session_id,
+                                     actions=_convert.to_tensor(np.zeros((2, 6), dtype=np.float32)))
+            with pytest.raises(grpc.RpcError) as raised:
+                client._stub.Step(request, timeout=0.5)
+            # The client's own deadline, or tonic's answer to it ("Timeout expired", CANCELLED).
+            assert raised.value.code() in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.CANCELLED)
+            thread.join(timeout=CALL_TIMEOUT_S + 20)
+        finally:
+            try:
+                os.kill(stuck, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+        assert "error" not in result, result.get("error")
+        time.sleep(CALL_TIMEOUT_S)  # the late step would have run by now
+        # One step taken (the one that waited out the stuck worker); the expired one never ran.
+        assert client.describe_session(envs.session_id).total_env_steps == 2
+        envs.step(np.zeros((2, 6), dtype=np.float32))
+        assert client.describe_session(envs.session_id).total_env_steps == 4
+    finally:
+        envs.close()
+        client.close()
