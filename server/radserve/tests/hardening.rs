@@ -308,3 +308,63 @@ async fn idle_connections_are_bounded_and_closed_while_live_clients_stay() {
     let mut fresh = RadServeClient::new(connect(&server.address).await);
     still_serves(&mut fresh).await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_allocation_is_charged_to_one_memory_budget() {
+    let server = start_server(Limits { memory_bytes: 700 << 20, ..Limits::default() }).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    // 1024 dmc pixel envs were allowed at ~90 MiB each: here 16 are refused before any is built.
+    let started = Instant::now();
+    let request = proto::CreateSessionRequest { env_id: "dmc/cheetah-run".into(), num_envs: 16, ..Default::default() };
+    let status = client.create_session(request).await.unwrap_err();
+    assert_eq!(status.code(), Code::ResourceExhausted);
+    assert!(status.message().starts_with("16 envs of dmc/cheetah-run (~96.5 MiB each) needs 1.51 GiB of memory"), "{}", status.message());
+    assert!(status.message().contains("memory budget of 700.0 MiB"), "{}", status.message());
+    assert!(started.elapsed() < Duration::from_secs(10));
+    // Streams that are never read: each holds (prefetch + 2) batches; the second no longer fits.
+    let request = proto::CreateSessionRequest {
+        env_id: "procgen/bigfish".into(),
+        num_envs: 1,
+        replay: replay_capacity(100),
+        ..Default::default()
+    };
+    let session_id = client.create_session(request).await.unwrap().into_inner().session_id;
+    client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: Some(0) }).await.unwrap();
+    for _ in 0..20 {
+        let actions = proto::Tensor { dtype: proto::DType::DtypeInt64 as i32, shape: vec![1], data: 0i64.to_le_bytes().to_vec().into() };
+        client.step(proto::StepRequest { session_id: session_id.clone(), actions: Some(actions) }).await.unwrap();
+    }
+    use proto::sample_batches_request::Augmentation;
+    let translate = || proto::SampleBatchesRequest {
+        session_id: session_id.clone(),
+        batch_size: 16,
+        augmentation: Some(Augmentation::PipelineText("translate(1000)".into())),
+        ..Default::default()
+    };
+    let first = client.sample_batches(translate()).await.expect("one stream fits");
+    let status = client.sample_batches(translate()).await.unwrap_err();
+    assert_eq!(status.code(), Code::ResourceExhausted);
+    assert!(status.message().starts_with("a sample stream of (prefetch 2 + 2) batches needs 366.2 MiB"), "{}", status.message());
+    let (used, limit) = server.manager.memory();
+    assert!(used > 366 << 20 && used <= limit, "{used} of {limit}");
+    // The stream's memory comes back when it ends; the session's when it closes.
+    drop(first);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let second = loop {
+        match client.sample_batches(translate()).await {
+            Ok(stream) => break stream,
+            Err(status) if Instant::now() < deadline => {
+                assert_eq!(status.code(), Code::ResourceExhausted);
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Err(status) => panic!("the first stream's memory never came back: {status:?}"),
+        }
+    };
+    drop(second);
+    client.close_session(proto::CloseSessionRequest { session_id }).await.unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while server.manager.memory().0 > 0 {
+        assert!(Instant::now() < deadline, "{} bytes still reserved", server.manager.memory().0);
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}

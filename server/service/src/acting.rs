@@ -116,6 +116,7 @@ pub struct ActingChannel {
     _claim: ChannelClaim,
     /// An open channel keeps its session's lease alive.
     _lease: LeaseHold,
+    _memory: radserve_sim::budget::Reservation,
 }
 
 /// Creates the region and the socket for `session_id`; the description goes to the client, the
@@ -140,6 +141,9 @@ pub async fn open(
         }
         ChannelClaim { open: open.clone(), session_id: session_id.to_string() }
     };
+    let memory_reservation = manager
+        .reserve_memory(layout.len as u64, &format!("a shared-memory acting channel of {} bytes", layout.len))
+        .map_err(to_status)?;
     let internal = |what: &str, error: io::Error| Status::internal(format!("{what}: {error}"));
     let mut memory = SharedFrames::create(layout.len)
         .map_err(|error| to_status(radserve_sim::session::resource_error("creating the acting memory", &error)))?;
@@ -163,7 +167,8 @@ pub async fn open(
         episode_length_offset: layout.episode_length as u64,
     };
     let lease = manager.hold(session_id).map_err(to_status)?;
-    let channel = ActingChannel { manager, layout, memory, token, listener, _claim: claim, _lease: lease };
+    let channel =
+        ActingChannel { manager, layout, memory, token, listener, _claim: claim, _lease: lease, _memory: memory_reservation };
     Ok((description, channel))
 }
 

@@ -148,6 +148,14 @@ impl RadServeService {
         .await
     }
 
+    /// A stream's batches produced ahead must fit the server's per-stream limit and its memory
+    /// budget; the reservation is held for as long as the stream runs.
+    fn reserve_stream_memory(&self, producer: &Producer) -> Result<radserve_sim::budget::Reservation, Status> {
+        self.check_stream_memory(producer)?;
+        let what = format!("a sample stream of (prefetch {} + 2) batches", producer.prefetch());
+        self.manager.reserve_memory(producer.stream_memory_bytes(), &what).map_err(to_status)
+    }
+
     /// A stream's batches produced ahead must fit the server's per-stream limit.
     fn check_stream_memory(&self, producer: &Producer) -> Result<(), Status> {
         let limit = self.manager.limits().stream_memory_bytes;
@@ -307,7 +315,7 @@ impl RadServe for RadServeService {
         let lease = self.manager.hold(&request.session_id).map_err(to_status)?;
         // Everything is checked here, before the stream starts.
         let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?.with_permit(source.permit);
-        self.check_stream_memory(&producer)?;
+        let memory = self.reserve_stream_memory(&producer)?;
         let chunk_bytes = convert::chunk_bytes(request.chunk_bytes)?;
         let (mut ready, recycler) = producer.start(self.augment_pool.clone(), Output::Heap);
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
@@ -315,8 +323,8 @@ impl RadServe for RadServeService {
         let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            // The open stream keeps the session's lease alive.
-            let _lease = lease;
+            // The open stream keeps the session's lease alive and its memory reserved.
+            let (_lease, _memory) = (lease, memory);
             // Observation buffers of sent batches, handed back to the producer once tonic has
             // dropped every chunk that points into them.
             let mut in_flight: Vec<Arc<Vec<u8>>> = Vec::new();
@@ -402,7 +410,7 @@ impl RadServe for RadServeService {
         let source = self.manager.replay_source(&start.session_id).await.map_err(to_status)?;
         let lease = self.manager.hold(&start.session_id).map_err(to_status)?;
         let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?.with_permit(source.permit);
-        self.check_stream_memory(&producer)?;
+        let memory = self.reserve_stream_memory(&producer)?;
         // A slot per batch waiting in the prefetch queue, one being filled and one the learner
         // reads: the producer never waits on a learner that releases each batch before the next.
         let slots = producer.prefetch() + 2;
@@ -428,7 +436,7 @@ impl RadServe for RadServeService {
         let session_id = start.session_id;
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            let _lease = lease;
+            let (_lease, _memory) = (lease, memory);
             // Slots of batches sent and not yet released; dropping one hands it back to the producer.
             let mut held: std::collections::HashMap<u64, Slot> = std::collections::HashMap::new();
             loop {

@@ -3,6 +3,7 @@
 //! stacking and same-step autoreset. No transport here: the service crate maps this onto gRPC.
 
 pub mod bounds;
+pub mod budget;
 pub mod catalog;
 pub mod error;
 pub mod manager;

@@ -13,6 +13,7 @@ use tokio::sync::{Mutex, OnceCell};
 use tracing::info;
 
 use crate::bounds;
+use crate::budget::{self, MemoryBudget, Reservation};
 use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
 use crate::error::SimError;
 use crate::pool::WorkerPool;
@@ -36,6 +37,10 @@ pub struct Limits {
     /// Seconds a session may go without a call on it and without an open stream before the server
     /// closes it (a learner that crashed leaves its sessions behind); 0 keeps sessions until closed.
     pub session_idle_timeout_s: u64,
+    /// Bytes every session, buffer and stream of the server may take together, reserved before each
+    /// is allocated (envs at their measured cost per family, frames, replay, stream batches). 0: three
+    /// quarters of the host's (or the container's) memory, less 512 MiB per worker.
+    pub memory_bytes: u64,
 }
 
 impl Default for Limits {
@@ -48,6 +53,7 @@ impl Default for Limits {
             max_streams_per_session: 4,
             stream_memory_bytes: 4 << 30,
             session_idle_timeout_s: 300,
+            memory_bytes: 0,
         }
     }
 }
@@ -167,6 +173,8 @@ pub struct SessionSummary {
 
 struct Entry {
     session: SharedSession,
+    /// The session's share of the memory budget, returned when the entry goes.
+    _memory: Vec<Reservation>,
     /// What Describe answers, without waiting for the session's lock (a step may hold it for as
     /// long as a worker takes): the parts fixed at creation, the live counters, the replay buffer.
     info: SessionInfo,
@@ -182,6 +190,7 @@ struct Entry {
 pub struct SessionManager {
     pool: WorkerPool,
     limits: Limits,
+    budget: Arc<MemoryBudget>,
     names: OnceCell<EnvNames>,
     catalog: OnceCell<Vec<CatalogEntry>>,
     sessions: StdMutex<Registry>,
@@ -203,9 +212,16 @@ struct Registry {
 
 impl SessionManager {
     pub fn new(pool: WorkerPool, limits: Limits) -> SessionManager {
+        let budget_bytes = if limits.memory_bytes > 0 { limits.memory_bytes } else { budget::default_budget_bytes(pool.len()) };
+        info!(
+            budget = %budget::human(budget_bytes),
+            memory = %budget::human(budget::available_memory_bytes()),
+            "memory budget (limits.memory_bytes)"
+        );
         SessionManager {
             pool,
             limits,
+            budget: MemoryBudget::new(budget_bytes),
             names: OnceCell::new(),
             catalog: OnceCell::new(),
             sessions: StdMutex::new(Registry::default()),
@@ -313,6 +329,12 @@ impl SessionManager {
         let options = catalog::resolve_options(&env, overrides)?;
         let frame_stack = options[FRAME_STACK].as_int().unwrap_or(1) as usize;
 
+        // Before anything is built: the envs' own memory at their family's measured cost.
+        let per_env = budget::env_cost_bytes(&env, &options);
+        let envs_memory = self.budget.try_reserve(
+            per_env.saturating_mul(num_envs as u64),
+            &format!("{num_envs} envs of {} (~{} each)", env.full(), budget::human(per_env)),
+        )?;
         self.reserve(num_envs)?;
         let config = SessionConfig { env, num_envs, seed, options, frame_stack };
         let mut session = match Session::create(&self.pool, config).await {
@@ -327,15 +349,23 @@ impl SessionManager {
             None => Ok(()),
         };
         let prepared = prepared.and_then(|()| check_observation_bytes(&session));
-        let prepared = prepared.and_then(|()| match extras.buffer {
-            Some(buffer) => self.attach_replay(&mut session, buffer),
-            None => Ok(()),
+        let prepared = prepared.and_then(|()| {
+            let frames = self.budget.try_reserve(frame_buffer_bytes(&session), &format!("the frame buffers of {num_envs} envs"))?;
+            let replay = match extras.buffer {
+                Some(buffer) => Some(self.attach_replay(&mut session, buffer)?),
+                None => None,
+            };
+            Ok([Some(envs_memory), Some(frames), replay].into_iter().flatten().collect::<Vec<_>>())
         });
-        if let Err(error) = prepared {
-            session.close().await;
-            self.release(num_envs, 1);
-            return Err(error);
-        }
+        let memory = match prepared {
+            Ok(memory) => memory,
+            Err(error) => {
+                session.close().await;
+                self.release(num_envs, 1);
+                return Err(error);
+            }
+        };
+        let memory_bytes = memory.iter().map(Reservation::bytes).sum();
         let session_id = self.new_session_id();
         let info = describe(&session_id, &session);
         let (stats, replay) = (session.stats.clone(), session.replay().cloned());
@@ -348,13 +378,14 @@ impl SessionManager {
                 let lease = Lease { last_used_ms: AtomicU64::new(elapsed_ms(self.clock)), holds: AtomicUsize::new(0) };
                 let entry = Entry {
                     session: shared.clone(),
+                    _memory: memory,
                     info: info.clone(),
                     stats,
                     replay,
                     lease: Arc::new(lease),
                     env_id: info.env_id.clone(),
                     num_envs,
-                    memory_bytes: info.replay.as_ref().map_or(0, |replay| replay.memory_bytes),
+                    memory_bytes,
                     created: Instant::now(),
                 };
                 registry.sessions.insert(session_id.clone(), entry);
@@ -424,7 +455,18 @@ impl SessionManager {
     }
 
     /// Give `session` a replay (or rollout) buffer if the server's budget allows it.
-    fn attach_replay(&self, session: &mut Session, buffer: BufferRequest) -> Result<(), SimError> {
+    /// Reserve memory for `what` against the server's budget (a stream's batches, an acting
+    /// channel); held until the reservation is dropped.
+    pub fn reserve_memory(&self, bytes: u64, what: &str) -> Result<Reservation, SimError> {
+        self.budget.try_reserve(bytes, what)
+    }
+
+    /// The server's memory budget: (bytes reserved now, limit).
+    pub fn memory(&self) -> (u64, u64) {
+        (self.budget.used(), self.budget.limit())
+    }
+
+    fn attach_replay(&self, session: &mut Session, buffer: BufferRequest) -> Result<Reservation, SimError> {
         let frame = &session.frame_spec.observation;
         if !matches!(frame.dtype(), DType::Uint8 | DType::Float32) {
             return Err(SimError::InvalidArgument(format!(
@@ -463,10 +505,18 @@ impl SessionManager {
             }
             registry.reserved_replay_bytes += bytes;
         }
+        let what = format!("a replay buffer of {capacity} transitions");
+        let reservation = match self.budget.try_reserve(bytes, &what) {
+            Ok(reservation) => reservation,
+            Err(error) => {
+                self.sessions.lock().expect("registry lock").reserved_replay_bytes -= bytes;
+                return Err(error);
+            }
+        };
         match ReplayBuffer::new(layout) {
             Ok(buffer) => {
                 session.attach_replay(Arc::new(RwLock::new(buffer)));
-                Ok(())
+                Ok(reservation)
             }
             Err(error) => {
                 self.sessions.lock().expect("registry lock").reserved_replay_bytes -= bytes;
@@ -709,6 +759,15 @@ fn replay_info(replay: &ReplayBuffer) -> ReplayInfo {
 /// response carries them and, when every episode ends at once, as many final observations; both
 /// must fit in one gRPC message (the service's 256 MiB).
 pub const MAX_STEP_OBSERVATION_BYTES: usize = 96 << 20;
+
+/// The buffers a session allocates for its frames: the stacks, the frame and final frame per env in
+/// the memory shared with workers, and a step's observations and final observations as returned.
+fn frame_buffer_bytes(session: &Session) -> u64 {
+    let frame = session.frame_spec.observation.num_bytes() as u64;
+    let observation = session.observation_space.num_bytes() as u64;
+    let per_env = frame * session.config.frame_stack as u64 + 2 * frame + 2 * observation;
+    per_env.saturating_mul(session.num_envs() as u64)
+}
 
 /// Refuses a session whose step observations could not be sent in one response.
 fn check_observation_bytes(session: &Session) -> Result<(), SimError> {
