@@ -14,6 +14,9 @@ pub enum ReplayError {
     OverBudget(String),
     #[error(transparent)]
     Augment(#[from] AugmentError),
+    /// The stream's client left while its batch was being made (never sent to anyone).
+    #[error("the stream was cancelled")]
+    Cancelled,
 }
 
 pub type Result<T> = std::result::Result<T, ReplayError>;

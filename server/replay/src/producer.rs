@@ -5,8 +5,9 @@
 //! slot of a shared-memory ring that a learner on the same host reads in place.
 
 use std::cell::RefCell;
+use std::ops::Range;
 use std::sync::{Arc, RwLock};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline, Sharing, StatePlan, View};
 use rand::seq::SliceRandom;
@@ -21,6 +22,38 @@ use crate::shared::{SharedRing, Slot};
 /// The largest batch of observations a stream may produce (1 GiB): 512 translated 108x108 stacks with
 /// their next observations take 107 MB.
 pub const MAX_BATCH_BYTES: usize = 1 << 30;
+
+/// How long the augmentation pool works on one stream's batch before it takes a job another stream
+/// queued meanwhile. A batch is made in chunks sized to take about this long (measured as it goes:
+/// the first chunk has `FIRST_CHUNK` samples), so another stream's batch waits for one chunk, never
+/// for all of this batch, and a stream whose client left stops within one chunk. Cheap pipelines
+/// get large chunks: splitting a crop batch into 32-sample chunks cost a quarter of its rate here
+/// (idle pool threads wake for every chunk; bench/fairness.py).
+const TURN: Duration = Duration::from_millis(10);
+const FIRST_CHUNK: usize = 64;
+const MIN_CHUNK: usize = 4;
+
+/// Runs `work` over `0..total` samples in chunks that each take about [`TURN`], on a thread of the
+/// augmentation pool; between two chunks it stops if the client left, else runs one job other
+/// streams queued (rayon's `yield_now`).
+fn in_turns(total: usize, keep_going: &(dyn Fn() -> bool + Sync), mut work: impl FnMut(Range<usize>)) -> Result<()> {
+    let (mut start, mut size) = (0, FIRST_CHUNK);
+    while start < total {
+        if start > 0 {
+            if !keep_going() {
+                return Err(ReplayError::Cancelled);
+            }
+            rayon::yield_now();
+        }
+        let end = (start + size).min(total);
+        let began = Instant::now();
+        work(start..end);
+        let per_sample = began.elapsed().as_secs_f64() / (end - start) as f64;
+        size = if per_sample > 0.0 { ((TURN.as_secs_f64() / per_sample) as usize).max(MIN_CHUNK) } else { total };
+        start = end;
+    }
+    Ok(())
+}
 
 /// What one observation is, for choosing the augmentation plan.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -299,8 +332,10 @@ impl Producer {
             }
             let sampled = self.buffer.write().expect("replay lock").sample(self.spec.batch_size, rng, &mut batch.refs);
             let seed = self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-            if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None)) {
-                let _ = ready.blocking_send(Err(error));
+            if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None, &|| !ready.is_closed())) {
+                if error != ReplayError::Cancelled {
+                    let _ = ready.blocking_send(Err(error));
+                }
                 return;
             }
             if ready.blocking_send(Ok(batch)).is_err() {
@@ -351,8 +386,10 @@ impl Producer {
                 } else {
                     (self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15), None)
                 };
-                if let Err(error) = self.fill(pool, &mut batch, seed, keys.as_deref()) {
-                    let _ = ready.blocking_send(Err(error));
+                if let Err(error) = self.fill(pool, &mut batch, seed, keys.as_deref(), &|| !ready.is_closed()) {
+                    if error != ReplayError::Cancelled {
+                        let _ = ready.blocking_send(Err(error));
+                    }
                     return;
                 }
                 if ready.blocking_send(Ok(batch)).is_err() {
@@ -411,7 +448,14 @@ impl Producer {
 
     /// Gather and augment the transitions in `batch.refs` into the observation memory `allocate`
     /// gave the batch; sample i draws with `keys[i]` (default i).
-    fn fill(&self, pool: &rayon::ThreadPool, batch: &mut Batch, draw_seed: u64, keys: Option<&[u64]>) -> Result<()> {
+    fn fill(
+        &self,
+        pool: &rayon::ThreadPool,
+        batch: &mut Batch,
+        draw_seed: u64,
+        keys: Option<&[u64]>,
+        keep_going: &(dyn Fn() -> bool + Sync),
+    ) -> Result<()> {
         let size = batch.refs.len();
         batch.len = size;
         batch.obs_shape.clone_from(&self.obs_shape);
@@ -434,34 +478,46 @@ impl Producer {
             Plan::Image(plan) if !next_obs.is_empty() => pool.install(|| {
                 let frame_bytes = buffer.layout().frame_bytes;
                 let (obs_draws, next_draws) = (draws.with_view(View::Obs), draws.with_view(View::NextObs));
-                obs.par_chunks_mut(self.obs_bytes).zip(next_obs.par_chunks_mut(self.obs_bytes)).enumerate().for_each(
-                    |(sample, (obs_dst, next_dst))| {
-                        let key = keys.map_or(sample as u64, |keys| keys[sample]);
-                        STACK.with(|frames| {
-                            let mut frames = frames.borrow_mut();
-                            frames.resize(stack_bytes + frame_bytes, 0);
-                            buffer.copy_transition(refs[sample], &mut frames);
-                            plan.apply_sample(&frames[..stack_bytes], obs_dst, &plan.draw(&obs_draws, key));
-                            plan.apply_sample(&frames[frame_bytes..], next_dst, &plan.draw(&next_draws, key));
-                        });
-                    },
-                );
-            }),
+                let bytes = self.obs_bytes;
+                in_turns(size, keep_going, |samples| {
+                    let obs = &mut obs[samples.start * bytes..samples.end * bytes];
+                    let next_obs = &mut next_obs[samples.start * bytes..samples.end * bytes];
+                    obs.par_chunks_mut(bytes).zip(next_obs.par_chunks_mut(bytes)).enumerate().for_each(
+                        |(offset, (obs_dst, next_dst))| {
+                            let sample = samples.start + offset;
+                            let key = keys.map_or(sample as u64, |keys| keys[sample]);
+                            STACK.with(|frames| {
+                                let mut frames = frames.borrow_mut();
+                                frames.resize(stack_bytes + frame_bytes, 0);
+                                buffer.copy_transition(refs[sample], &mut frames);
+                                plan.apply_sample(&frames[..stack_bytes], obs_dst, &plan.draw(&obs_draws, key));
+                                plan.apply_sample(&frames[frame_bytes..], next_dst, &plan.draw(&next_draws, key));
+                            });
+                        },
+                    );
+                })
+            })?,
             Plan::Image(plan) => pool.install(|| {
+                let bytes = self.obs_bytes;
                 for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
                     let draws = draws.with_view(view);
-                    out.par_chunks_mut(self.obs_bytes).enumerate().for_each(|(sample, dst)| {
-                        let key = keys.map_or(sample as u64, |keys| keys[sample]);
-                        let params = plan.draw(&draws, key);
-                        STACK.with(|stack| {
-                            let mut stack = stack.borrow_mut();
-                            stack.resize(stack_bytes, 0);
-                            buffer.copy_observation(refs[sample], view == View::NextObs, &mut stack);
-                            plan.apply_sample(&stack, dst, &params);
+                    in_turns(out.len() / bytes, keep_going, |samples| {
+                        let out = &mut out[samples.start * bytes..samples.end * bytes];
+                        out.par_chunks_mut(bytes).enumerate().for_each(|(offset, dst)| {
+                            let sample = samples.start + offset;
+                            let key = keys.map_or(sample as u64, |keys| keys[sample]);
+                            let params = plan.draw(&draws, key);
+                            STACK.with(|stack| {
+                                let mut stack = stack.borrow_mut();
+                                stack.resize(stack_bytes, 0);
+                                buffer.copy_observation(refs[sample], view == View::NextObs, &mut stack);
+                                plan.apply_sample(&stack, dst, &params);
+                            });
                         });
-                    });
+                    })?;
                 }
-            }),
+                Ok::<(), ReplayError>(())
+            })?,
             Plan::State(plan) => {
                 for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
                     if out.is_empty() {

@@ -24,6 +24,7 @@ pub fn replay_status(error: ReplayError) -> Status {
         ReplayError::InvalidArgument(_) | ReplayError::Augment(_) => Code::InvalidArgument,
         ReplayError::FailedPrecondition(_) => Code::FailedPrecondition,
         ReplayError::OverBudget(_) => Code::ResourceExhausted,
+        ReplayError::Cancelled => Code::Cancelled,
     };
     Status::new(code, error.to_string())
 }
