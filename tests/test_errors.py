@@ -3,7 +3,6 @@
 import os
 import signal
 import time
-from pathlib import Path
 
 import grpc
 import numpy as np
@@ -11,6 +10,7 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import radserve
+from _procs import worker_pids
 
 
 def test_unknown_env_names_close_matches(client):
@@ -115,13 +115,6 @@ def test_health_reports_serving(server):
         assert reply.status == health_pb2.HealthCheckResponse.SERVING
 
 
-def _worker_pids(server_pid):
-    # Workers are spawned from tokio's threads: each thread (task) lists its own children.
-    children = {int(pid) for task in Path(f"/proc/{server_pid}/task").iterdir()
-                for pid in (task / "children").read_text().split()}
-    return sorted(pid for pid in children if b"\0worker\0" in Path(f"/proc/{pid}/cmdline").read_bytes())
-
-
 def test_a_dead_worker_ends_its_episodes_and_is_replaced(server, client, catalog):
     # `catalog` first: the transient worker that builds it must be gone before workers are counted.
     victim_session = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0)
@@ -129,7 +122,7 @@ def test_a_dead_worker_ends_its_episodes_and_is_replaced(server, client, catalog
     try:
         victim_session.reset()
         bystander.reset()
-        before = _worker_pids(server.process.pid)
+        before = worker_pids(server.process.pid)
         assert len(before) == 2
         os.kill(before[0], signal.SIGKILL)
         time.sleep(0.2)
@@ -140,7 +133,7 @@ def test_a_dead_worker_ends_its_episodes_and_is_replaced(server, client, catalog
         i = int(np.flatnonzero(truncated)[0])
         assert "died" in infos["error"][i]
         assert infos["final_obs"][i].shape == (17,)
-        after = _worker_pids(server.process.pid)
+        after = worker_pids(server.process.pid)
         assert len(after) == 2 and before[0] not in after
         # Everything keeps working afterwards, for this session and the others.
         for _ in range(3):

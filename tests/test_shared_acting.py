@@ -14,7 +14,7 @@ import pytest
 import radserve
 from radserve import _acting
 from radserve._proto import radserve_pb2 as pb
-from test_errors import _worker_pids
+from _procs import worker_pids
 
 REQUEST = struct.Struct("<cB6xQ")
 ANSWER = struct.Struct("<II")
@@ -100,7 +100,7 @@ def test_a_dead_worker_ends_its_episodes_with_the_reason(server, client, catalog
     envs = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0, delivery="shared_memory")
     try:
         envs.reset()
-        os.kill(_worker_pids(server.process.pid)[0], signal.SIGKILL)
+        os.kill(worker_pids(server.process.pid)[0], signal.SIGKILL)
         time.sleep(0.2)
         _, _, _, truncated, infos = envs.step(np.zeros((2, 6), np.float32))
         assert truncated.sum() == 1

@@ -1,7 +1,6 @@
 """SIGTERM drains: NOT_SERVING at once, new sessions refused, open streams ended with a status, exit
 within the drain deadline with no worker left; a second signal exits at once."""
 
-import os
 import signal
 import time
 from pathlib import Path
@@ -12,12 +11,7 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import radserve
-
-
-def _workers(server_pid):
-    children = {int(pid) for task in Path(f"/proc/{server_pid}/task").iterdir()
-                for pid in (task / "children").read_text().split()}
-    return sorted(pid for pid in children if b"\0worker\0" in Path(f"/proc/{pid}/cmdline").read_bytes())
+from _procs import worker_pids
 
 
 def _running(pid):
@@ -49,18 +43,18 @@ def _busy_server(notice, drain):
     return server, client, envs, stream
 
 
-def _wait_for_workers(pid, count=2, timeout=60):
+def _wait_forworker_pids(pid, count=2, timeout=60):
     deadline = time.monotonic() + timeout
-    while len(_workers(pid)) < count:
+    while len(worker_pids(pid)) < count:
         assert time.monotonic() < deadline, "workers did not start"
         time.sleep(0.1)
-    return _workers(pid)
+    return worker_pids(pid)
 
 
 def test_sigterm_drains_with_statuses_and_exits_within_the_deadline():
     server, client, envs, stream = _busy_server(notice=2.0, drain=10.0)
     try:
-        workers = _wait_for_workers(server.process.pid)
+        workers = _wait_forworker_pids(server.process.pid)
         assert _health(server.address) == health_pb2.HealthCheckResponse.SERVING
         started = time.monotonic()
         server.process.send_signal(signal.SIGTERM)
@@ -87,7 +81,7 @@ def test_a_second_signal_exits_at_once():
     # A long notice and drain: only the second signal can make it exit quickly.
     server, client, envs, stream = _busy_server(notice=60.0, drain=120.0)
     try:
-        workers = _wait_for_workers(server.process.pid)
+        workers = _wait_forworker_pids(server.process.pid)
         server.process.send_signal(signal.SIGTERM)
         time.sleep(0.5)
         assert server.process.poll() is None, "still draining after the first signal"

@@ -3,27 +3,19 @@ as truncated instead of hanging the sessions that touch it; Describe never waits
 session whose worker was replaced while it was idle sees its episodes end; a client deadline that
 passed while the call waited for its session keeps the step from being sent at all."""
 
-import os
-import signal
 import threading
 import time
-from pathlib import Path
 
 import grpc
 import numpy as np
 import pytest
 
 import radserve
+from _procs import stopped, worker_pids
 from radserve import _convert
 from radserve._proto import radserve_pb2 as pb
 
 CALL_TIMEOUT_S = 2.0
-
-
-def _workers(server_pid):
-    children = {int(pid) for task in Path(f"/proc/{server_pid}/task").iterdir()
-                for pid in (task / "children").read_text().split()}
-    return sorted(pid for pid in children if b"\0worker\0" in Path(f"/proc/{pid}/cmdline").read_bytes())
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +29,7 @@ def strict_server():
 
 def _pool_workers(server):
     deadline = time.monotonic() + 30
-    while len(workers := _workers(server.process.pid)) != 2:
+    while len(workers := worker_pids(server.process.pid)) != 2:
         assert time.monotonic() < deadline, workers
         time.sleep(0.1)
     return workers
@@ -67,8 +59,7 @@ def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it
         for _ in range(3):
             idle.step(np.zeros(2, dtype=np.int64))
         stuck = _pool_workers(strict_server)[0]
-        os.kill(stuck, signal.SIGSTOP)
-        try:
+        with stopped(stuck):
             started = time.monotonic()
             thread, result = _threaded(lambda: victim.step(np.zeros((2, 6), dtype=np.float32)))
             time.sleep(0.3)
@@ -79,11 +70,6 @@ def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it
             thread.join(timeout=CALL_TIMEOUT_S + 20)
             assert not thread.is_alive(), "the step still hangs past the worker deadline"
             elapsed = time.monotonic() - started
-        finally:
-            try:
-                os.kill(stuck, signal.SIGCONT)
-            except ProcessLookupError:
-                pass
         assert "error" not in result, result.get("error")
         _, _, terminated, truncated, infos = result["value"]
         assert elapsed < CALL_TIMEOUT_S + 15
@@ -114,8 +100,7 @@ def test_a_step_whose_deadline_passed_while_waiting_is_never_sent(strict_server)
     try:
         envs.reset(seed=0)
         stuck = _pool_workers(strict_server)[0]
-        os.kill(stuck, signal.SIGSTOP)
-        try:
+        with stopped(stuck):
             # The first step holds the session until the worker deadline kills the stuck worker.
             thread, result = _threaded(lambda: envs.step(np.zeros((2, 6), dtype=np.float32)))
             time.sleep(0.3)
@@ -126,11 +111,6 @@ def test_a_step_whose_deadline_passed_while_waiting_is_never_sent(strict_server)
             # The client's own deadline, or tonic's answer to it ("Timeout expired", CANCELLED).
             assert raised.value.code() in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.CANCELLED)
             thread.join(timeout=CALL_TIMEOUT_S + 20)
-        finally:
-            try:
-                os.kill(stuck, signal.SIGCONT)
-            except ProcessLookupError:
-                pass
         assert "error" not in result, result.get("error")
         time.sleep(CALL_TIMEOUT_S)  # the late step would have run by now
         # One step taken (the one that waited out the stuck worker); the expired one never ran.

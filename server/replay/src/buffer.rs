@@ -97,12 +97,7 @@ impl ReplayLayout {
                 self.capacity, self.num_envs
             ));
         }
-        if self.capacity > MAX_CAPACITY {
-            return invalid(format!(
-                "replay capacity {} is above the most a buffer can hold, {MAX_CAPACITY} transitions",
-                self.capacity
-            ));
-        }
+        check_capacity(self.capacity)?;
         // Checked again without saturation: every allocation `new` makes must be addressable.
         let addressable = self
             .num_envs
@@ -125,6 +120,17 @@ pub const MAX_CAPACITY: usize = 1 << 40;
 
 /// The least a stored transition takes, whatever its frames and actions: its slot's bookkeeping.
 pub const MIN_BYTES_PER_TRANSITION: usize = SLOT_METADATA_BYTES;
+
+/// Refuses a capacity above [`MAX_CAPACITY`] (checked by `ReplayLayout::validate`, and by callers
+/// before they know the rest of the layout).
+pub fn check_capacity(capacity: usize) -> Result<()> {
+    if capacity > MAX_CAPACITY {
+        return Err(ReplayError::InvalidArgument(format!(
+            "replay capacity {capacity} is above the most a buffer can hold, {MAX_CAPACITY} transitions"
+        )));
+    }
+    Ok(())
+}
 
 /// reward (f32), flags (u8), episode start (u64), step index (u64).
 const SLOT_METADATA_BYTES: usize = 4 + 1 + 8 + 8;

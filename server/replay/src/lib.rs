@@ -9,7 +9,10 @@ mod error;
 mod producer;
 mod shared;
 
-pub use buffer::{BufferKind, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata, TransitionRef, ProducerPermit, MAX_CAPACITY, MIN_BYTES_PER_TRANSITION};
+pub use buffer::{
+    check_capacity, BufferKind, ProducerPermit, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata,
+    TransitionRef, MAX_CAPACITY, MIN_BYTES_PER_TRANSITION,
+};
 pub use error::{ReplayError, Result};
 pub use producer::{Batch, ObservationFormat, Output, Producer, Recycler, SampleSpec, Source, MAX_BATCH_BYTES};
 pub use shared::{random_token, SharedRing, Slot, SHARED_HEADER_BYTES, SHARED_MAGIC};

@@ -174,16 +174,13 @@ pub struct SessionSummary {
 struct Entry {
     session: SharedSession,
     /// The session's share of the memory budget, returned when the entry goes.
-    _memory: Vec<Reservation>,
+    memory: Vec<Reservation>,
     /// What Describe answers, without waiting for the session's lock (a step may hold it for as
     /// long as a worker takes): the parts fixed at creation, the live counters, the replay buffer.
     info: SessionInfo,
     stats: Arc<SessionStats>,
     replay: Option<Arc<RwLock<ReplayBuffer>>>,
     lease: Arc<Lease>,
-    env_id: String,
-    num_envs: usize,
-    memory_bytes: u64,
     created: Instant,
 }
 
@@ -365,7 +362,6 @@ impl SessionManager {
                 return Err(error);
             }
         };
-        let memory_bytes = memory.iter().map(Reservation::bytes).sum();
         let session_id = self.new_session_id();
         let info = describe(&session_id, &session);
         let (stats, replay) = (session.stats.clone(), session.replay().cloned());
@@ -378,14 +374,11 @@ impl SessionManager {
                 let lease = Lease { last_used_ms: AtomicU64::new(elapsed_ms(self.clock)), holds: AtomicUsize::new(0) };
                 let entry = Entry {
                     session: shared.clone(),
-                    _memory: memory,
+                    memory,
                     info: info.clone(),
                     stats,
                     replay,
                     lease: Arc::new(lease),
-                    env_id: info.env_id.clone(),
-                    num_envs,
-                    memory_bytes,
                     created: Instant::now(),
                 };
                 registry.sessions.insert(session_id.clone(), entry);
@@ -434,12 +427,7 @@ impl SessionManager {
             BufferRequest::Replay { capacity } => capacity,
             BufferRequest::Rollout { steps } => steps.saturating_mul(num_envs),
         };
-        if capacity > radserve_replay::MAX_CAPACITY {
-            return Err(SimError::InvalidArgument(format!(
-                "replay capacity {capacity} is above the most a buffer can hold, {} transitions",
-                radserve_replay::MAX_CAPACITY
-            )));
-        }
+        radserve_replay::check_capacity(capacity).map_err(|error| SimError::InvalidArgument(error.to_string()))?;
         let least = (capacity as u64).saturating_mul(radserve_replay::MIN_BYTES_PER_TRANSITION as u64);
         let budget = self.limits.replay_memory_bytes;
         if least > budget {
@@ -576,43 +564,46 @@ impl SessionManager {
     /// The session, its lease renewed: every call on a session goes through here.
     pub fn get(&self, session_id: &str) -> Result<SharedSession, SimError> {
         let registry = self.sessions.lock().expect("registry lock");
+        Ok(self.touch(&registry, session_id)?.session.clone())
+    }
+
+    /// The entry of `session_id`, its lease renewed.
+    fn touch<'a>(&self, registry: &'a Registry, session_id: &str) -> Result<&'a Entry, SimError> {
         let entry = registry.sessions.get(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?;
         entry.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
-        Ok(entry.session.clone())
+        Ok(entry)
+    }
+
+    /// How long nothing has used the session: zero while a stream holds it.
+    fn idle(&self, entry: &Entry) -> Duration {
+        if entry.lease.holds.load(Ordering::Acquire) > 0 {
+            return Duration::ZERO;
+        }
+        Duration::from_millis(elapsed_ms(self.clock).saturating_sub(entry.lease.last_used_ms.load(Ordering::Relaxed)))
     }
 
     /// Keep the session's lease alive for as long as the returned hold lives (a stream on it).
     pub fn hold(&self, session_id: &str) -> Result<LeaseHold, SimError> {
         let registry = self.sessions.lock().expect("registry lock");
-        let entry = registry.sessions.get(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?;
+        let entry = self.touch(&registry, session_id)?;
         entry.lease.holds.fetch_add(1, Ordering::AcqRel);
-        entry.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
         Ok(LeaseHold { lease: entry.lease.clone(), clock: self.clock })
     }
 
     /// Every open session, oldest first.
     pub fn list_sessions(&self) -> Vec<SessionSummary> {
-        let now = elapsed_ms(self.clock);
         let registry = self.sessions.lock().expect("registry lock");
         let mut sessions: Vec<SessionSummary> = registry
             .sessions
             .iter()
-            .map(|(id, entry)| {
-                let open_streams = entry.lease.holds.load(Ordering::Acquire);
-                let idle_ms = if open_streams > 0 {
-                    0
-                } else {
-                    now.saturating_sub(entry.lease.last_used_ms.load(Ordering::Relaxed))
-                };
-                SessionSummary {
-                    session_id: id.clone(),
-                    env_id: entry.env_id.clone(),
-                    num_envs: entry.num_envs,
-                    memory_bytes: entry.memory_bytes,
-                    idle: Duration::from_millis(idle_ms),
-                    open_streams,
-                    age: entry.created.elapsed(),
-                }
+            .map(|(id, entry)| SessionSummary {
+                session_id: id.clone(),
+                env_id: entry.info.env_id.clone(),
+                num_envs: entry.info.num_envs,
+                memory_bytes: entry.memory.iter().map(Reservation::bytes).sum(),
+                idle: self.idle(entry),
+                open_streams: entry.lease.holds.load(Ordering::Acquire),
+                age: entry.created.elapsed(),
             })
             .collect();
         sessions.sort_by(|a, b| b.age.cmp(&a.age).then_with(|| a.session_id.cmp(&b.session_id)));
@@ -628,29 +619,28 @@ impl SessionManager {
     /// idle timeout. Returns the ids closed.
     pub async fn reap_idle(&self) -> Vec<String> {
         let Some(timeout) = self.idle_timeout() else { return Vec::new() };
-        let expired: Vec<SessionSummary> =
-            self.list_sessions().into_iter().filter(|session| session.open_streams == 0 && session.idle > timeout).collect();
-        let mut reaped = Vec::new();
-        for session in expired {
-            // Checked again under the registry lock: a call may have renewed the lease meanwhile.
-            let still_expired = {
-                let registry = self.sessions.lock().expect("registry lock");
-                registry.sessions.get(&session.session_id).is_some_and(|entry| {
-                    let idle = elapsed_ms(self.clock).saturating_sub(entry.lease.last_used_ms.load(Ordering::Relaxed));
-                    entry.lease.holds.load(Ordering::Acquire) == 0 && Duration::from_millis(idle) > timeout
+        // Chosen and removed under one lock: a call cannot renew a lease between the two.
+        let expired: Vec<(String, Entry, Duration)> = {
+            let mut registry = self.sessions.lock().expect("registry lock");
+            let ids: Vec<String> =
+                registry.sessions.iter().filter(|(_, entry)| self.idle(entry) > timeout).map(|(id, _)| id.clone()).collect();
+            ids.into_iter()
+                .filter_map(|id| {
+                    let entry = registry.sessions.remove(&id)?;
+                    let idle = self.idle(&entry);
+                    Some((id, entry, idle))
                 })
-            };
-            if still_expired && self.close_session_because(&session.session_id, "its lease expired").await.is_ok() {
-                info!(
-                    session = %session.session_id,
-                    env = %session.env_id,
-                    envs = session.num_envs,
-                    idle_s = session.idle.as_secs(),
-                    timeout_s = timeout.as_secs(),
-                    "session reaped: no call and no open stream for longer than limits.session_idle_timeout_s"
-                );
-                reaped.push(session.session_id);
-            }
+                .collect()
+        };
+        let mut reaped = Vec::new();
+        for (id, entry, idle) in expired {
+            let reason = format!(
+                "its lease expired: no call and no open stream for {} s (limits.session_idle_timeout_s = {})",
+                idle.as_secs(),
+                timeout.as_secs()
+            );
+            self.close_entry(&id, entry, &reason).await;
+            reaped.push(id);
         }
         reaped
     }
@@ -673,8 +663,7 @@ impl SessionManager {
     pub async fn describe(&self, session_id: &str) -> Result<SessionInfo, SimError> {
         let (mut info, stats, replay) = {
             let registry = self.sessions.lock().expect("registry lock");
-            let entry = registry.sessions.get(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?;
-            entry.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
+            let entry = self.touch(&registry, session_id)?;
             (entry.info.clone(), entry.stats.clone(), entry.replay.clone())
         };
         info.seed = stats.seed.load(Ordering::Relaxed);
@@ -693,12 +682,17 @@ impl SessionManager {
             let mut registry = self.sessions.lock().expect("registry lock");
             registry.sessions.remove(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?
         };
+        self.close_entry(session_id, entry, reason).await;
+        Ok(())
+    }
+
+    /// Closes a session already taken out of the registry; its memory returns with the entry.
+    async fn close_entry(&self, session_id: &str, entry: Entry, reason: &str) {
         let mut session = entry.session.lock().await;
         session.close().await;
         self.release(session.num_envs(), 1);
         self.release_replay(&session);
-        info!(session = %session_id, reason, "session closed");
-        Ok(())
+        info!(session = %session_id, env = %entry.info.env_id, reason, "session closed");
     }
 
     /// From now on, CreateSession is refused with UNAVAILABLE (the server is shutting down); open
