@@ -7,7 +7,7 @@ TORCH_STAMP := $(VENV)/.installed-torch
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build demo test test-rust test-python test-learners bench bench-sim bench-augment bench-replay bench-learning preview torch lock proto clean
+.PHONY: setup system-libs build demo test test-rust test-python test-learners fuzz bench bench-sim bench-augment bench-replay bench-learning preview torch lock proto clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -50,6 +50,16 @@ test-python:
 
 test-learners: torch
 	RADSERVE_REQUIRE_TORCH=1 $(PYTHON) -m pytest -q tests/test_learners.py client-py/tests/test_torch_adapter.py
+
+## fuzz: the fuzzing properties of `make test` with many more cases: the pipeline parser and plans,
+## the worker protocol's decoder, every RPC of a real server (request sequences and raw bytes), and
+## hypothesis through grpcio. Each prints how many cases it ran. FUZZ_SCALE multiplies them all.
+FUZZ_SCALE ?= 1
+fuzz: setup
+	PROPTEST_CASES=$$((200000 * $(FUZZ_SCALE))) cargo test --release -p radserve-augment --test fuzz
+	PROPTEST_CASES=$$((200000 * $(FUZZ_SCALE))) cargo test --release -p radserve-sim --test protocol_fuzz
+	PROPTEST_CASES=$$((1000 * $(FUZZ_SCALE))) cargo test --release -p radserve --test fuzz -- --nocapture
+	RADSERVE_FUZZ_EXAMPLES=$$((1000 * $(FUZZ_SCALE))) $(PYTHON) -m pytest -q -s tests/test_fuzz.py
 
 ## torch: the learners' extra in .venv (PyTorch, TensorBoard, matplotlib), for the learners, their smoke
 ## tests and the benchmarks; never needed by the server

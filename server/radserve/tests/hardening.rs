@@ -193,6 +193,26 @@ async fn amplifying_sizes_are_refused() {
     still_serves(&mut client).await;
 }
 
+/// Found by tests/fuzz.rs: a SampleBatchesShared call whose client never sent its `start` held the
+/// call for as long as the connection lived.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_shared_sample_stream_that_never_starts_is_ended() {
+    let server = start_server(Limits::default()).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let (sender, receiver) = tokio::sync::mpsc::channel::<proto::SharedSampleRequest>(1);
+    let started = Instant::now();
+    let call = client.sample_batches_shared(tokio_stream::wrappers::ReceiverStream::new(receiver));
+    let status = tokio::time::timeout(radserve_service::handlers::FIRST_MESSAGE_TIMEOUT * 2, call)
+        .await
+        .expect("the server ends the call")
+        .unwrap_err();
+    assert_eq!(status.code(), Code::DeadlineExceeded, "{status:?}");
+    assert!(status.message().contains("no SharedSampleRequest with `start` arrived within 10 s"), "{}", status.message());
+    assert!(started.elapsed() >= radserve_service::handlers::FIRST_MESSAGE_TIMEOUT);
+    drop(sender);
+    still_serves(&mut client).await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn pipelines_are_bounded_and_typed_keys_cannot_smuggle_stages() {
     let server = start_server(Limits::default()).await;

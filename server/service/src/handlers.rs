@@ -25,6 +25,11 @@ const SAMPLE_STREAM_BUFFER: usize = 4;
 /// Batch descriptors of a SampleBatchesShared stream that may wait for the client to read them.
 const SHARED_STREAM_BUFFER: usize = 2;
 
+/// How long a SampleBatchesShared call may wait for its `start` message: a client that opens the
+/// stream and sends nothing would otherwise hold the call (and its task) for as long as the
+/// connection lives.
+pub const FIRST_MESSAGE_TIMEOUT: Duration = Duration::from_secs(10);
+
 #[derive(Clone)]
 pub struct RadServeService {
     manager: Arc<SessionManager>,
@@ -393,7 +398,13 @@ impl RadServe for RadServeService {
     ) -> Result<Response<SharedSampleStream>, Status> {
         use proto::{shared_sample_request::Request as Inbound, shared_sample_response::Response as Outbound};
         let mut inbound = request.into_inner();
-        let start = match inbound.message().await? {
+        let first = tokio::time::timeout(FIRST_MESSAGE_TIMEOUT, inbound.message()).await.map_err(|_| {
+            Status::deadline_exceeded(format!(
+                "no SharedSampleRequest with `start` arrived within {} s of opening the stream",
+                FIRST_MESSAGE_TIMEOUT.as_secs()
+            ))
+        })?;
+        let start = match first? {
             Some(proto::SharedSampleRequest { request: Some(Inbound::Start(start)) }) => start,
             _ => {
                 return Err(Status::invalid_argument(

@@ -56,6 +56,13 @@ pub struct StepResult {
     pub errors: Vec<(u32, String)>,
 }
 
+impl StepResult {
+    /// Whether this result has one entry per environment of a group of `envs`.
+    pub fn fits(&self, envs: usize) -> bool {
+        self.rewards.len() == envs && self.terminated.len() == envs && self.truncated.len() == envs
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Response {
     Names(EnvNames),

@@ -364,7 +364,19 @@ impl Session {
         };
         for (index, receiver) in pending.into_iter().enumerate() {
             let result = match await_reply(receiver).await {
-                Ok(Response::Stepped(result)) => result,
+                // A worker's answer sized for another group (a bug, or a broken worker) ends the
+                // step cleanly instead of indexing past it below.
+                Ok(Response::Stepped(result)) if result.fits(self.groups[index].envs.len()) => result,
+                Ok(Response::Stepped(result)) => {
+                    self.needs_reset = true;
+                    return Err(SimError::Simulator(format!(
+                        "worker answered a step of {} envs with {} rewards, {} terminated and {} truncated flags",
+                        self.groups[index].envs.len(),
+                        result.rewards.len(),
+                        result.terminated.len(),
+                        result.truncated.len()
+                    )));
+                }
                 Err(WorkerFault::Crashed(message)) => {
                     self.recover_crashed_group(index, &message, &mut outcome).await?;
                     continue;

@@ -1,0 +1,776 @@
+//! Fuzzing every RPC of the real server (real workers, small limits): sequences of requests with
+//! arbitrary field values, and arbitrary bytes sent as any method's message. Every answer must be OK
+//! or a status from the documented set (never INTERNAL, UNKNOWN or a dropped connection), the server
+//! must keep serving, and once the sessions a case created are closed, the memory budget must be back
+//! where it was (a refused request reserves nothing). Bounded in `cargo test` (PROPTEST_CASES,
+//! default 48 sequences and 256 raw messages); `make fuzz` runs many more. Each property prints how
+//! many cases it ran.
+
+mod common;
+
+use std::collections::HashMap;
+use std::future::Future;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Mutex, OnceLock};
+use std::time::Duration;
+
+use common::{connect, start_server, TestServer};
+use proptest::prelude::*;
+use proptest::test_runner::{TestCaseError, TestRunner};
+use prost::bytes::{Buf, BufMut};
+use radserve_service::proto::{self, rad_serve_client::RadServeClient};
+use radserve_sim::Limits;
+use tokio::runtime::Runtime;
+use tokio_stream::StreamExt;
+use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
+use tonic::transport::Channel;
+use tonic::{Code, Status};
+
+fn cases(default: u32) -> u32 {
+    std::env::var("PROPTEST_CASES").ok().and_then(|value| value.parse().ok()).unwrap_or(default)
+}
+
+/// The statuses the API documents for a request the client got wrong or the server cannot take now.
+const DOCUMENTED: &[Code] = &[
+    Code::Ok,
+    Code::InvalidArgument,
+    Code::NotFound,
+    Code::FailedPrecondition,
+    Code::ResourceExhausted,
+    Code::DeadlineExceeded,
+    Code::Cancelled,
+];
+
+fn check(status: &Status, what: &str) -> Result<(), TestCaseError> {
+    prop_assert!(DOCUMENTED.contains(&status.code()), "{what}: undocumented status {:?}: {}", status.code(), status.message());
+    prop_assert!(status.message().len() <= 4096, "{what}: a {}-byte message", status.message().len());
+    Ok(())
+}
+
+/// One server for every case of a test binary: starting workers per case would dominate the run.
+struct Harness {
+    runtime: Runtime,
+    server: TestServer,
+    channel: Channel,
+    /// Sessions that live across cases: a CartPole with a filled replay buffer, a Pendulum, a rollout.
+    base: Vec<String>,
+    baseline_memory: u64,
+}
+
+fn harness() -> &'static Harness {
+    static HARNESS: OnceLock<Harness> = OnceLock::new();
+    HARNESS.get_or_init(|| {
+        let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+        let limits = Limits {
+            max_sessions: 8,
+            max_envs_per_session: 8,
+            max_total_envs: 24,
+            replay_memory_bytes: 256 << 20,
+            max_streams_per_session: 2,
+            stream_memory_bytes: 64 << 20,
+            session_idle_timeout_s: 0,
+            memory_bytes: 1 << 30,
+        };
+        let (server, channel, base) = runtime.block_on(async {
+            let server = start_server(limits).await;
+            let channel = connect(&server.address).await;
+            let mut client = RadServeClient::new(channel.clone());
+            let mut base = Vec::new();
+            for (env_id, replay) in [
+                ("gym/CartPole-v1", Some(proto::ReplayOptions { capacity: 500, rollout_steps: 0 })),
+                ("gym/Pendulum-v1", None),
+                ("gym/Pendulum-v1", Some(proto::ReplayOptions { capacity: 0, rollout_steps: 8 })),
+            ] {
+                let request = proto::CreateSessionRequest { env_id: env_id.into(), num_envs: 2, replay, ..Default::default() };
+                let id = client.create_session(request).await.unwrap().into_inner().session_id;
+                client.reset(proto::ResetRequest { session_id: id.clone(), seed: Some(0) }).await.unwrap();
+                base.push(id);
+            }
+            let actions = [
+                proto::Tensor { dtype: proto::DType::DtypeInt64 as i32, shape: vec![2], data: [0i64, 1].iter().flat_map(|a| a.to_le_bytes()).collect::<Vec<u8>>().into() },
+                common::f32_tensor(&[2, 1], &[0.5, -0.5]),
+                common::f32_tensor(&[2, 1], &[0.5, -0.5]),
+            ];
+            for _ in 0..40 {
+                for (id, actions) in base.iter().zip(&actions) {
+                    client.step(proto::StepRequest { session_id: id.clone(), actions: Some(actions.clone()) }).await.unwrap();
+                }
+            }
+            (server, channel, base)
+        });
+        let baseline_memory = server.manager.memory().0;
+        Harness { runtime, server, channel, base, baseline_memory }
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Strategies: field values a careless or hostile client might send, weighted towards the edges.
+
+fn edge_u32() -> impl Strategy<Value = u32> {
+    prop_oneof![3 => 0u32..10, 1 => 10u32..5000, 1 => prop::sample::select(vec![u32::MAX, u32::MAX - 1, 1 << 16, 1 << 31, 64 << 10, 128 << 20])]
+}
+
+fn edge_u64() -> impl Strategy<Value = u64> {
+    prop_oneof![3 => 0u64..10, 1 => 10u64..100_000, 1 => any::<u64>(), 1 => prop::sample::select(vec![u64::MAX, 1 << 40, (1 << 40) + 1, 409_927_646_082_434_480])]
+}
+
+fn edge_f64() -> impl Strategy<Value = f64> {
+    prop_oneof![2 => -2.0f64..100.0, 1 => prop::sample::select(vec![0.0, -0.0, f64::NAN, f64::INFINITY, f64::NEG_INFINITY, f64::MAX, f64::MIN_POSITIVE, 1e300])]
+}
+
+fn text(plausible: Vec<&'static str>) -> impl Strategy<Value = String> {
+    prop_oneof![
+        6 => prop::sample::select(plausible).prop_map(str::to_owned),
+        1 => "\\PC{0,24}",
+        1 => (1usize..4).prop_map(|k| "x".repeat(250 * k)),
+        1 => Just("é".repeat(200)),
+    ]
+}
+
+fn env_id() -> impl Strategy<Value = String> {
+    text(vec![
+        "gym/CartPole-v1", "gym/CartPole-v1", "gym/Pendulum-v1", "gym/MountainCarContinuous-v0", "gym/Acrobot-v1",
+        "procgen/bigfish", "dmc/cartpole-balance", "gym/CartPole-v2", "gym/", "dmc", "", "GYM/cartpole-v1",
+    ])
+}
+
+fn option_value() -> impl Strategy<Value = proto::OptionValue> {
+    use proto::option_value::Value;
+    let value = prop_oneof![
+        any::<bool>().prop_map(Value::BoolValue),
+        prop_oneof![-3i64..40, any::<i64>(), Just(i64::MAX), Just(1 << 40)].prop_map(Value::IntValue),
+        edge_f64().prop_map(Value::FloatValue),
+        text(vec!["easy", "hard", "fast", "default", "memory", ""]).prop_map(Value::StringValue),
+    ];
+    prop::option::weighted(0.95, value).prop_map(|value| proto::OptionValue { value })
+}
+
+fn options() -> impl Strategy<Value = HashMap<String, proto::OptionValue>> {
+    let name = text(vec![
+        "frame_stack", "action_repeat", "max_episode_steps", "pixels", "height", "width", "camera_id", "render_profile",
+        "num_levels", "distribution_mode", "start_level", "use_backgrounds", "nonexistent",
+    ]);
+    prop::collection::hash_map(name, option_value(), 0..4)
+}
+
+fn stage_text() -> impl Strategy<Value = String> {
+    text(vec![
+        "crop(84)", "crop(2)", "translate(12)", "translate(2700)", "center_crop(84)", "center_translate(108)", "grayscale",
+        "cutout(1,3)", "flip(p=0.5)", "rotate", "conv", "color_jitter", "noise(std=0.1)", "ras_s", "ras_m(alpha=2,beta=1)",
+        "crop(size=-1)", "crpo", "none", "",
+    ])
+}
+
+fn pipeline() -> impl Strategy<Value = Option<proto::sample_batches_request::Augmentation>> {
+    use proto::sample_batches_request::Augmentation;
+    let typed = prop::collection::vec(
+        (
+            text(vec!["ras_s", "ras_m", "noise", "crop", "translate", "conv", "std=1)|noise(std", ""]),
+            prop::collection::hash_map(text(vec!["alpha", "beta", "std", "size", "p", "x"]), edge_f64(), 0..3),
+        )
+            .prop_map(|(name, args)| proto::AugmentationStage { name, args }),
+        0..10,
+    );
+    prop_oneof![
+        2 => Just(None),
+        3 => prop::collection::vec(stage_text(), 0..10).prop_map(|stages| Some(Augmentation::PipelineText(stages.join("|")))),
+        2 => typed.prop_map(|stages| Some(Augmentation::Pipeline(proto::AugmentationPipeline { stages }))),
+    ]
+}
+
+fn tensor() -> impl Strategy<Value = proto::Tensor> {
+    let dtype = prop_oneof![4 => 0i32..7, 1 => any::<i32>()];
+    let shape = prop::collection::vec(prop_oneof![4 => 0i64..4, 1 => any::<i64>(), 1 => Just(-1i64)], 0..4);
+    (dtype, shape, any::<u8>(), prop::collection::vec(any::<u8>(), 0..40)).prop_map(|(dtype, shape, fill, data)| {
+        // Often exactly the bytes the shape and dtype need, so validation gets past the size check.
+        let size = match dtype {
+            1 | 6 => 1,
+            2 | 4 => 4,
+            3 | 5 => 8,
+            _ => 1,
+        };
+        let elements = shape.iter().try_fold(1u64, |total, &d| u64::try_from(d).ok().and_then(|d| total.checked_mul(d)));
+        let data = match elements.map(|e| e * size) {
+            Some(bytes) if bytes <= 256 && fill % 2 == 0 => vec![fill; bytes as usize],
+            _ => data,
+        };
+        proto::Tensor { dtype, shape, data: data.into() }
+    })
+}
+
+/// Which session a request names: one of the live ones (base or created in this case) or not.
+#[derive(Clone, Debug)]
+enum Target {
+    Live(usize),
+    Id(String),
+}
+
+fn target() -> impl Strategy<Value = Target> {
+    prop_oneof![
+        5 => any::<usize>().prop_map(Target::Live),
+        1 => text(vec!["", "0", "s-0000000000000000", "../../etc/passwd"]).prop_map(Target::Id),
+    ]
+}
+
+fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
+    (
+        (edge_u32(), pipeline(), prop_oneof![4 => 0i32..3, 1 => any::<i32>()], edge_u32(), any::<u64>()),
+        (prop::option::of(edge_u64()), prop::option::of(edge_f64()), edge_f64(), prop::option::of(0u64..6)),
+        (edge_u32(), prop_oneof![4 => 0i32..2, 1 => any::<i32>()], edge_u32(), any::<bool>(), prop::option::of(any::<bool>()), any::<bool>()),
+    )
+        .prop_map(
+            |(
+                (batch_size, augmentation, sharing, prefetch, seed),
+                (min_size, samples_per_insert, error_buffer, max_batches),
+                (chunk_bytes, source, epochs, per_env_augmentation, include_next_obs, repeat_first_batch),
+            )| proto::SampleBatchesRequest {
+                session_id: String::new(),
+                batch_size,
+                augmentation,
+                sharing,
+                prefetch,
+                seed,
+                min_size,
+                samples_per_insert,
+                error_buffer,
+                max_batches,
+                chunk_bytes,
+                source,
+                epochs,
+                per_env_augmentation,
+                include_next_obs,
+                repeat_first_batch,
+            },
+        )
+}
+
+/// What the client does with a shared-memory acting channel it was given.
+#[derive(Clone, Debug)]
+enum ChannelUse {
+    /// Never connects (the server gives up after its connect timeout).
+    Leave,
+    /// Connects, presents the token (or a wrong one) and sends raw 16-byte requests.
+    Connect { right_token: bool, requests: Vec<[u8; 16]> },
+}
+
+#[derive(Clone, Debug)]
+enum Op {
+    ListEnvs(String),
+    Create(proto::CreateSessionRequest),
+    Describe(Target),
+    Close(Target),
+    ListSessions,
+    Reset(Target, Option<u64>),
+    Step(Target, proto::Tensor),
+    Act(Target, Vec<Option<Result<Option<u64>, proto::Tensor>>>),
+    ShareActing(Target, ChannelUse),
+    Sample(Target, proto::SampleBatchesRequest),
+    SampleShared(Target, proto::SampleBatchesRequest, Vec<u64>, bool),
+}
+
+fn channel_use() -> impl Strategy<Value = ChannelUse> {
+    let request = prop_oneof![
+        // 'S' or 'R', a seed flag, zeros, a seed: well-formed, then anything.
+        (prop::sample::select(vec![b'S', b'R']), 0u8..3, any::<u64>()).prop_map(|(kind, flag, seed)| {
+            let mut request = [0u8; 16];
+            request[0] = kind;
+            request[1] = flag;
+            request[8..].copy_from_slice(&seed.to_le_bytes());
+            request
+        }),
+        any::<[u8; 16]>(),
+    ];
+    prop_oneof![
+        1 => Just(ChannelUse::Leave),
+        4 => (any::<bool>(), prop::collection::vec(request, 0..4))
+            .prop_map(|(wrong, requests)| ChannelUse::Connect { right_token: !wrong, requests }),
+    ]
+}
+
+fn op() -> impl Strategy<Value = Op> {
+    let create = (
+        env_id(),
+        prop_oneof![3 => 0u32..4, 1 => edge_u32()],
+        any::<u64>(),
+        options(),
+        prop::option::of((edge_u64(), edge_u32()).prop_map(|(capacity, rollout_steps)| proto::ReplayOptions { capacity, rollout_steps })),
+        prop_oneof![3 => Just(String::new()), 1 => stage_text()],
+    )
+        .prop_map(|(env_id, num_envs, seed, options, replay, observation_view)| proto::CreateSessionRequest {
+            env_id,
+            num_envs,
+            seed,
+            options,
+            replay,
+            observation_view,
+        });
+    let act_message = prop_oneof![
+        1 => Just(None),
+        2 => prop::option::of(edge_u64()).prop_map(|seed| Some(Ok(seed))),
+        3 => tensor().prop_map(|actions| Some(Err(actions))),
+    ];
+    prop_oneof![
+        1 => text(vec!["", "gym/", "dmc/", "procgen/big", "zzz"]).prop_map(Op::ListEnvs),
+        4 => create.prop_map(Op::Create),
+        1 => target().prop_map(Op::Describe),
+        2 => target().prop_map(Op::Close),
+        1 => Just(Op::ListSessions),
+        2 => (target(), prop::option::of(edge_u64())).prop_map(|(t, seed)| Op::Reset(t, seed)),
+        4 => (target(), tensor()).prop_map(|(t, actions)| Op::Step(t, actions)),
+        2 => (target(), prop::collection::vec(act_message, 0..4)).prop_map(|(t, messages)| Op::Act(t, messages)),
+        2 => (target(), channel_use()).prop_map(|(t, how)| Op::ShareActing(t, how)),
+        4 => (target(), sample_request()).prop_map(|(t, r)| Op::Sample(t, r)),
+        2 => (target(), sample_request(), prop::collection::vec(edge_u64(), 0..3), any::<bool>())
+            .prop_map(|(t, r, releases, release_first)| Op::SampleShared(t, r, releases, release_first)),
+    ]
+}
+
+// ---------------------------------------------------------------------------------------------
+// Running a case.
+
+/// Waits at most `limit` for `future`; `None` when it was still waiting (a stream that waits for
+/// data that never comes is allowed to wait).
+async fn within<T>(limit: Duration, future: impl Future<Output = T>) -> Option<T> {
+    tokio::time::timeout(limit, future).await.ok()
+}
+
+struct Case {
+    client: RadServeClient<Channel>,
+    base: Vec<String>,
+    created: Vec<String>,
+    /// An acting channel was left unconnected: its memory returns after the server's connect timeout.
+    unconnected_channel: bool,
+}
+
+/// Connects to an acting channel's socket as a same-host client would and sends `requests`; each
+/// answer must be a documented status code with a well-formed length.
+async fn use_channel(channel: &proto::SharedActingChannel, right_token: bool, requests: &[[u8; 16]]) -> Result<(), TestCaseError> {
+    use std::os::linux::net::SocketAddrExt;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let address = std::os::unix::net::SocketAddr::from_abstract_name(channel.socket.as_bytes()).unwrap();
+    let stream = std::os::unix::net::UnixStream::connect_addr(&address).map_err(|e| TestCaseError::fail(format!("connect: {e}")))?;
+    stream.set_nonblocking(true).unwrap();
+    let mut stream = tokio::net::UnixStream::from_std(stream).unwrap();
+    let mut token = channel.token.to_vec();
+    if !right_token {
+        token[0] ^= 1;
+    }
+    if stream.write_all(&token).await.is_err() {
+        return Ok(());
+    }
+    for request in requests {
+        if stream.write_all(request).await.is_err() {
+            break;
+        }
+        let mut header = [0u8; 8];
+        match within(Duration::from_secs(20), stream.read_exact(&mut header)).await {
+            Some(Ok(_)) => {}
+            // A wrong token: the server dropped the connection (or waits for the rightful client).
+            Some(Err(_)) | None if !right_token => break,
+            other => prop_assert!(false, "no answer on the acting channel: {other:?}"),
+        }
+        let code = Code::from_i32(u32::from_le_bytes(header[..4].try_into().unwrap()) as i32);
+        let length = u32::from_le_bytes(header[4..].try_into().unwrap()) as usize;
+        prop_assert!(DOCUMENTED.contains(&code), "acting channel answered {code:?}");
+        prop_assert!(length <= 1 << 20, "an answer of {length} bytes");
+        let mut body = vec![0u8; length];
+        prop_assert!(stream.read_exact(&mut body).await.is_ok(), "a short answer");
+    }
+    Ok(())
+}
+
+impl Case {
+    fn session(&self, target: &Target) -> String {
+        match target {
+            Target::Live(index) => {
+                let live: Vec<&String> = self.base.iter().chain(&self.created).collect();
+                live[index % live.len()].clone()
+            }
+            Target::Id(id) => id.clone(),
+        }
+    }
+
+    /// Runs one call; a call the server does not answer within a minute fails the case (a freeze).
+    async fn run(&mut self, op: Op) -> Result<(), TestCaseError> {
+        let what = format!("{op:?}");
+        let what: String = what.chars().take(300).collect();
+        match tokio::time::timeout(Duration::from_secs(60), self.call(op)).await {
+            Err(_) => Err(TestCaseError::fail(format!("no answer within 60 s: {what}"))),
+            Ok(Err(failure)) => Err(failure),
+            Ok(Ok(Err(status))) => check(&status, &what),
+            Ok(Ok(Ok(()))) => Ok(()),
+        }
+    }
+
+    async fn call(&mut self, op: Op) -> Result<Result<(), Status>, TestCaseError> {
+        let limit = Duration::from_secs(20);
+        Ok(match op {
+            Op::ListEnvs(prefix) => self.client.list_envs(proto::ListEnvsRequest { prefix }).await.map(drop),
+            Op::Create(request) => match self.client.create_session(request).await {
+                Ok(info) => {
+                    self.created.push(info.into_inner().session_id);
+                    Ok(())
+                }
+                Err(status) => Err(status),
+            },
+            Op::Describe(target) => {
+                self.client.describe_session(proto::DescribeSessionRequest { session_id: self.session(&target) }).await.map(drop)
+            }
+            Op::Close(target) => {
+                let session_id = self.session(&target);
+                if self.base.contains(&session_id) {
+                    // The base sessions stay; closing another one (or a made-up id) is the case.
+                    Ok(())
+                } else {
+                    let result = self.client.close_session(proto::CloseSessionRequest { session_id: session_id.clone() }).await;
+                    if result.is_ok() {
+                        self.created.retain(|id| *id != session_id);
+                    }
+                    result.map(drop)
+                }
+            }
+            Op::ListSessions => self.client.list_sessions(proto::ListSessionsRequest {}).await.map(drop),
+            Op::Reset(target, seed) => {
+                let request = proto::ResetRequest { session_id: self.session(&target), seed };
+                within(limit, self.client.reset(request)).await.expect("a reset answers").map(drop)
+            }
+            Op::Step(target, actions) => {
+                let request = proto::StepRequest { session_id: self.session(&target), actions: Some(actions) };
+                within(limit, self.client.step(request)).await.expect("a step answers").map(drop)
+            }
+            Op::Act(target, messages) => {
+                let session_id = self.session(&target);
+                let requests: Vec<proto::ActRequest> = messages
+                    .into_iter()
+                    .map(|message| proto::ActRequest {
+                        request: message.map(|message| match message {
+                            Ok(seed) => proto::act_request::Request::Reset(proto::ResetRequest { session_id: session_id.clone(), seed }),
+                            Err(actions) => proto::act_request::Request::Step(proto::StepRequest {
+                                session_id: session_id.clone(),
+                                actions: Some(actions),
+                            }),
+                        }),
+                    })
+                    .collect();
+                let expected = requests.len();
+                match self.client.act(tokio_stream::iter(requests)).await {
+                    Ok(response) => {
+                        let mut stream = response.into_inner();
+                        let mut outcome = Ok(());
+                        for _ in 0..expected {
+                            match within(limit, stream.next()).await.expect("an act stream answers") {
+                                Some(Ok(_)) => {}
+                                Some(Err(status)) => {
+                                    outcome = Err(status);
+                                    break;
+                                }
+                                None => break,
+                            }
+                        }
+                        outcome
+                    }
+                    Err(status) => Err(status),
+                }
+            }
+            Op::ShareActing(target, how) => {
+                match self.client.share_acting(proto::ShareActingRequest { session_id: self.session(&target) }).await {
+                    Ok(channel) => {
+                        let channel = channel.into_inner();
+                        match how {
+                            ChannelUse::Leave => self.unconnected_channel = true,
+                            ChannelUse::Connect { right_token, requests } => {
+                                // A wrong token leaves the channel waiting for the rightful client.
+                                self.unconnected_channel |= !right_token;
+                                use_channel(&channel, right_token, &requests).await?
+                            }
+                        }
+                        Ok(())
+                    }
+                    Err(status) => Err(status),
+                }
+            }
+            Op::Sample(target, mut request) => {
+                request.session_id = self.session(&target);
+                match self.client.sample_batches(request).await {
+                    Ok(response) => {
+                        let mut stream = response.into_inner();
+                        let mut outcome = Ok(());
+                        // A few chunks, then the client leaves (streams that wait for data may wait).
+                        for _ in 0..6 {
+                            match within(Duration::from_millis(500), stream.next()).await {
+                                Some(Some(Ok(_))) => {}
+                                Some(Some(Err(status))) => {
+                                    outcome = Err(status);
+                                    break;
+                                }
+                                Some(None) | None => break,
+                            }
+                        }
+                        outcome
+                    }
+                    Err(status) => Err(status),
+                }
+            }
+            Op::SampleShared(target, mut request, releases, release_first) => {
+                request.session_id = self.session(&target);
+                use proto::shared_sample_request::Request;
+                let mut messages = Vec::new();
+                if !release_first {
+                    messages.push(proto::SharedSampleRequest { request: Some(Request::Start(request)) });
+                }
+                messages.extend(releases.into_iter().map(|slot| proto::SharedSampleRequest { request: Some(Request::Release(slot)) }));
+                // The client keeps its side open briefly, as a real one would while it reads.
+                let (sender, receiver) = tokio::sync::mpsc::channel(8);
+                for message in messages {
+                    sender.send(message).await.unwrap();
+                }
+                // Only releases: the client closes its side after them (a client that stays silent
+                // is a test of its own in hardening.rs).
+                let sender = (!release_first).then_some(sender);
+                let requests = tokio_stream::wrappers::ReceiverStream::new(receiver);
+                match self.client.sample_batches_shared(requests).await {
+                    Ok(response) => {
+                        let mut stream = response.into_inner();
+                        let mut outcome = Ok(());
+                        for _ in 0..3 {
+                            match within(Duration::from_millis(500), stream.next()).await {
+                                Some(Some(Ok(_))) => {}
+                                Some(Some(Err(status))) => {
+                                    outcome = Err(status);
+                                    break;
+                                }
+                                Some(None) | None => break,
+                            }
+                        }
+                        drop(sender);
+                        outcome
+                    }
+                    Err(status) => Err(status),
+                }
+            }
+        })
+    }
+
+    /// Closes what the case created, checks the server still serves, and waits for every
+    /// reservation of the case (sessions, streams, channels) to be returned.
+    async fn finish(mut self, baseline: u64, manager: &radserve_sim::SessionManager) -> Result<(), TestCaseError> {
+        for session_id in std::mem::take(&mut self.created) {
+            let result = self.client.close_session(proto::CloseSessionRequest { session_id }).await;
+            if let Err(status) = result {
+                check(&status, "closing a created session")?;
+            }
+        }
+        for session_id in &self.base {
+            let info = self.client.describe_session(proto::DescribeSessionRequest { session_id: session_id.clone() }).await;
+            prop_assert!(info.is_ok(), "a base session is gone: {info:?}");
+        }
+        let listed = self.client.list_envs(proto::ListEnvsRequest { prefix: "gym/CartPole".into() }).await;
+        prop_assert!(listed.is_ok(), "ListEnvs failed after the case: {listed:?}");
+        let mut used = manager.memory().0;
+        let wait = if self.unconnected_channel { radserve_service::acting::CONNECT_TIMEOUT + Duration::from_secs(3) } else { Duration::from_secs(5) };
+        for _ in 0..wait.as_millis() / 50 {
+            if used == baseline {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            used = manager.memory().0;
+        }
+        prop_assert_eq!(used, baseline, "memory still reserved after the case's sessions and streams ended");
+        prop_assert_eq!(manager.list_sessions().len(), self.base.len());
+        Ok(())
+    }
+}
+
+/// The properties share one server and check its memory between cases: one runs at a time.
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static SERIAL: Mutex<()> = Mutex::new(());
+    SERIAL.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+fn runner(default_cases: u32) -> TestRunner {
+    TestRunner::new(ProptestConfig {
+        cases: cases(default_cases),
+        max_shrink_iters: 64,
+        // A case that freezes takes a minute to fail; shrinking stops after two.
+        max_shrink_time: 120_000,
+        // The failing case is printed; these runners have no source file to store it next to.
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    })
+}
+
+/// After a property: the server still creates, resets and closes a session, and its task is alive.
+fn still_serves(harness: &Harness) {
+    harness.runtime.block_on(async {
+        let mut client = RadServeClient::new(harness.channel.clone());
+        let request = proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 1, ..Default::default() };
+        let session = client.create_session(request).await.expect("the server still serves").into_inner();
+        client.reset(proto::ResetRequest { session_id: session.session_id.clone(), seed: Some(1) }).await.unwrap();
+        client.close_session(proto::CloseSessionRequest { session_id: session.session_id }).await.unwrap();
+        assert!(!harness.server.task.is_finished());
+    });
+}
+
+#[test]
+fn request_sequences_get_documented_answers_and_reserve_nothing_once_closed() {
+    let _serial = serial();
+    let harness = harness();
+    let executed = AtomicUsize::new(0);
+    let result = runner(48).run(&prop::collection::vec(op(), 1..8), |ops| {
+        executed.fetch_add(1, Ordering::Relaxed);
+        harness.runtime.block_on(async {
+            let mut case = Case {
+                client: RadServeClient::new(harness.channel.clone()),
+                base: harness.base.clone(),
+                created: Vec::new(),
+                unconnected_channel: false,
+            };
+            for op in ops {
+                case.run(op).await?;
+            }
+            match tokio::time::timeout(Duration::from_secs(60), case.finish(harness.baseline_memory, &harness.server.manager)).await {
+                Ok(result) => result,
+                Err(_) => Err(TestCaseError::fail("closing the case's sessions took over 60 s")),
+            }
+        })
+    });
+    if let Err(error) = result {
+        panic!("{error}");
+    }
+    still_serves(harness);
+    eprintln!("fuzz: {} request sequences (with shrinking), none crashed the server", executed.into_inner());
+}
+
+// ---------------------------------------------------------------------------------------------
+// Arbitrary bytes as any method's message, through a codec that sends them as they are.
+
+#[derive(Clone, Copy, Default)]
+struct RawCodec;
+
+impl Codec for RawCodec {
+    type Encode = Vec<u8>;
+    type Decode = Vec<u8>;
+    type Encoder = RawCodec;
+    type Decoder = RawCodec;
+
+    fn encoder(&mut self) -> Self::Encoder {
+        RawCodec
+    }
+
+    fn decoder(&mut self) -> Self::Decoder {
+        RawCodec
+    }
+}
+
+impl Encoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+
+    fn encode(&mut self, item: Vec<u8>, dst: &mut EncodeBuf<'_>) -> Result<(), Status> {
+        dst.put_slice(&item);
+        Ok(())
+    }
+}
+
+impl Decoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+
+    fn decode(&mut self, src: &mut DecodeBuf<'_>) -> Result<Option<Vec<u8>>, Status> {
+        let bytes = src.copy_to_bytes(src.remaining());
+        Ok(Some(bytes.to_vec()))
+    }
+}
+
+const METHODS: &[(&str, bool, bool)] = &[
+    // (method, client streams, server streams)
+    ("ListEnvs", false, false),
+    ("CreateSession", false, false),
+    ("DescribeSession", false, false),
+    ("CloseSession", false, false),
+    ("ListSessions", false, false),
+    ("Reset", false, false),
+    ("Step", false, false),
+    ("Act", true, true),
+    ("ShareActing", false, false),
+    ("SampleBatches", false, true),
+    ("SampleBatchesShared", true, true),
+];
+
+/// Anything at all, or a live session's id as field 1 (every session-scoped request's `session_id`)
+/// followed by a field of any number and wire type with any payload, so that the decoder and the
+/// handlers behind it both get exercised. CloseSession never names a base session.
+fn raw_message(base: Vec<String>) -> impl Strategy<Value = (usize, Vec<u8>)> {
+    let garbage = prop::collection::vec(any::<u8>(), 0..64);
+    let structured = (0..METHODS.len(), any::<usize>(), 1u8..20, 0u8..8, prop::collection::vec(any::<u8>(), 0..24), any::<bool>())
+        .prop_map(move |(method, session, field, wire_type, payload, with_session)| {
+            let mut bytes = Vec::new();
+            if with_session && METHODS[method].0 != "CloseSession" {
+                let id = base[session % base.len()].as_bytes();
+                bytes.push(0x0a); // field 1, length-delimited
+                bytes.push(id.len() as u8);
+                bytes.extend_from_slice(id);
+            }
+            bytes.push((field << 3) | wire_type);
+            bytes.extend_from_slice(&payload);
+            (method, bytes)
+        });
+    prop_oneof![(0..METHODS.len(), garbage), structured]
+}
+
+#[test]
+fn arbitrary_bytes_as_any_message_get_documented_answers() {
+    let _serial = serial();
+    let harness = harness();
+    let executed = AtomicUsize::new(0);
+    let result = runner(256).run(&raw_message(harness.base.clone()), |(method, body)| {
+        executed.fetch_add(1, Ordering::Relaxed);
+        harness.runtime.block_on(async {
+            let (name, client_streams, server_streams) = METHODS[method];
+            let path: tonic::codegen::http::uri::PathAndQuery = format!("/radserve.v1.RadServe/{name}").parse().unwrap();
+            let mut grpc = tonic::client::Grpc::new(harness.channel.clone());
+            grpc.ready().await.map_err(|error| TestCaseError::fail(format!("the server stopped accepting calls: {error}")))?;
+            let outcome: Result<(), Status> = match (client_streams, server_streams) {
+                (false, false) => grpc.unary(tonic::Request::new(body), path, RawCodec).await.map(drop),
+                (false, true) => match grpc.server_streaming(tonic::Request::new(body), path, RawCodec).await {
+                    Ok(response) => first_status(response.into_inner()).await,
+                    Err(status) => Err(status),
+                },
+                (true, _) => {
+                    let requests = tokio_stream::iter(vec![body.clone(), body]);
+                    match grpc.streaming(tonic::Request::new(requests), path, RawCodec).await {
+                        Ok(response) => first_status(response.into_inner()).await,
+                        Err(status) => Err(status),
+                    }
+                }
+            };
+            if let Err(status) = outcome {
+                check(&status, &format!("raw {name}"))?;
+            }
+            let mut client = RadServeClient::new(harness.channel.clone());
+            let listed = client.list_sessions(proto::ListSessionsRequest {}).await;
+            prop_assert!(listed.is_ok(), "the server still answers: {listed:?}");
+            // A raw CreateSession that decodes creates a session like any other: close it.
+            for summary in listed.unwrap().into_inner().sessions {
+                if !harness.base.contains(&summary.session_id) {
+                    client.close_session(proto::CloseSessionRequest { session_id: summary.session_id }).await.unwrap();
+                }
+            }
+            Ok(())
+        })
+    });
+    if let Err(error) = result {
+        panic!("{error}");
+    }
+    still_serves(harness);
+    eprintln!("fuzz: {} raw messages (with shrinking), none crashed the server", executed.into_inner());
+}
+
+/// The first message of a response stream: its status if it is an error (a stream still waiting
+/// after 300 ms is fine).
+async fn first_status(mut stream: tonic::Streaming<Vec<u8>>) -> Result<(), Status> {
+    match within(Duration::from_millis(300), stream.next()).await {
+        Some(Some(Err(status))) => Err(status),
+        _ => Ok(()),
+    }
+}

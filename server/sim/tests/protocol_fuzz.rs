@@ -1,0 +1,171 @@
+//! Fuzzing of the worker protocol's decoder (both directions: the worker decodes requests, the
+//! server decodes what a possibly broken worker sends back). Any bytes decode to an error or to a
+//! message whose encoding round-trips; framed streams of any bytes never panic and never
+//! allocate past the message limit. Bounded in `cargo test` (PROPTEST_CASES, default 2048);
+//! `make fuzz` runs more.
+
+use std::collections::BTreeMap;
+
+use proptest::prelude::*;
+use radserve_sim::catalog::{EnvNames, Family, OptionValue};
+use radserve_sim::protocol::{self, EnvSpec, GroupConfig, Request, Response, StepResult, MAX_MESSAGE_BYTES};
+use radserve_sim::space::{DType, Space};
+
+fn config() -> ProptestConfig {
+    let cases = std::env::var("PROPTEST_CASES").ok().and_then(|value| value.parse().ok()).unwrap_or(2048);
+    ProptestConfig { cases, ..ProptestConfig::default() }
+}
+
+fn family() -> impl Strategy<Value = Family> {
+    prop::sample::select(vec![Family::Dmc, Family::Gym, Family::Procgen])
+}
+
+fn option_value() -> impl Strategy<Value = OptionValue> {
+    prop_oneof![
+        any::<bool>().prop_map(OptionValue::Bool),
+        any::<i64>().prop_map(OptionValue::Int),
+        any::<f64>().prop_map(OptionValue::Float),
+        "\\PC{0,12}".prop_map(OptionValue::Str),
+    ]
+}
+
+fn options() -> impl Strategy<Value = BTreeMap<String, OptionValue>> {
+    prop::collection::btree_map("[a-z_]{1,10}", option_value(), 0..4)
+}
+
+fn space() -> impl Strategy<Value = Space> {
+    let dtype = prop::sample::select(vec![DType::Uint8, DType::Int32, DType::Int64, DType::Float32, DType::Float64, DType::Bool]);
+    prop_oneof![
+        (dtype, prop::collection::vec(0usize..300, 0..4), prop::collection::vec(any::<f64>(), 0..4), prop::collection::vec(any::<f64>(), 0..4))
+            .prop_map(|(dtype, shape, low, high)| Space::Box { dtype, shape, low, high }),
+        any::<i64>().prop_map(|n| Space::Discrete { n }),
+    ]
+}
+
+fn request() -> impl Strategy<Value = Request> {
+    prop_oneof![
+        Just(Request::ListNames),
+        prop::collection::vec((family(), "\\PC{0,16}", options()), 0..3).prop_map(|entries| Request::Specs { entries }),
+        (any::<u64>(), family(), "\\PC{0,16}", options(), prop::collection::vec(any::<u64>(), 0..6))
+            .prop_map(|(group, family, name, options, seeds)| Request::CreateGroup(GroupConfig { group, family, name, options, seeds })),
+        (any::<u64>(), "\\PC{0,24}", any::<usize>()).prop_map(|(group, shm_path, shm_len)| Request::Attach { group, shm_path, shm_len }),
+        (any::<u64>(), prop::option::of(prop::collection::vec(any::<u64>(), 0..6))).prop_map(|(group, seeds)| Request::Reset { group, seeds }),
+        (any::<u64>(), prop::collection::vec(any::<u8>(), 0..64)).prop_map(|(group, actions)| Request::Step { group, actions }),
+        any::<u64>().prop_map(|group| Request::CloseGroup { group }),
+        Just(Request::Abort),
+    ]
+}
+
+fn spec() -> impl Strategy<Value = EnvSpec> {
+    (space(), space()).prop_map(|(observation, action)| EnvSpec { observation, action })
+}
+
+fn response() -> impl Strategy<Value = Response> {
+    prop_oneof![
+        prop::collection::btree_map(family(), prop::collection::vec("\\PC{0,12}", 0..4), 0..3)
+            .prop_map(|by_family| Response::Names(EnvNames { by_family })),
+        prop::collection::vec(prop_oneof![spec().prop_map(Ok), "\\PC{0,12}".prop_map(Err)], 0..3).prop_map(Response::Specs),
+        spec().prop_map(Response::Created),
+        Just(Response::Attached),
+        Just(Response::Reset),
+        (0usize..6)
+            .prop_flat_map(|n| (
+                prop::collection::vec(any::<f64>(), n),
+                prop::collection::vec(any::<bool>(), n),
+                prop::collection::vec(any::<bool>(), n),
+                prop::collection::vec((any::<u32>(), "\\PC{0,12}"), 0..2),
+            ))
+            .prop_map(|(rewards, terminated, truncated, errors)| Response::Stepped(StepResult { rewards, terminated, truncated, errors })),
+        Just(Response::Closed),
+        "\\PC{0,24}".prop_map(Response::Failed),
+    ]
+}
+
+/// Decoding never panics, and what decodes is a message the other side reads back as the same
+/// message (its encoding decodes and re-encodes to itself).
+fn check_decoder<T: serde::Serialize + serde::de::DeserializeOwned>(body: &[u8]) -> Result<(), TestCaseError> {
+    if let Ok(message) = protocol::decode::<T>(body) {
+        let framed = protocol::encode(&message).unwrap();
+        let again: T = protocol::decode(&framed[4..]).unwrap();
+        prop_assert_eq!(protocol::encode(&again).unwrap(), framed);
+    }
+    Ok(())
+}
+
+/// Mutations of a valid encoding: flip, overwrite, truncate or extend it at a position.
+fn mutate(mut bytes: Vec<u8>, edits: &[(usize, u8, u8)]) -> Vec<u8> {
+    for &(at, kind, value) in edits {
+        if bytes.is_empty() {
+            bytes.push(value);
+            continue;
+        }
+        let at = at % bytes.len();
+        match kind % 4 {
+            0 => bytes[at] ^= value | 1,
+            1 => bytes[at] = value,
+            2 => bytes.truncate(at),
+            _ => bytes.insert(at, value),
+        }
+    }
+    bytes
+}
+
+proptest! {
+    #![proptest_config(config())]
+
+    #[test]
+    fn any_bytes_decode_to_an_error_or_a_faithful_message(body in prop::collection::vec(any::<u8>(), 0..256)) {
+        check_decoder::<Request>(&body)?;
+        check_decoder::<Response>(&body)?;
+    }
+
+    #[test]
+    fn valid_requests_round_trip_and_their_mutations_never_panic(
+        message in request(),
+        edits in prop::collection::vec((any::<usize>(), any::<u8>(), any::<u8>()), 1..4),
+    ) {
+        let framed = protocol::encode(&message).unwrap();
+        let decoded: Request = protocol::decode(&framed[4..]).unwrap();
+        prop_assert_eq!(protocol::encode(&decoded).unwrap(), framed.clone());
+        check_decoder::<Request>(&mutate(framed[4..].to_vec(), &edits))?;
+    }
+
+    #[test]
+    fn valid_responses_round_trip_and_their_mutations_never_panic(
+        message in response(),
+        edits in prop::collection::vec((any::<usize>(), any::<u8>(), any::<u8>()), 1..4),
+    ) {
+        let framed = protocol::encode(&message).unwrap();
+        let decoded: Response = protocol::decode(&framed[4..]).unwrap();
+        prop_assert_eq!(protocol::encode(&decoded).unwrap(), framed.clone());
+        check_decoder::<Response>(&mutate(framed[4..].to_vec(), &edits))?;
+    }
+
+    #[test]
+    fn framed_streams_of_any_bytes_end_in_messages_or_a_clean_error(
+        messages in prop::collection::vec(request(), 0..3),
+        header in any::<[u8; 4]>(),
+        tail in prop::collection::vec(any::<u8>(), 0..64),
+    ) {
+        let mut wire = Vec::new();
+        for message in &messages {
+            protocol::write_blocking(&mut wire, message).unwrap();
+        }
+        wire.extend_from_slice(&header);
+        wire.extend_from_slice(&tail);
+        let mut reader = wire.as_slice();
+        for message in &messages {
+            let read = protocol::read_blocking::<Request>(&mut reader).unwrap();
+            prop_assert_eq!(read.map(|m| protocol::encode(&m).unwrap()), Some(protocol::encode(message).unwrap()));
+        }
+        // Then a length from the fuzzer: refused above the limit, a short body is an error, and
+        // nothing panics.
+        let length = u32::from_le_bytes(header) as usize;
+        match protocol::read_blocking::<Request>(&mut reader) {
+            Ok(Some(_)) => prop_assert!(length <= tail.len()),
+            Ok(None) => prop_assert!(false, "a header was there to read"),
+            Err(_) => {}
+        }
+        prop_assert_eq!(protocol::check_length(header).is_ok(), length <= MAX_MESSAGE_BYTES);
+    }
+}
