@@ -7,7 +7,7 @@ TORCH_STAMP := $(VENV)/.installed-torch
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build demo test test-rust test-python test-learners fuzz bench bench-sim bench-augment bench-replay bench-learning preview torch lock proto clean
+.PHONY: setup system-libs build demo test test-rust test-python test-learners fuzz soak bench bench-sim bench-augment bench-replay bench-learning preview torch lock proto clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -60,6 +60,12 @@ fuzz: setup
 	PROPTEST_CASES=$$((200000 * $(FUZZ_SCALE))) cargo test --release -p radserve-sim --test protocol_fuzz
 	PROPTEST_CASES=$$((1000 * $(FUZZ_SCALE))) cargo test --release -p radserve --test fuzz -- --nocapture
 	RADSERVE_FUZZ_EXAMPLES=$$((1000 * $(FUZZ_SCALE))) $(PYTHON) -m pytest -q -s tests/test_fuzz.py
+
+## soak: bench/soak.py for SOAK_MINUTES (10): clients acting and sampling, killed at random; the
+## server's RSS, fds, workers and sessions over time
+SOAK_MINUTES ?= 10
+soak: setup
+	$(PYTHON) bench/soak.py --minutes $(SOAK_MINUTES)
 
 ## torch: the learners' extra in .venv (PyTorch, TensorBoard, matplotlib), for the learners, their smoke
 ## tests and the benchmarks; never needed by the server
