@@ -119,6 +119,9 @@ async fn huge_text_fields_are_refused_before_any_work() {
     let status = client.create_session(request).await.unwrap_err();
     assert_eq!(status.code(), Code::InvalidArgument);
     assert!(status.message().starts_with("observation_view is 1600000 bytes long"), "{}", status.message());
+    let status = client.list_envs(proto::ListEnvsRequest { prefix: huge[..1000].into() }).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert_eq!(status.message(), "prefix is 1000 bytes long; the most accepted is 256");
     assert!(started.elapsed() < Duration::from_secs(30), "took {:?}", started.elapsed());
     still_serves(&mut client).await;
 }

@@ -391,6 +391,38 @@ impl ReplayBuffer {
         Ok(())
     }
 
+    /// Whether `transition` (drawn earlier) is still in the buffer with its whole stack: false once
+    /// the env wrote so many frames since that its slots hold newer ones.
+    pub fn still_holds(&self, transition: TransitionRef) -> bool {
+        transition.env < self.layout.num_envs
+            && transition.frame >= self.oldest_sampleable(transition.env)
+            && transition.frame < self.written[transition.env]
+    }
+
+    /// One transition drawn uniformly, as `sample` draws them, without counting it as sampled (it
+    /// replaces one of a batch that the buffer no longer holds).
+    pub fn draw_one(&self, rng: &mut impl Rng) -> Option<TransitionRef> {
+        let ranges: Vec<(u64, u64)> =
+            (0..self.layout.num_envs).map(|env| (self.oldest_sampleable(env), self.written[env])).collect();
+        let candidates: u64 = ranges.iter().map(|(oldest, written)| written.saturating_sub(*oldest)).sum();
+        if candidates == 0 {
+            return None;
+        }
+        for _ in 0..1024 {
+            let mut pick = rng.random_range(0..candidates);
+            let mut env = 0;
+            while pick >= ranges[env].1.saturating_sub(ranges[env].0) {
+                pick -= ranges[env].1.saturating_sub(ranges[env].0);
+                env += 1;
+            }
+            let frame = ranges[env].0 + pick;
+            if self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0 {
+                return Some(TransitionRef { env, frame });
+            }
+        }
+        None
+    }
+
     /// The transitions of the last `steps` steps of every env, `[t][env]` (t = 0 the oldest),
     /// and the step index of t = 0; refused while fewer steps were recorded.
     pub fn rollout(&self, steps: usize) -> Result<(Vec<TransitionRef>, u64)> {
@@ -469,8 +501,16 @@ impl ReplayBuffer {
     /// Gather everything but the observations of sampled transitions.
     pub fn gather_metadata(&self, refs: &[TransitionRef], batch: &mut TransitionMetadata) {
         batch.resize(refs.len(), self.layout.action_bytes);
+        self.gather_metadata_at(refs, batch, 0);
+    }
+
+    /// The same for a part of a batch: `refs` are the batch's transitions from `start` on (the
+    /// batch already has its length).
+    pub fn gather_metadata_at(&self, refs: &[TransitionRef], batch: &mut TransitionMetadata, start: usize) {
+        batch.resize(batch.len.max(start + refs.len()), self.layout.action_bytes);
         let action_bytes = self.layout.action_bytes;
         for (index, transition) in refs.iter().enumerate() {
+            let index = start + index;
             let slot = self.slot(transition.env, transition.frame);
             batch.actions[index * action_bytes..(index + 1) * action_bytes]
                 .copy_from_slice(&self.actions[slot * action_bytes..(slot + 1) * action_bytes]);

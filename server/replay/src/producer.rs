@@ -447,7 +447,13 @@ impl Producer {
     }
 
     /// Gather and augment the transitions in `batch.refs` into the observation memory `allocate`
-    /// gave the batch; sample i draws with `keys[i]` (default i).
+    /// gave the batch; sample i draws with `keys[i]` (default i). The replay lock is never held while
+    /// images are augmented: each turn (`in_turns`) reads its samples' metadata under one read lock,
+    /// then each sample copies its frames under a read lock of its own and augments them without
+    /// it, so a Step recording into the buffer waits for one sample's copy, not for a batch. A
+    /// transition the buffer still holds does not change, so frames and metadata read under two
+    /// locks agree; one it overwrote meanwhile (the session stepped past it in a small buffer) is
+    /// drawn again from what the buffer holds then.
     fn fill(
         &self,
         pool: &rayon::ThreadPool,
@@ -461,11 +467,7 @@ impl Producer {
         batch.obs_shape.clone_from(&self.obs_shape);
         batch.obs_float32 = matches!(self.plan, Plan::State(_));
         batch.has_next_obs = self.spec.include_next_obs;
-        let buffer = self.buffer.read().expect("replay lock");
-        buffer.gather_metadata(&batch.refs, &mut batch.metadata);
         let draws = Draws { seed: draw_seed, view: View::Obs, sharing: self.spec.sharing };
-        let stack_bytes = buffer.layout().frame_stack * buffer.layout().frame_bytes;
-        let refs = &batch.refs;
         let observation_len = size * self.obs_bytes;
         let (obs, next_obs) = match &mut batch.slot {
             Some(slot) => slot.regions_mut(observation_len),
@@ -473,51 +475,115 @@ impl Producer {
         };
         let next_obs = if self.spec.include_next_obs { &mut next_obs[..observation_len] } else { &mut next_obs[..0] };
         let obs = &mut obs[..observation_len];
-        match &self.plan {
-            // With next_obs: one gather of stack + 1 frames serves both stacks (a third less reading).
-            Plan::Image(plan) if !next_obs.is_empty() => pool.install(|| {
-                let frame_bytes = buffer.layout().frame_bytes;
-                let (obs_draws, next_draws) = (draws.with_view(View::Obs), draws.with_view(View::NextObs));
-                let bytes = self.obs_bytes;
+        if let Plan::Image(plan) = &self.plan {
+            // Rollouts visit fixed (t, env) transitions; only replay samples are drawn again.
+            let redraw = matches!(self.spec.source, Source::Replay);
+            let mut rng = ChaCha8Rng::seed_from_u64(draw_seed ^ 0x5EED_0F_D2A5);
+            let (refs, metadata) = (&mut batch.refs, &mut batch.metadata);
+            self.buffer.read().expect("replay lock").gather_metadata(&[], metadata);
+            let bytes = self.obs_bytes;
+            let (obs_draws, next_draws) = (draws.with_view(View::Obs), draws.with_view(View::NextObs));
+            let with_next = !next_obs.is_empty();
+            let (frame_bytes, stack_bytes) = {
+                let buffer = self.buffer.read().expect("replay lock");
+                (buffer.layout().frame_bytes, buffer.layout().frame_stack * buffer.layout().frame_bytes)
+            };
+            // One sample's frames, copied under a read lock of their own: false (nothing copied) when
+            // the buffer no longer holds the transition. With next_obs, stack + 1 frames serve both
+            // stacks (a third less reading).
+            let gather = |transition: TransitionRef, frames: &mut Vec<u8>| -> bool {
+                let buffer = self.buffer.read().expect("replay lock");
+                if redraw && !buffer.still_holds(transition) {
+                    return false;
+                }
+                if with_next {
+                    frames.resize(stack_bytes + frame_bytes, 0);
+                    buffer.copy_transition(transition, frames);
+                } else {
+                    frames.resize(stack_bytes, 0);
+                    buffer.copy_observation(transition, false, frames);
+                }
+                true
+            };
+            let augment = |frames: &[u8], key: u64, obs_dst: &mut [u8], next_dst: Option<&mut [u8]>| {
+                plan.apply_sample(&frames[..stack_bytes], obs_dst, &plan.draw(&obs_draws, key));
+                if let Some(next_dst) = next_dst {
+                    plan.apply_sample(&frames[frame_bytes..], next_dst, &plan.draw(&next_draws, key));
+                }
+            };
+            return pool.install(|| {
                 in_turns(size, keep_going, |samples| {
-                    let obs = &mut obs[samples.start * bytes..samples.end * bytes];
-                    let next_obs = &mut next_obs[samples.start * bytes..samples.end * bytes];
-                    obs.par_chunks_mut(bytes).zip(next_obs.par_chunks_mut(bytes)).enumerate().for_each(
-                        |(offset, (obs_dst, next_dst))| {
+                    {
+                        let buffer = self.buffer.read().expect("replay lock");
+                        if redraw {
+                            for transition in &mut refs[samples.clone()] {
+                                if !buffer.still_holds(*transition) {
+                                    if let Some(fresh) = buffer.draw_one(&mut rng) {
+                                        *transition = fresh;
+                                    }
+                                }
+                            }
+                        }
+                        buffer.gather_metadata_at(&refs[samples.clone()], metadata, samples.start);
+                    }
+                    let stale = std::sync::Mutex::new(Vec::new());
+                    {
+                        let refs = &refs[..];
+                        let obs = &mut obs[samples.start * bytes..samples.end * bytes];
+                        let one = |offset: usize, obs_dst: &mut [u8], next_dst: Option<&mut [u8]>| {
                             let sample = samples.start + offset;
-                            let key = keys.map_or(sample as u64, |keys| keys[sample]);
                             STACK.with(|frames| {
                                 let mut frames = frames.borrow_mut();
-                                frames.resize(stack_bytes + frame_bytes, 0);
+                                if gather(refs[sample], &mut frames) {
+                                    augment(&frames, keys.map_or(sample as u64, |keys| keys[sample]), obs_dst, next_dst);
+                                } else {
+                                    stale.lock().expect("stale list").push(sample);
+                                }
+                            });
+                        };
+                        if with_next {
+                            let next_obs = &mut next_obs[samples.start * bytes..samples.end * bytes];
+                            obs.par_chunks_mut(bytes)
+                                .zip(next_obs.par_chunks_mut(bytes))
+                                .enumerate()
+                                .for_each(|(offset, (obs_dst, next_dst))| one(offset, obs_dst, Some(next_dst)));
+                        } else {
+                            obs.par_chunks_mut(bytes).enumerate().for_each(|(offset, dst)| one(offset, dst, None));
+                        }
+                    }
+                    // Overwritten between the turn's metadata and its frames (rare): drawn again, and
+                    // metadata and frames read under one lock.
+                    for sample in stale.into_inner().expect("stale list") {
+                        let mut frames = Vec::new();
+                        {
+                            let buffer = self.buffer.read().expect("replay lock");
+                            if !buffer.still_holds(refs[sample]) {
+                                if let Some(fresh) = buffer.draw_one(&mut rng) {
+                                    refs[sample] = fresh;
+                                }
+                            }
+                            buffer.gather_metadata_at(&refs[sample..=sample], metadata, sample);
+                            frames.resize(stack_bytes + if with_next { frame_bytes } else { 0 }, 0);
+                            if with_next {
                                 buffer.copy_transition(refs[sample], &mut frames);
-                                plan.apply_sample(&frames[..stack_bytes], obs_dst, &plan.draw(&obs_draws, key));
-                                plan.apply_sample(&frames[frame_bytes..], next_dst, &plan.draw(&next_draws, key));
-                            });
-                        },
-                    );
+                            } else {
+                                buffer.copy_observation(refs[sample], false, &mut frames);
+                            }
+                        }
+                        let key = keys.map_or(sample as u64, |keys| keys[sample]);
+                        let next_dst = if with_next { Some(&mut next_obs[sample * bytes..(sample + 1) * bytes]) } else { None };
+                        augment(&frames, key, &mut obs[sample * bytes..(sample + 1) * bytes], next_dst);
+                    }
                 })
-            })?,
-            Plan::Image(plan) => pool.install(|| {
-                let bytes = self.obs_bytes;
-                for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
-                    let draws = draws.with_view(view);
-                    in_turns(out.len() / bytes, keep_going, |samples| {
-                        let out = &mut out[samples.start * bytes..samples.end * bytes];
-                        out.par_chunks_mut(bytes).enumerate().for_each(|(offset, dst)| {
-                            let sample = samples.start + offset;
-                            let key = keys.map_or(sample as u64, |keys| keys[sample]);
-                            let params = plan.draw(&draws, key);
-                            STACK.with(|stack| {
-                                let mut stack = stack.borrow_mut();
-                                stack.resize(stack_bytes, 0);
-                                buffer.copy_observation(refs[sample], view == View::NextObs, &mut stack);
-                                plan.apply_sample(&stack, dst, &params);
-                            });
-                        });
-                    })?;
-                }
-                Ok::<(), ReplayError>(())
-            })?,
+            });
+        }
+        // State vectors are a few hundred bytes and their augmentations a multiply: the whole batch
+        // under one lock takes less than one image turn.
+        let buffer = self.buffer.read().expect("replay lock");
+        let refs = &batch.refs;
+        buffer.gather_metadata(refs, &mut batch.metadata);
+        match &self.plan {
+            Plan::Image(_) => unreachable!("image batches returned above"),
             Plan::State(plan) => {
                 for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
                     if out.is_empty() {

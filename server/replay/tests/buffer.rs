@@ -446,3 +446,71 @@ fn rollout_requests_are_checked_against_the_buffer() {
     let message = Producer::new(rollout, image, rollout_spec(4, 0, false, "none")).err().unwrap().to_string();
     assert!(message.contains("epochs must be at least 1"), "{message}");
 }
+
+#[test]
+fn transitions_the_buffer_overwrote_are_noticed_and_drawn_again() {
+    let (buffer, expected) = simulate(1, 40, 500, 9);
+    assert!(!buffer.still_holds(TransitionRef { env: 0, frame: 1 }), "step 0 is long gone from a 40-slot ring");
+    assert!(!buffer.still_holds(TransitionRef { env: 3, frame: 499 }), "no such env");
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut metadata = Default::default();
+    for _ in 0..200 {
+        let fresh = buffer.draw_one(&mut rng).expect("the buffer holds transitions");
+        assert!(buffer.still_holds(fresh));
+        buffer.gather_metadata(&[fresh], &mut metadata);
+        let want = &expected[&(metadata.env_indices[0], metadata.step_indices[0])];
+        let mut stack = vec![0u8; 3 * FRAME_BYTES];
+        buffer.copy_observation(fresh, false, &mut stack);
+        assert_eq!(stack, want.obs);
+    }
+    assert_eq!(buffer.counters().samples, 0, "draws that replace stale ones are not counted twice");
+}
+
+/// A session stepping a small buffer while a stream samples it: every sample's frames agree with its
+/// metadata, although the buffer wraps many times while batches are made (the lock is released
+/// between a batch's turns).
+#[test]
+fn samples_stay_consistent_while_the_buffer_is_written() {
+    let layout = ReplayLayout { kind: BufferKind::Replay, capacity: 600, num_envs: 1, frame_stack: 3, frame_bytes: FRAME_BYTES, action_bytes: 2 };
+    let mut buffer = ReplayBuffer::new(layout).unwrap();
+    buffer.record_first_frame(0, &frame(0, 0, 0), 0);
+    for step in 0..600u64 {
+        let next = frame(0, 0, step as u32 + 1);
+        buffer.record_step(0, &RecordedStep { action: &[step as u8, 0], reward: step as f64, terminated: false, truncated: false, next_frame: &next, step_index: step });
+    }
+    let shared = Arc::new(RwLock::new(buffer));
+    let spec = replay_spec(512, "none", Some(60));
+    let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
+    let (mut ready, _recycle) = producer.start(pool, Output::Heap);
+    let writer = {
+        let shared = shared.clone();
+        std::thread::spawn(move || {
+            for step in 600..60_000u64 {
+                let next = frame(0, 0, step as u32 + 1);
+                let recorded = RecordedStep { action: &[step as u8, 0], reward: step as f64, terminated: false, truncated: false, next_frame: &next, step_index: step };
+                shared.write().unwrap().record_step(0, &recorded);
+            }
+        })
+    };
+    let t_of = |bytes: &[u8]| u32::from(bytes[2]) | (u32::from(bytes[3]) << 8);
+    let mut batches = 0;
+    while let Some(batch) = ready.blocking_recv() {
+        let batch = batch.unwrap();
+        for sample in 0..batch.len {
+            let step = batch.metadata.step_indices[sample];
+            assert_eq!(batch.metadata.rewards[sample], step as f32);
+            let stack = &batch.obs[sample * 3 * FRAME_BYTES..][..3 * FRAME_BYTES];
+            let next = &batch.next_obs[sample * 3 * FRAME_BYTES..][..3 * FRAME_BYTES];
+            // Frame t is the observation after step t - 1; the first frame fills the stack.
+            let want = |t: i64| (t.max(0) as u32) & 0xFFFF;
+            for k in 0..3 {
+                assert_eq!(t_of(&stack[k * FRAME_BYTES..]), want(step as i64 - 2 + k as i64), "obs of step {step}");
+                assert_eq!(t_of(&next[k * FRAME_BYTES..]), want(step as i64 - 1 + k as i64), "next_obs of step {step}");
+            }
+        }
+        batches += 1;
+    }
+    writer.join().unwrap();
+    assert_eq!(batches, 60);
+}

@@ -193,6 +193,7 @@ type SharedSampleStream = Pin<Box<dyn Stream<Item = Result<proto::SharedSampleRe
 impl RadServe for RadServeService {
     async fn list_envs(&self, request: Request<proto::ListEnvsRequest>) -> Result<Response<proto::ListEnvsResponse>, Status> {
         let prefix = request.into_inner().prefix;
+        radserve_sim::bounds::check_len("prefix", &prefix, radserve_sim::bounds::MAX_ID_BYTES).map_err(to_status)?;
         let catalog = self.manager.catalog().await.map_err(to_status)?;
         let envs = catalog
             .iter()
