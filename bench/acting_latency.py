@@ -1,0 +1,108 @@
+"""Acting latency while a learner drains augmented batches: p50/p99 of one Step over gRPC, quiet and
+while another thread streams colour-jitter batches as fast as it reads them, in one run.
+
+    .venv/bin/python bench/acting_latency.py [--binary A --binary B ...] [--rounds 3] [--steps 2000]
+
+Two cases, each measured quiet and while draining:
+- own buffer: a dm_control cartpole-balance session (1 env, pixels, `fast` look) with a replay
+  buffer; the learner samples that same buffer, so every Step records into the buffer the stream
+  reads (the replay lock is on the path).
+- other session: gym/CartPole-v1 (1 env, states, no buffer) acting while the learner drains another
+  session's buffer (the augmentation threads and the acting calls share the cores).
+
+With several binaries (a build before a change and after it), rounds alternate between them: these
+machines are noisy, compare ratios within one run.
+"""
+
+import argparse
+import statistics
+import sys
+import threading
+import time
+
+import numpy as np
+
+import radserve
+
+DRAIN = dict(batch_size=128, augment="color_jitter", prefetch=4)
+
+
+def latencies(envs, steps, actions):
+    envs.reset(seed=0)
+    times = []
+    for index in range(steps):
+        started = time.perf_counter()
+        envs.step(actions[index % len(actions)])
+        times.append((time.perf_counter() - started) * 1000)
+    return times
+
+
+def drain(client, session_id, stop, counted):
+    stream = client.sample_batches(session_id, **DRAIN)
+    for _ in stream:
+        counted[0] += 1
+        if stop.is_set():
+            break
+    stream.close()
+
+
+def measure(binary, steps):
+    rows = {}
+    with radserve.LocalServer(workers=2, binary=binary, env={"RADSERVE__SIM__VENV": sys.prefix}) as server:
+        client = radserve.Client(server.address)
+        pixels = client.make_vec("dmc/cartpole-balance", num_envs=1, seed=0, replay_capacity=5000, render_profile="fast")
+        pixel_actions = np.random.default_rng(0).uniform(-1, 1, (64, 1, 1)).astype(np.float32)
+        latencies(pixels, 300, pixel_actions)  # fills the buffer
+        state = client.make_vec("gym/CartPole-v1", num_envs=1, seed=0)
+        state_actions = np.random.default_rng(0).integers(0, 2, (64, 1))
+        for case, envs, actions in [("own buffer (dmc pixels)", pixels, pixel_actions),
+                                    ("other session (CartPole)", state, state_actions)]:
+            count = steps // 4 if envs is pixels else steps
+            quiet = latencies(envs, count, actions)
+            stop, counted = threading.Event(), [0]
+            thread = threading.Thread(target=drain, args=(client, pixels.session_id, stop, counted))
+            thread.start()
+            time.sleep(1.0)
+            started_batches, started = counted[0], time.perf_counter()
+            busy = latencies(envs, count, actions)
+            batches_per_s = (counted[0] - started_batches) / (time.perf_counter() - started)
+            stop.set()
+            thread.join()
+            rows[case] = (quiet, busy, batches_per_s)
+        pixels.close()
+        state.close()
+    return rows
+
+
+def percentile(values, q):
+    return float(np.percentile(values, q))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--binary", action="append", default=None)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=2000)
+    args = parser.parse_args()
+    binaries = args.binary or [None]
+    results = {}
+    for round_index in range(args.rounds):
+        for binary in binaries:
+            for case, row in measure(binary, args.steps).items():
+                results.setdefault((binary or "target/release/radserve", case), []).append(row)
+            print(f"round {round_index + 1}/{args.rounds} {binary or 'default'} done", file=sys.stderr, flush=True)
+
+    print("| build | acting | quiet p50 / p99 ms | while draining p50 / p99 ms | p99 ratio | batches/s drained |")
+    print("|---|---|---:|---:|---:|---:|")
+    for (binary, case), rows in results.items():
+        quiet = [t for row in rows for t in row[0]]
+        busy = [t for row in rows for t in row[1]]
+        rate = statistics.median(row[2] for row in rows)
+        ratios = [percentile(row[1], 99) / percentile(row[0], 99) for row in rows]
+        print(f"| {binary} | {case} | {percentile(quiet, 50):.2f} / {percentile(quiet, 99):.2f} | "
+              f"{percentile(busy, 50):.2f} / {percentile(busy, 99):.2f} | {statistics.median(ratios):.1f}x "
+              f"[{min(ratios):.1f}-{max(ratios):.1f}] | {rate:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
