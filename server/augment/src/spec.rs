@@ -97,7 +97,19 @@ impl Augmentation {
     pub fn domain(&self) -> Domain {
         match self {
             Self::AmplitudeScale { .. } | Self::GaussianNoise { .. } => Domain::State,
-            _ => Domain::Image,
+            // Listed one by one: a new augmentation must say which observations it applies to.
+            Self::Crop { .. }
+            | Self::Translate { .. }
+            | Self::Window { .. }
+            | Self::CenterCrop { .. }
+            | Self::CenterTranslate { .. }
+            | Self::Grayscale { .. }
+            | Self::Cutout { .. }
+            | Self::CutoutColor { .. }
+            | Self::Flip { .. }
+            | Self::Rotate { .. }
+            | Self::RandomConv
+            | Self::ColorJitter { .. } => Domain::Image,
         }
     }
 
