@@ -22,8 +22,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import radserve  # noqa: E402
 from _procs import worker_pids  # noqa: E402
@@ -99,21 +97,21 @@ def client_main(address, slot, sessions, counters, seed):
             time.sleep(0.5)
 
 
+def rss_mib(pid):
+    """Resident memory of a process in MiB (0 when it is gone)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        return int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:"))) / 1024
+    except (FileNotFoundError, StopIteration):
+        return 0.0
+
+
 def server_figures(server, client):
     pid = server.process.pid
-    status = Path(f"/proc/{pid}/status").read_text()
-    rss = int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:"))) / 1024
-    fds = len(os.listdir(f"/proc/{pid}/fd"))
     workers = worker_pids(pid)
-    worker_rss = 0.0
-    for worker in workers:
-        try:
-            text = Path(f"/proc/{worker}/status").read_text()
-            worker_rss += int(next(line.split()[1] for line in text.splitlines() if line.startswith("VmRSS:"))) / 1024
-        except (FileNotFoundError, StopIteration):
-            pass
     sessions = client.list_sessions()
-    return {"rss": rss, "fds": fds, "workers": len(workers), "worker_rss": worker_rss, "sessions": len(sessions),
+    return {"rss": rss_mib(pid), "fds": len(os.listdir(f"/proc/{pid}/fd")), "workers": len(workers),
+            "worker_rss": sum(rss_mib(worker) for worker in workers), "sessions": len(sessions),
             "streams": sum(s.open_streams for s in sessions)}
 
 

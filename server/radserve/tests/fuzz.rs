@@ -334,6 +334,19 @@ async fn within<T>(limit: Duration, future: impl Future<Output = T>) -> Option<T
     tokio::time::timeout(limit, future).await.ok()
 }
 
+/// Reads up to `count` messages of a response stream, waiting at most `wait` for each: the first
+/// error status, if one comes (a stream that ends, or still waits for data, is fine).
+async fn read_some<T>(mut stream: tonic::Streaming<T>, count: usize, wait: Duration) -> Result<(), Status> {
+    for _ in 0..count {
+        match within(wait, stream.next()).await {
+            Some(Some(Ok(_))) => {}
+            Some(Some(Err(status))) => return Err(status),
+            Some(None) | None => break,
+        }
+    }
+    Ok(())
+}
+
 struct Case {
     client: RadServeClient<Channel>,
     base: Vec<String>,
@@ -491,23 +504,9 @@ impl Case {
             }
             Op::Sample(target, mut request) => {
                 request.session_id = self.session(&target);
+                // A few chunks, then the client leaves.
                 match self.client.sample_batches(request).await {
-                    Ok(response) => {
-                        let mut stream = response.into_inner();
-                        let mut outcome = Ok(());
-                        // A few chunks, then the client leaves (streams that wait for data may wait).
-                        for _ in 0..6 {
-                            match within(Duration::from_millis(500), stream.next()).await {
-                                Some(Some(Ok(_))) => {}
-                                Some(Some(Err(status))) => {
-                                    outcome = Err(status);
-                                    break;
-                                }
-                                Some(None) | None => break,
-                            }
-                        }
-                        outcome
-                    }
+                    Ok(response) => read_some(response.into_inner(), 6, Duration::from_millis(500)).await,
                     Err(status) => Err(status),
                 }
             }
@@ -528,25 +527,12 @@ impl Case {
                 // is a test of its own in hardening.rs).
                 let sender = (!release_first).then_some(sender);
                 let requests = tokio_stream::wrappers::ReceiverStream::new(receiver);
-                match self.client.sample_batches_shared(requests).await {
-                    Ok(response) => {
-                        let mut stream = response.into_inner();
-                        let mut outcome = Ok(());
-                        for _ in 0..3 {
-                            match within(Duration::from_millis(500), stream.next()).await {
-                                Some(Some(Ok(_))) => {}
-                                Some(Some(Err(status))) => {
-                                    outcome = Err(status);
-                                    break;
-                                }
-                                Some(None) | None => break,
-                            }
-                        }
-                        drop(sender);
-                        outcome
-                    }
+                let outcome = match self.client.sample_batches_shared(requests).await {
+                    Ok(response) => read_some(response.into_inner(), 3, Duration::from_millis(500)).await,
                     Err(status) => Err(status),
-                }
+                };
+                drop(sender);
+                outcome
             }
         })
     }
@@ -601,14 +587,8 @@ fn runner(default_cases: u32) -> TestRunner {
 
 /// After a property: the server still creates, resets and closes a session, and its task is alive.
 fn still_serves(harness: &Harness) {
-    harness.runtime.block_on(async {
-        let mut client = RadServeClient::new(harness.channel.clone());
-        let request = proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 1, ..Default::default() };
-        let session = client.create_session(request).await.expect("the server still serves").into_inner();
-        client.reset(proto::ResetRequest { session_id: session.session_id.clone(), seed: Some(1) }).await.unwrap();
-        client.close_session(proto::CloseSessionRequest { session_id: session.session_id }).await.unwrap();
-        assert!(!harness.server.task.is_finished());
-    });
+    harness.runtime.block_on(common::still_serves(&mut RadServeClient::new(harness.channel.clone())));
+    assert!(!harness.server.task.is_finished());
 }
 
 #[test]
@@ -733,13 +713,13 @@ fn arbitrary_bytes_as_any_message_get_documented_answers() {
             let outcome: Result<(), Status> = match (client_streams, server_streams) {
                 (false, false) => grpc.unary(tonic::Request::new(body), path, RawCodec).await.map(drop),
                 (false, true) => match grpc.server_streaming(tonic::Request::new(body), path, RawCodec).await {
-                    Ok(response) => first_status(response.into_inner()).await,
+                    Ok(response) => read_some(response.into_inner(), 1, Duration::from_millis(300)).await,
                     Err(status) => Err(status),
                 },
                 (true, _) => {
                     let requests = tokio_stream::iter(vec![body.clone(), body]);
                     match grpc.streaming(tonic::Request::new(requests), path, RawCodec).await {
-                        Ok(response) => first_status(response.into_inner()).await,
+                        Ok(response) => read_some(response.into_inner(), 1, Duration::from_millis(300)).await,
                         Err(status) => Err(status),
                     }
                 }
@@ -775,11 +755,3 @@ fn arbitrary_bytes_as_any_message_get_documented_answers() {
     eprintln!("fuzz: {} raw messages (with shrinking), none crashed the server", executed.into_inner());
 }
 
-/// The first message of a response stream: its status if it is an error (a stream still waiting
-/// after 300 ms is fine).
-async fn first_status(mut stream: tonic::Streaming<Vec<u8>>) -> Result<(), Status> {
-    match within(Duration::from_millis(300), stream.next()).await {
-        Some(Some(Err(status))) => Err(status),
-        _ => Ok(()),
-    }
-}

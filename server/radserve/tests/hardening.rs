@@ -8,7 +8,7 @@ use std::collections::HashMap;
 use std::error::Error as _;
 use std::time::{Duration, Instant};
 
-use common::{connect, start_server, start_server_with};
+use common::{connect, start_server, start_server_with, still_serves};
 use radserve_service::proto::{self, rad_serve_client::RadServeClient};
 use radserve_sim::Limits;
 use tonic::transport::Channel;
@@ -20,13 +20,6 @@ fn cartpole(replay: Option<proto::ReplayOptions>) -> proto::CreateSessionRequest
 
 fn replay_capacity(capacity: u64) -> Option<proto::ReplayOptions> {
     Some(proto::ReplayOptions { capacity, ..Default::default() })
-}
-
-/// The server still creates, resets and closes a session.
-async fn still_serves(client: &mut RadServeClient<Channel>) {
-    let session = client.create_session(cartpole(None)).await.expect("the server still serves").into_inner();
-    client.reset(proto::ResetRequest { session_id: session.session_id.clone(), seed: Some(1) }).await.unwrap();
-    client.close_session(proto::CloseSessionRequest { session_id: session.session_id }).await.unwrap();
 }
 
 /// A CartPole session with a replay buffer holding a few transitions.

@@ -147,6 +147,12 @@ pub struct TransitionRef {
     pub frame: u64,
 }
 
+/// Where draws come from: (oldest sampleable frame, frames written) per env.
+struct Candidates {
+    ranges: Vec<(u64, u64)>,
+    total: u64,
+}
+
 /// Counters for the statistics RPC and the rate limiter.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ReplayCounters {
@@ -360,11 +366,9 @@ impl ReplayBuffer {
     /// Draw `count` transitions uniformly with replacement.
     pub fn sample(&mut self, count: usize, rng: &mut impl Rng, out: &mut Vec<TransitionRef>) -> Result<()> {
         out.clear();
-        let ranges: Vec<(u64, u64)> =
-            (0..self.layout.num_envs).map(|env| (self.oldest_sampleable(env), self.written[env])).collect();
-        let candidates: u64 = ranges.iter().map(|(oldest, written)| written.saturating_sub(*oldest)).sum();
+        let candidates = self.candidates();
         let no_transitions = || ReplayError::FailedPrecondition("the replay buffer holds no transitions yet".into());
-        if candidates == 0 || self.counters.inserts == 0 {
+        if candidates.total == 0 || self.counters.inserts == 0 {
             return Err(no_transitions());
         }
         let mut attempts = 0usize;
@@ -373,22 +377,34 @@ impl ReplayBuffer {
             if attempts > 64 * count + 1024 && out.is_empty() {
                 return Err(no_transitions());
             }
-            // Uniform over (env, frame) candidates; episode-first frames are not transitions: draw again.
-            let mut pick = rng.random_range(0..candidates);
-            let mut env = 0;
-            while pick >= ranges[env].1.saturating_sub(ranges[env].0) {
-                pick -= ranges[env].1.saturating_sub(ranges[env].0);
-                env += 1;
-            }
-            let frame = ranges[env].0 + pick;
-            if self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0 {
-                out.push(TransitionRef { env, frame });
-            }
+            out.extend(self.draw(&candidates, rng));
         }
         self.counters.samples += count as u64;
         self.counters.batches += 1;
         self.recent_batches.record(Instant::now());
         Ok(())
+    }
+
+    /// Each env's sampleable frames now, and how many there are in all.
+    fn candidates(&self) -> Candidates {
+        let ranges: Vec<(u64, u64)> =
+            (0..self.layout.num_envs).map(|env| (self.oldest_sampleable(env), self.written[env])).collect();
+        let total = ranges.iter().map(|(oldest, written)| written.saturating_sub(*oldest)).sum();
+        Candidates { ranges, total }
+    }
+
+    /// One draw, uniform over (env, frame) candidates (`total` > 0); `None` when it picked an
+    /// episode's first frame, which is not a transition (the caller draws again).
+    fn draw(&self, candidates: &Candidates, rng: &mut impl Rng) -> Option<TransitionRef> {
+        let ranges = &candidates.ranges;
+        let mut pick = rng.random_range(0..candidates.total);
+        let mut env = 0;
+        while pick >= ranges[env].1.saturating_sub(ranges[env].0) {
+            pick -= ranges[env].1.saturating_sub(ranges[env].0);
+            env += 1;
+        }
+        let frame = ranges[env].0 + pick;
+        (self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0).then_some(TransitionRef { env, frame })
     }
 
     /// Whether `transition` (drawn earlier) is still in the buffer with its whole stack: false once
@@ -402,25 +418,11 @@ impl ReplayBuffer {
     /// One transition drawn uniformly, as `sample` draws them, without counting it as sampled (it
     /// replaces one of a batch that the buffer no longer holds).
     pub fn draw_one(&self, rng: &mut impl Rng) -> Option<TransitionRef> {
-        let ranges: Vec<(u64, u64)> =
-            (0..self.layout.num_envs).map(|env| (self.oldest_sampleable(env), self.written[env])).collect();
-        let candidates: u64 = ranges.iter().map(|(oldest, written)| written.saturating_sub(*oldest)).sum();
-        if candidates == 0 {
+        let candidates = self.candidates();
+        if candidates.total == 0 {
             return None;
         }
-        for _ in 0..1024 {
-            let mut pick = rng.random_range(0..candidates);
-            let mut env = 0;
-            while pick >= ranges[env].1.saturating_sub(ranges[env].0) {
-                pick -= ranges[env].1.saturating_sub(ranges[env].0);
-                env += 1;
-            }
-            let frame = ranges[env].0 + pick;
-            if self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0 {
-                return Some(TransitionRef { env, frame });
-            }
-        }
-        None
+        (0..1024).find_map(|_| self.draw(&candidates, rng))
     }
 
     /// The transitions of the last `steps` steps of every env, `[t][env]` (t = 0 the oldest),
@@ -505,9 +507,8 @@ impl ReplayBuffer {
     }
 
     /// The same for a part of a batch: `refs` are the batch's transitions from `start` on (the
-    /// batch already has its length).
+    /// batch already has its length: `TransitionMetadata::resize`).
     pub fn gather_metadata_at(&self, refs: &[TransitionRef], batch: &mut TransitionMetadata, start: usize) {
-        batch.resize(batch.len.max(start + refs.len()), self.layout.action_bytes);
         let action_bytes = self.layout.action_bytes;
         for (index, transition) in refs.iter().enumerate() {
             let index = start + index;
@@ -539,7 +540,7 @@ pub struct TransitionMetadata {
 }
 
 impl TransitionMetadata {
-    fn resize(&mut self, len: usize, action_bytes: usize) {
+    pub(crate) fn resize(&mut self, len: usize, action_bytes: usize) {
         self.len = len;
         self.actions.resize(len * action_bytes, 0);
         self.rewards.resize(len, 0.0);

@@ -475,116 +475,108 @@ impl Producer {
         };
         let next_obs = if self.spec.include_next_obs { &mut next_obs[..observation_len] } else { &mut next_obs[..0] };
         let obs = &mut obs[..observation_len];
-        if let Plan::Image(plan) = &self.plan {
-            // Rollouts visit fixed (t, env) transitions; only replay samples are drawn again.
-            let redraw = matches!(self.spec.source, Source::Replay);
-            let mut rng = ChaCha8Rng::seed_from_u64(draw_seed ^ 0x5EED_0F_D2A5);
-            let (refs, metadata) = (&mut batch.refs, &mut batch.metadata);
-            self.buffer.read().expect("replay lock").gather_metadata(&[], metadata);
-            let bytes = self.obs_bytes;
-            let (obs_draws, next_draws) = (draws.with_view(View::Obs), draws.with_view(View::NextObs));
-            let with_next = !next_obs.is_empty();
-            let (frame_bytes, stack_bytes) = {
-                let buffer = self.buffer.read().expect("replay lock");
-                (buffer.layout().frame_bytes, buffer.layout().frame_stack * buffer.layout().frame_bytes)
-            };
-            // One sample's frames, copied under a read lock of their own: false (nothing copied) when
-            // the buffer no longer holds the transition. With next_obs, stack + 1 frames serve both
-            // stacks (a third less reading).
-            let gather = |transition: TransitionRef, frames: &mut Vec<u8>| -> bool {
-                let buffer = self.buffer.read().expect("replay lock");
-                if redraw && !buffer.still_holds(transition) {
-                    return false;
-                }
-                if with_next {
-                    frames.resize(stack_bytes + frame_bytes, 0);
-                    buffer.copy_transition(transition, frames);
-                } else {
-                    frames.resize(stack_bytes, 0);
-                    buffer.copy_observation(transition, false, frames);
-                }
-                true
-            };
-            let augment = |frames: &[u8], key: u64, obs_dst: &mut [u8], next_dst: Option<&mut [u8]>| {
-                plan.apply_sample(&frames[..stack_bytes], obs_dst, &plan.draw(&obs_draws, key));
-                if let Some(next_dst) = next_dst {
-                    plan.apply_sample(&frames[frame_bytes..], next_dst, &plan.draw(&next_draws, key));
-                }
-            };
-            return pool.install(|| {
-                in_turns(size, keep_going, |samples| {
-                    {
-                        let buffer = self.buffer.read().expect("replay lock");
-                        if redraw {
-                            for transition in &mut refs[samples.clone()] {
-                                if !buffer.still_holds(*transition) {
-                                    if let Some(fresh) = buffer.draw_one(&mut rng) {
-                                        *transition = fresh;
-                                    }
-                                }
-                            }
-                        }
-                        buffer.gather_metadata_at(&refs[samples.clone()], metadata, samples.start);
-                    }
-                    let stale = std::sync::Mutex::new(Vec::new());
-                    {
-                        let refs = &refs[..];
-                        let obs = &mut obs[samples.start * bytes..samples.end * bytes];
-                        let one = |offset: usize, obs_dst: &mut [u8], next_dst: Option<&mut [u8]>| {
-                            let sample = samples.start + offset;
-                            STACK.with(|frames| {
-                                let mut frames = frames.borrow_mut();
-                                if gather(refs[sample], &mut frames) {
-                                    augment(&frames, keys.map_or(sample as u64, |keys| keys[sample]), obs_dst, next_dst);
-                                } else {
-                                    stale.lock().expect("stale list").push(sample);
-                                }
-                            });
-                        };
-                        if with_next {
-                            let next_obs = &mut next_obs[samples.start * bytes..samples.end * bytes];
-                            obs.par_chunks_mut(bytes)
-                                .zip(next_obs.par_chunks_mut(bytes))
-                                .enumerate()
-                                .for_each(|(offset, (obs_dst, next_dst))| one(offset, obs_dst, Some(next_dst)));
-                        } else {
-                            obs.par_chunks_mut(bytes).enumerate().for_each(|(offset, dst)| one(offset, dst, None));
+        match &self.plan {
+            Plan::Image(plan) => {
+                // Rollouts visit fixed (t, env) transitions; only replay samples are drawn again.
+                let redraw = matches!(self.spec.source, Source::Replay);
+                let mut rng = ChaCha8Rng::seed_from_u64(draw_seed ^ 0x5EED_0F_D2A5);
+                let (refs, metadata) = (&mut batch.refs, &mut batch.metadata);
+                let (frame_bytes, stack_bytes) = {
+                    let buffer = self.buffer.read().expect("replay lock");
+                    let layout = buffer.layout();
+                    metadata.resize(size, layout.action_bytes);
+                    (layout.frame_bytes, layout.frame_stack * layout.frame_bytes)
+                };
+                let bytes = self.obs_bytes;
+                let (obs_draws, next_draws) = (draws.with_view(View::Obs), draws.with_view(View::NextObs));
+                let with_next = !next_obs.is_empty();
+                // A transition the buffer overwrote since it was drawn is replaced by a fresh draw.
+                let refresh = |buffer: &ReplayBuffer, transition: &mut TransitionRef, rng: &mut ChaCha8Rng| {
+                    if redraw && !buffer.still_holds(*transition) {
+                        if let Some(fresh) = buffer.draw_one(rng) {
+                            *transition = fresh;
                         }
                     }
-                    // Overwritten between the turn's metadata and its frames (rare): drawn again, and
-                    // metadata and frames read under one lock.
-                    for sample in stale.into_inner().expect("stale list") {
-                        let mut frames = Vec::new();
+                };
+                // A sample's frames; with next_obs, stack + 1 frames serve both stacks (a third less
+                // reading).
+                let copy = |buffer: &ReplayBuffer, transition: TransitionRef, frames: &mut Vec<u8>| {
+                    if with_next {
+                        frames.resize(stack_bytes + frame_bytes, 0);
+                        buffer.copy_transition(transition, frames);
+                    } else {
+                        frames.resize(stack_bytes, 0);
+                        buffer.copy_observation(transition, false, frames);
+                    }
+                };
+                let augment = |frames: &[u8], key: u64, obs_dst: &mut [u8], next_dst: Option<&mut [u8]>| {
+                    plan.apply_sample(&frames[..stack_bytes], obs_dst, &plan.draw(&obs_draws, key));
+                    if let Some(next_dst) = next_dst {
+                        plan.apply_sample(&frames[frame_bytes..], next_dst, &plan.draw(&next_draws, key));
+                    }
+                };
+                let key = |sample: usize| keys.map_or(sample as u64, |keys| keys[sample]);
+                pool.install(|| {
+                    in_turns(size, keep_going, |samples| {
                         {
                             let buffer = self.buffer.read().expect("replay lock");
-                            if !buffer.still_holds(refs[sample]) {
-                                if let Some(fresh) = buffer.draw_one(&mut rng) {
-                                    refs[sample] = fresh;
-                                }
+                            for transition in &mut refs[samples.clone()] {
+                                refresh(&buffer, transition, &mut rng);
                             }
-                            buffer.gather_metadata_at(&refs[sample..=sample], metadata, sample);
-                            frames.resize(stack_bytes + if with_next { frame_bytes } else { 0 }, 0);
+                            buffer.gather_metadata_at(&refs[samples.clone()], metadata, samples.start);
+                        }
+                        let stale = std::sync::Mutex::new(Vec::new());
+                        {
+                            let refs = &refs[..];
+                            let obs = &mut obs[samples.start * bytes..samples.end * bytes];
+                            // Copied under a read lock of its own, augmented without it; set aside
+                            // when the buffer overwrote it after the turn's metadata was read.
+                            let one = |offset: usize, obs_dst: &mut [u8], next_dst: Option<&mut [u8]>| {
+                                let sample = samples.start + offset;
+                                STACK.with(|frames| {
+                                    let mut frames = frames.borrow_mut();
+                                    {
+                                        let buffer = self.buffer.read().expect("replay lock");
+                                        if redraw && !buffer.still_holds(refs[sample]) {
+                                            stale.lock().expect("stale list").push(sample);
+                                            return;
+                                        }
+                                        copy(&buffer, refs[sample], &mut frames);
+                                    }
+                                    augment(&frames, key(sample), obs_dst, next_dst);
+                                });
+                            };
                             if with_next {
-                                buffer.copy_transition(refs[sample], &mut frames);
+                                let next_obs = &mut next_obs[samples.start * bytes..samples.end * bytes];
+                                obs.par_chunks_mut(bytes)
+                                    .zip(next_obs.par_chunks_mut(bytes))
+                                    .enumerate()
+                                    .for_each(|(offset, (obs_dst, next_dst))| one(offset, obs_dst, Some(next_dst)));
                             } else {
-                                buffer.copy_observation(refs[sample], false, &mut frames);
+                                obs.par_chunks_mut(bytes).enumerate().for_each(|(offset, dst)| one(offset, dst, None));
                             }
                         }
-                        let key = keys.map_or(sample as u64, |keys| keys[sample]);
-                        let next_dst = if with_next { Some(&mut next_obs[sample * bytes..(sample + 1) * bytes]) } else { None };
-                        augment(&frames, key, &mut obs[sample * bytes..(sample + 1) * bytes], next_dst);
-                    }
-                })
-            });
-        }
-        // State vectors are a few hundred bytes and their augmentations a multiply: the whole batch
-        // under one lock takes less than one image turn.
-        let buffer = self.buffer.read().expect("replay lock");
-        let refs = &batch.refs;
-        buffer.gather_metadata(refs, &mut batch.metadata);
-        match &self.plan {
-            Plan::Image(_) => unreachable!("image batches returned above"),
+                        // Rare: drawn again, with metadata and frames read under one lock.
+                        for sample in stale.into_inner().expect("stale list") {
+                            let mut frames = Vec::new();
+                            {
+                                let buffer = self.buffer.read().expect("replay lock");
+                                refresh(&buffer, &mut refs[sample], &mut rng);
+                                buffer.gather_metadata_at(&refs[sample..=sample], metadata, sample);
+                                copy(&buffer, refs[sample], &mut frames);
+                            }
+                            let next_dst = with_next.then(|| &mut next_obs[sample * bytes..(sample + 1) * bytes]);
+                            augment(&frames, key(sample), &mut obs[sample * bytes..(sample + 1) * bytes], next_dst);
+                        }
+                    })
+                })?;
+            }
+            // State vectors are a few hundred bytes and their augmentations a multiply: the whole
+            // batch under one lock takes less than one image turn.
             Plan::State(plan) => {
+                let buffer = self.buffer.read().expect("replay lock");
+                let refs = &batch.refs;
+                buffer.gather_metadata(refs, &mut batch.metadata);
                 for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
                     if out.is_empty() {
                         continue;

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use radserve::ServerSettings;
-use radserve_service::proto;
+use radserve_service::proto::{self, rad_serve_client::RadServeClient};
 use radserve_sim::{GlBackend, Limits, SessionManager};
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
@@ -51,6 +51,14 @@ pub async fn start_server_with(limits: Limits, adjust: impl FnOnce(&mut ServerSe
 
 pub async fn connect(address: &str) -> Channel {
     Channel::from_shared(address.to_string()).unwrap().connect().await.unwrap()
+}
+
+/// The server still creates, resets and closes a session.
+pub async fn still_serves(client: &mut RadServeClient<Channel>) {
+    let request = proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 1, ..Default::default() };
+    let session = client.create_session(request).await.expect("the server still serves").into_inner();
+    client.reset(proto::ResetRequest { session_id: session.session_id.clone(), seed: Some(1) }).await.unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id: session.session_id }).await.unwrap();
 }
 
 pub fn f32_tensor(shape: &[i64], values: &[f32]) -> proto::Tensor {
