@@ -6,7 +6,7 @@ use std::path::Path;
 use anyhow::{bail, Context};
 use radserve_augment::speed::{self, Measurement};
 use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline};
-use radserve_sim::{DType, OptionValue, Options, SessionExtras, SessionManager, Space};
+use radserve_core::{DType, OptionValue, Options, SessionExtras, SessionManager, Space};
 
 /// The paper's cases: crop/translate/window on 100x100 renders, the rest on 84x84 crops, three
 /// stacked RGB frames per sample.

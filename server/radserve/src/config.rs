@@ -9,7 +9,8 @@ use std::time::Duration;
 use anyhow::{bail, Context};
 use figment::providers::{Env, Format, Serialized, Toml};
 use figment::Figment;
-use radserve_sim::{GlBackend, Limits};
+use radserve_core::Limits;
+use radserve_sim::GlBackend;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]

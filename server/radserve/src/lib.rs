@@ -11,7 +11,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use radserve_service::{proto::FILE_DESCRIPTOR_SET, RadServeServer, RadServeService, MAX_MESSAGE_BYTES};
-use radserve_sim::{GlBackend, Limits, SessionManager, WorkerLauncher, WorkerPool};
+use radserve_core::{Limits, SessionManager};
+use radserve_sim::{GlBackend, WorkerLauncher, WorkerPool};
 use tokio::net::TcpListener;
 use tracing::{info, warn};
 
@@ -29,14 +30,16 @@ pub struct ServerSettings {
     pub worker_create_timeout: Duration,
 }
 
-pub fn session_manager(settings: ServerSettings) -> Arc<SessionManager> {
+/// The worker pool and the sessions hosted in it. The pool is returned too, for an exit that
+/// cannot wait (`WorkerPool::kill_all`).
+pub fn session_manager(settings: ServerSettings) -> (Arc<SessionManager>, Arc<WorkerPool>) {
     let launcher = WorkerLauncher {
         call_timeout: settings.worker_call_timeout,
         create_timeout: settings.worker_create_timeout,
         ..WorkerLauncher::new(settings.worker_program, settings.venv, settings.gl)
     };
-    let pool = WorkerPool::start(launcher, settings.workers);
-    Arc::new(SessionManager::new(pool, settings.limits))
+    let pool = Arc::new(WorkerPool::start(launcher, settings.workers));
+    (Arc::new(SessionManager::new(pool.clone(), settings.limits)), pool)
 }
 
 /// How the server serves and stops (the `[server]` and `[augment]` sections of the configuration).

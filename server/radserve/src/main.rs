@@ -5,7 +5,8 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use radserve::config::Config;
 use radserve::ServerSettings;
-use radserve_sim::{GlBackend, Space, WorkerArgs};
+use radserve_core::Space;
+use radserve_sim::{GlBackend, WorkerArgs};
 use tokio::net::TcpListener;
 use tracing::info;
 
@@ -145,16 +146,15 @@ async fn run(command: Command) -> anyhow::Result<()> {
             info!(address = %bound, workers = settings.workers, venv = %settings.venv.display(), gl = settings.gl.name(), "radserve starting");
             // The one line on stdout: launchers (the Python client's, the tests') read the port here.
             println!("radserve listening on {bound}");
-            let manager = radserve::session_manager(settings);
+            let (manager, workers) = radserve::session_manager(settings);
             let (first_signal, signalled) = tokio::sync::oneshot::channel::<()>();
-            let workers = manager.clone();
             tokio::spawn(async move {
                 shutdown_signal().await;
                 let _ = first_signal.send(());
                 // A second signal while draining: exit now, taking the workers along.
                 shutdown_signal().await;
                 tracing::warn!("second signal: exiting without draining");
-                workers.pool().kill_all();
+                workers.kill_all();
                 std::process::exit(130);
             });
             radserve::serve(listener, manager, config.serve_options(), async {
@@ -165,7 +165,7 @@ async fn run(command: Command) -> anyhow::Result<()> {
         Command::Envs { prefix, config } => {
             let mut config = Config::load(config.as_deref())?;
             config.sim.workers = 1;
-            let manager = radserve::session_manager(settings(&config)?);
+            let (manager, _workers) = radserve::session_manager(settings(&config)?);
             let catalog = manager.catalog().await?;
             println!("{:<36} {:<40} action", "id", "observation");
             for entry in catalog.iter().filter(|entry| entry.id.full().starts_with(&prefix)) {
@@ -184,7 +184,7 @@ async fn run(command: Command) -> anyhow::Result<()> {
         Command::AugmentPreview { env, seed, columns, out, config } => {
             let mut config = Config::load(config.as_deref())?;
             config.sim.workers = 1;
-            let manager = radserve::session_manager(settings(&config)?);
+            let (manager, _workers) = radserve::session_manager(settings(&config)?);
             let result = radserve::augment_cli::preview(&manager, &env, seed, columns.max(1), &out).await;
             manager.shutdown().await;
             result

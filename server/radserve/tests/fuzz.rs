@@ -19,7 +19,7 @@ use proptest::prelude::*;
 use proptest::test_runner::{TestCaseError, TestRunner};
 use prost::bytes::{Buf, BufMut};
 use radserve_service::proto::{self, rad_serve_client::RadServeClient};
-use radserve_sim::Limits;
+use radserve_core::Limits;
 use tokio::runtime::Runtime;
 use tokio_stream::StreamExt;
 use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
@@ -539,7 +539,7 @@ impl Case {
 
     /// Closes what the case created, checks the server still serves, and waits for every
     /// reservation of the case (sessions, streams, channels) to be returned.
-    async fn finish(mut self, baseline: u64, manager: &radserve_sim::SessionManager) -> Result<(), TestCaseError> {
+    async fn finish(mut self, baseline: u64, manager: &radserve_core::SessionManager) -> Result<(), TestCaseError> {
         for session_id in std::mem::take(&mut self.created) {
             let result = self.client.close_session(proto::CloseSessionRequest { session_id }).await;
             if let Err(status) = result {

@@ -4,7 +4,7 @@ mod common;
 
 use common::{connect, f32_tensor, start_server};
 use radserve_service::proto::{self, rad_serve_client::RadServeClient};
-use radserve_sim::Limits;
+use radserve_core::Limits;
 use tokio_stream::StreamExt;
 use tonic::Code;
 

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use common::{connect, start_server, start_server_with, still_serves};
 use radserve_service::proto::{self, rad_serve_client::RadServeClient};
-use radserve_sim::Limits;
+use radserve_core::Limits;
 use tonic::transport::Channel;
 use tonic::Code;
 

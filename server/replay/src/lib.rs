@@ -15,4 +15,4 @@ pub use buffer::{
 };
 pub use error::{ReplayError, Result};
 pub use producer::{Batch, ObservationFormat, Output, Producer, Recycler, SampleSpec, Source, MAX_BATCH_BYTES};
-pub use shared::{random_token, SharedRing, Slot, SHARED_HEADER_BYTES, SHARED_MAGIC};
+pub use shared::{SharedRing, Slot, SHARED_HEADER_BYTES, SHARED_MAGIC};

@@ -2,19 +2,16 @@
 //! augments straight into a slot, the learner maps the same memory and reads the batch where it
 //! lies, so no observation byte goes through a socket.
 //!
-//! The memory is an anonymous memory file (`memfd_create`), as for the workers' frames: the learner
-//! opens it through `/proc/<server pid>/fd/<fd>`, nothing is left in `/dev/shm` when either process
-//! dies, and a learner's mapping stays valid after the server closes its descriptor. A slot belongs
+//! The memory is a [`MemFile`], as for the workers' frames and acting: the learner opens it through
+//! its `/proc` path and checks the header's token. A slot belongs
 //! to exactly one holder at a time: the free list, the producer filling it, or the transport until
 //! the learner releases it. [`Slot`] is that ownership; dropping it puts the slot back.
 
-use std::fs::File;
 use std::io;
-use std::os::fd::{AsRawFd, FromRawFd};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
-use memmap2::MmapMut;
+use radserve_shm::MemFile;
 
 /// Bytes 0..16 of the header: what this memory is.
 pub const SHARED_MAGIC: &[u8; 16] = b"radserve-batches";
@@ -24,9 +21,8 @@ pub const SHARED_HEADER_BYTES: usize = 4096;
 const REGION_ALIGN: usize = 64;
 
 pub struct SharedRing {
-    file: File,
     /// Owned for the ring's life; slots write through `base`, which points into it.
-    _map: MmapMut,
+    memory: MemFile,
     base: *mut u8,
     token: [u8; 16],
     slots: usize,
@@ -37,7 +33,7 @@ pub struct SharedRing {
     freed: Condvar,
 }
 
-// SAFETY: `base` points into `_map`, which lives as long as the ring; each slot's bytes are written
+// SAFETY: `base` points into `memory`, which lives as long as the ring; each slot's bytes are written
 // only by the one `Slot` that owns its index (the free list hands an index to one owner at a time).
 unsafe impl Send for SharedRing {}
 // SAFETY: as above; shared access goes through the free list's mutex.
@@ -50,27 +46,14 @@ impl SharedRing {
         let region_bytes = region_bytes.next_multiple_of(REGION_ALIGN);
         let slot_bytes = (2 * region_bytes).next_multiple_of(SHARED_HEADER_BYTES);
         let len = SHARED_HEADER_BYTES + slots.max(1) * slot_bytes;
-        let name = c"radserve-batches";
-        // SAFETY: `name` is a valid C string; the returned descriptor is checked and then owned by `File`.
-        let fd = unsafe { libc::memfd_create(name.as_ptr(), libc::MFD_CLOEXEC) };
-        if fd < 0 {
-            return Err(io::Error::last_os_error());
-        }
-        // SAFETY: `fd` is a fresh descriptor that nothing else owns.
-        let file = unsafe { File::from_raw_fd(fd) };
-        file.set_len(len as u64)?;
-        // SAFETY: the file is ours and sized above; the learner maps it too, but writes only slots the
-        // server has handed it (and the server reads nothing back from it).
-        let mut map = unsafe { MmapMut::map_mut(&file)? };
-        let token = random_token()?;
-        map[..16].copy_from_slice(SHARED_MAGIC);
-        map[16..32].copy_from_slice(&token);
-        let base = map.as_mut_ptr();
+        // The learner maps it too, but writes only slots the server has handed it (and the server
+        // reads nothing back from it).
+        let (mut memory, header) = MemFile::create_with_header(c"radserve-batches", len, SHARED_MAGIC)?;
+        let base = memory.as_mut_ptr();
         Ok(Arc::new(SharedRing {
-            file,
-            _map: map,
+            memory,
             base,
-            token,
+            token: header.token,
             slots,
             slot_bytes,
             region_bytes,
@@ -81,15 +64,12 @@ impl SharedRing {
 
     /// The path another process of the same user opens to map this memory.
     pub fn path(&self) -> String {
-        format!("/proc/{}/fd/{}", std::process::id(), self.file.as_raw_fd())
+        self.memory.proc_path()
     }
 
-    pub fn len(&self) -> usize {
+    /// Bytes of the memory: the header page and every slot.
+    pub fn size_bytes(&self) -> usize {
         SHARED_HEADER_BYTES + self.slots * self.slot_bytes
-    }
-
-    pub fn is_empty(&self) -> bool {
-        false
     }
 
     pub fn token(&self) -> [u8; 16] {
@@ -177,17 +157,6 @@ impl std::fmt::Debug for Slot {
     }
 }
 
-/// 16 random bytes from the kernel: a token that tells a client it mapped the memory it was told of.
-pub fn random_token() -> io::Result<[u8; 16]> {
-    let mut token = [0u8; 16];
-    // SAFETY: writes at most 16 bytes into `token`.
-    let written = unsafe { libc::getrandom(token.as_mut_ptr().cast(), token.len(), 0) };
-    if written != token.len() as isize {
-        return Err(io::Error::last_os_error());
-    }
-    Ok(token)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -199,10 +168,9 @@ mod tests {
         let (obs, next_obs) = slot.regions_mut(1000);
         obs.fill(7);
         next_obs.fill(9);
-        let file = std::fs::File::open(ring.path()).unwrap();
-        // SAFETY: read-only view of a file this test owns.
-        let peer = unsafe { memmap2::Mmap::map(&file).unwrap() };
-        assert_eq!(peer.len(), ring.len());
+        let peer = MemFile::open(&ring.path()).unwrap();
+        let peer = peer.as_slice();
+        assert_eq!(peer.len(), ring.size_bytes());
         assert_eq!(&peer[..16], SHARED_MAGIC);
         assert_eq!(peer[16..32], ring.token());
         assert!(peer[slot.obs_offset()..][..1000].iter().all(|&b| b == 7));

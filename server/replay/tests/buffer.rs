@@ -224,9 +224,9 @@ fn shared_output_writes_the_same_batches_into_slots_and_waits_for_free_ones() {
     let second = ready.blocking_recv().unwrap().unwrap();
     std::thread::sleep(std::time::Duration::from_millis(100));
     assert!(ready.try_recv().is_err(), "both slots are held: the third batch must wait for one");
-    let file = std::fs::File::open(ring.path()).unwrap();
-    // SAFETY: a read-only view of memory the producer no longer writes into for these batches.
-    let peer = unsafe { memmap2::Mmap::map(&file).unwrap() };
+    // The learner's view: memory the producer no longer writes into for these batches.
+    let peer = radserve_shm::MemFile::open(&ring.path()).unwrap();
+    let peer = peer.as_slice();
     let slot_bytes = |batch: &radserve_replay::Batch, next: bool| {
         let slot = batch.slot.as_ref().expect("shared batches carry their slot");
         let offset = if next { slot.next_obs_offset() } else { slot.obs_offset() };

@@ -18,8 +18,8 @@ use std::os::linux::net::SocketAddrExt;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use radserve_sim::shm::SharedFrames;
-use radserve_sim::{LeaseHold, SessionManager};
+use radserve_shm::{Header, MemFile};
+use radserve_core::{LeaseHold, SessionManager};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{UnixListener, UnixStream};
 use tokio::time::{timeout_at, Instant};
@@ -110,13 +110,13 @@ impl Drop for ChannelClaim {
 pub struct ActingChannel {
     manager: Arc<SessionManager>,
     layout: ActingLayout,
-    memory: SharedFrames,
+    memory: MemFile,
     token: [u8; 16],
     listener: UnixListener,
     _claim: ChannelClaim,
     /// An open channel keeps its session's lease alive.
     _lease: LeaseHold,
-    _memory: radserve_sim::budget::Reservation,
+    _memory: radserve_core::budget::Reservation,
 }
 
 /// Creates the region and the socket for `session_id`; the description goes to the client, the
@@ -145,15 +145,12 @@ pub async fn open(
         .reserve_memory(layout.len as u64, &format!("a shared-memory acting channel of {} bytes", layout.len))
         .map_err(to_status)?;
     let internal = |what: &str, error: io::Error| Status::internal(format!("{what}: {error}"));
-    let mut memory = SharedFrames::create(layout.len)
-        .map_err(|error| to_status(radserve_sim::session::resource_error("creating the acting memory", &error)))?;
-    let token = radserve_replay::random_token().map_err(|error| internal("drawing a token", error))?;
-    memory.as_mut_slice()[..16].copy_from_slice(ACTING_MAGIC);
-    memory.as_mut_slice()[16..32].copy_from_slice(&token);
+    let (memory, Header { token, .. }) = MemFile::create_with_header(c"radserve-acting", layout.len, ACTING_MAGIC)
+        .map_err(|error| to_status(radserve_core::error::resource_error("creating the acting memory", &error)))?;
     let name = format!("radserve-acting-{}-{}", std::process::id(), hex(&token[..8]));
     let listener = bind_abstract(&name).map_err(|error| internal("binding the acting socket", error))?;
     let description = proto::SharedActingChannel {
-        path: memory.child_path(),
+        path: memory.proc_path(),
         size: memory.len() as u64,
         token: token.to_vec(),
         socket: name,

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use radserve_augment::{Pipeline, Sharing};
 use radserve_replay::{Batch, SampleSpec, Slot, Source};
-use radserve_sim::{
+use radserve_core::{
     BufferRequest, CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, SessionSummary, Space, StepOutcome,
 };
 use tonic::Status;
@@ -171,7 +171,7 @@ pub fn chunk_bytes(requested: u32) -> Result<usize, Status> {
 /// A typed pipeline's stages in the text form, every name and key checked to be a plain name first
 /// (so that no key can carry text that the parser would read as more stages or arguments).
 fn typed_pipeline_text(typed: &proto::AugmentationPipeline) -> Result<String, Status> {
-    use radserve_sim::bounds::clip;
+    use radserve_core::bounds::clip;
     let plain = |text: &str| !text.is_empty() && text.len() <= 32 && text.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
     if typed.stages.len() > radserve_augment::MAX_STAGES {
         return Err(Status::invalid_argument(format!(

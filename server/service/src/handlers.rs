@@ -2,7 +2,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use radserve_sim::{SessionExtras, SessionManager};
+use radserve_core::{SessionExtras, SessionManager};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
@@ -155,7 +155,7 @@ impl RadServeService {
 
     /// A stream's batches produced ahead must fit the server's per-stream limit and its memory
     /// budget; the reservation is held for as long as the stream runs.
-    fn reserve_stream_memory(&self, producer: &Producer) -> Result<radserve_sim::budget::Reservation, Status> {
+    fn reserve_stream_memory(&self, producer: &Producer) -> Result<radserve_core::budget::Reservation, Status> {
         self.check_stream_memory(producer)?;
         let what = format!("a sample stream of (prefetch {} + 2) batches", producer.prefetch());
         self.manager.reserve_memory(producer.stream_memory_bytes(), &what).map_err(to_status)
@@ -193,7 +193,7 @@ type SharedSampleStream = Pin<Box<dyn Stream<Item = Result<proto::SharedSampleRe
 impl RadServe for RadServeService {
     async fn list_envs(&self, request: Request<proto::ListEnvsRequest>) -> Result<Response<proto::ListEnvsResponse>, Status> {
         let prefix = request.into_inner().prefix;
-        radserve_sim::bounds::check_len("prefix", &prefix, radserve_sim::bounds::MAX_ID_BYTES).map_err(to_status)?;
+        radserve_core::bounds::check_len("prefix", &prefix, radserve_core::bounds::MAX_ID_BYTES).map_err(to_status)?;
         let catalog = self.manager.catalog().await.map_err(to_status)?;
         let envs = catalog
             .iter()
@@ -434,7 +434,7 @@ impl RadServe for RadServeService {
         })?;
         let region = proto::SharedMemoryRegion {
             path: ring.path(),
-            size: ring.len() as u64,
+            size: ring.size_bytes() as u64,
             token: ring.token().to_vec(),
             slots: ring.slots() as u32,
             slot_bytes: ring.slot_bytes() as u64,

@@ -303,9 +303,9 @@ impl WorkerPool {
 }
 
 async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Receiver<Job>, state: Arc<WorkerState>) {
-    // The requests that built each hosted group, replayed into a replacement process.
-    let mut replay: BTreeMap<u64, Vec<Request>> = BTreeMap::new();
-    let mut process = start(index, &launcher, &state, &replay).await.ok();
+    // The requests that built each hosted group, sent again to a replacement process.
+    let mut rebuilds: BTreeMap<u64, Vec<Request>> = BTreeMap::new();
+    let mut process = start(index, &launcher, &state, &rebuilds).await.ok();
     // Why the current process replaced the previous one, for sessions that learn of it later.
     let mut last_restart = String::new();
     while let Some(job) = jobs.recv().await {
@@ -319,7 +319,7 @@ async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Recei
             continue;
         }
         if process.is_none() {
-            match start(index, &launcher, &state, &replay).await {
+            match start(index, &launcher, &state, &rebuilds).await {
                 Ok(started) => process = Some(started),
                 Err(err) => {
                     let _ = job.reply.send(Err(WorkerFault::Unavailable(format!("cannot start worker {index}: {err}"))));
@@ -330,7 +330,7 @@ async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Recei
         let worker = process.as_mut().expect("started above");
         match worker.call_within(&job.request, launcher.timeout_for(&job.request)).await {
             Ok(response) => {
-                remember(&mut replay, &job.request, &response);
+                remember(&mut rebuilds, &job.request, &response);
                 let _ = job.reply.send(Ok((response, generation)));
             }
             Err(err) => {
@@ -342,7 +342,7 @@ async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Recei
                     warn!(worker = index, error = %err, status = %status, "worker died, replacing it");
                 }
                 if let Request::CloseGroup { group } = &job.request {
-                    replay.remove(group);
+                    rebuilds.remove(group);
                 }
                 let fault = if stuck {
                     format!("simulator worker {index} did not answer within {} s ({err}); it was killed and restarted",
@@ -353,7 +353,7 @@ async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Recei
                 last_restart.clone_from(&fault);
                 // The generation changes before the new process exists: requests of the old one are refused.
                 state.restarts.fetch_add(1, Ordering::AcqRel);
-                process = start(index, &launcher, &state, &replay).await.ok();
+                process = start(index, &launcher, &state, &rebuilds).await.ok();
                 let _ = job.reply.send(Err(WorkerFault::Crashed(fault)));
             }
         }
@@ -364,12 +364,12 @@ async fn start(
     index: usize,
     launcher: &WorkerLauncher,
     state: &WorkerState,
-    replay: &BTreeMap<u64, Vec<Request>>,
+    rebuilds: &BTreeMap<u64, Vec<Request>>,
 ) -> io::Result<WorkerProcess> {
     let mut process = launcher.spawn().await.inspect_err(|err| warn!(worker = index, error = %err, "cannot start worker"))?;
     state.pid.store(process.pid().unwrap_or(0), Ordering::Relaxed);
-    info!(worker = index, pid = process.pid().unwrap_or(0), groups = replay.len(), "worker started");
-    for (group, requests) in replay {
+    info!(worker = index, pid = process.pid().unwrap_or(0), groups = rebuilds.len(), "worker started");
+    for (group, requests) in rebuilds {
         for request in requests {
             match process.call_within(request, launcher.create_timeout).await {
                 Ok(Response::Failed(message)) => warn!(worker = index, group, %message, "could not rebuild group"),
@@ -384,19 +384,19 @@ async fn start(
     Ok(process)
 }
 
-fn remember(replay: &mut BTreeMap<u64, Vec<Request>>, request: &Request, response: &Response) {
+fn remember(rebuilds: &mut BTreeMap<u64, Vec<Request>>, request: &Request, response: &Response) {
     match (request, response) {
         (Request::CreateGroup(config), Response::Created(_)) => {
-            replay.insert(config.group, vec![request.clone()]);
+            rebuilds.insert(config.group, vec![request.clone()]);
         }
         (Request::Attach { group, .. }, Response::Attached) => {
-            if let Some(requests) = replay.get_mut(group) {
+            if let Some(requests) = rebuilds.get_mut(group) {
                 requests.truncate(1);
                 requests.push(request.clone());
             }
         }
         (Request::CloseGroup { group }, _) => {
-            replay.remove(group);
+            rebuilds.remove(group);
         }
         _ => {}
     }

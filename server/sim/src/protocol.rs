@@ -1,23 +1,16 @@
 //! Messages between the server and its worker processes: a little-endian u32 length, then a postcard
-//! body. Observations do not travel here; workers write them into shared memory (`shm`).
+//! body. Observations do not travel here; workers write them into the group's frame memory.
 
 use std::io::{self, Read, Write};
 
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
-use crate::catalog::{EnvNames, Family, Options};
-use crate::space::Space;
+pub use radserve_core::simulators::{EnvSpec, StepResult};
+use radserve_core::{EnvNames, Family, Options};
 
 /// Largest message either side accepts (actions of a large session are well below this).
 pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct EnvSpec {
-    /// One frame, before stacking.
-    pub observation: Space,
-    pub action: Space,
-}
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct GroupConfig {
@@ -37,7 +30,7 @@ pub enum Request {
     Specs { entries: Vec<(Family, String, Options)> },
     /// Builds the group's environments; the reply carries their spec, which sizes the shared memory.
     CreateGroup(GroupConfig),
-    /// Maps the shared memory the group writes its frames into (see `shm::SharedFrames::child_path`).
+    /// Maps the shared memory the group writes its frames into (a `MemFile`'s `/proc` path).
     Attach { group: u64, shm_path: String, shm_len: usize },
     Reset { group: u64, seeds: Option<Vec<u64>> },
     /// Actions of every environment of the group, raw little-endian bytes of the action dtype.
@@ -45,22 +38,6 @@ pub enum Request {
     CloseGroup { group: u64 },
     /// Exit abruptly, as a crashing simulator would (used to test recovery).
     Abort,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct StepResult {
-    pub rewards: Vec<f64>,
-    pub terminated: Vec<bool>,
-    pub truncated: Vec<bool>,
-    /// (index within the group, message) for each env whose simulator raised during this step.
-    pub errors: Vec<(u32, String)>,
-}
-
-impl StepResult {
-    /// Whether this result has one entry per environment of a group of `envs`.
-    pub fn fits(&self, envs: usize) -> bool {
-        self.rewards.len() == envs && self.terminated.len() == envs && self.truncated.len() == envs
-    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -20,10 +20,10 @@ use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyDict};
 use serde::{Deserialize, Serialize};
 
-use crate::catalog::{EnvNames, Family, OptionValue, Options};
+use radserve_core::{DType, EnvNames, Family, OptionValue, Options, Space};
+use radserve_shm::MemFile;
+
 use crate::protocol::{self, EnvSpec, GroupConfig, Request, Response, StepResult};
-use crate::shm::SharedFrames;
-use crate::space::{DType, Space};
 
 const ADAPTERS_SOURCE: &str = include_str!("../python/radserve_worker.py");
 
@@ -149,7 +149,7 @@ struct HostedGroup {
     object: Py<PyAny>,
     /// The memoryview over `frames` handed to Python; released before `frames` is unmapped.
     view: Option<Py<PyAny>>,
-    frames: Option<SharedFrames>,
+    frames: Option<MemFile>,
 }
 
 fn serve(py: Python<'_>, input: &mut BufReader<File>, output: &mut BufWriter<File>) -> Result<(), String> {
@@ -207,7 +207,7 @@ fn handle(
         }
         Request::Attach { group, shm_path, shm_len } => {
             let hosted = hosted_group(groups, group)?;
-            let mut frames = SharedFrames::open(&shm_path)
+            let mut frames = MemFile::open(&shm_path)
                 .map_err(|err| PyValueError::new_err(format!("mapping {shm_path}: {err}")))?;
             if frames.len() < shm_len {
                 return Err(PyValueError::new_err(format!("shared memory holds {} bytes, expected {shm_len}", frames.len())));

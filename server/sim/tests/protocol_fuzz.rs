@@ -7,9 +7,8 @@
 use std::collections::BTreeMap;
 
 use proptest::prelude::*;
-use radserve_sim::catalog::{EnvNames, Family, OptionValue};
+use radserve_core::{DType, EnvNames, Family, OptionValue, Space};
 use radserve_sim::protocol::{self, EnvSpec, GroupConfig, Request, Response, StepResult, MAX_MESSAGE_BYTES};
-use radserve_sim::space::{DType, Space};
 
 fn config() -> ProptestConfig {
     let cases = std::env::var("PROPTEST_CASES").ok().and_then(|value| value.parse().ok()).unwrap_or(2048);

@@ -7,7 +7,8 @@ use std::time::Duration;
 
 use radserve::ServerSettings;
 use radserve_service::proto::{self, rad_serve_client::RadServeClient};
-use radserve_sim::{GlBackend, Limits, SessionManager};
+use radserve_core::{Limits, SessionManager};
+use radserve_sim::GlBackend;
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
@@ -41,7 +42,7 @@ pub async fn start_server_with(limits: Limits, adjust: impl FnOnce(&mut ServerSe
     };
     let mut options = radserve::ServeOptions { augment_threads: 1, ..radserve::ServeOptions::default() };
     adjust(&mut settings, &mut options);
-    let manager = radserve::session_manager(settings);
+    let (manager, _workers) = radserve::session_manager(settings);
     let (stop, stopped) = oneshot::channel::<()>();
     let task = tokio::spawn(radserve::serve(listener, manager.clone(), options, async {
         let _ = stopped.await;

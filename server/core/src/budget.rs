@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use crate::catalog::{EnvId, Family, OptionValue, Options};
-use crate::error::SimError;
+use crate::error::CoreError;
 
 const MIB: u64 = 1 << 20;
 
@@ -104,13 +104,13 @@ impl MemoryBudget {
 
     /// Reserve `bytes` for `what` (a phrase such as "8 envs of dmc/cheetah-run at 96 MiB each"), or
     /// say why not. Check and reservation are one atomic step.
-    pub fn try_reserve(self: &Arc<Self>, bytes: u64, what: &str) -> Result<Reservation, SimError> {
+    pub fn try_reserve(self: &Arc<Self>, bytes: u64, what: &str) -> Result<Reservation, CoreError> {
         let limit = self.limit;
         self.used
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |used| used.checked_add(bytes).filter(|&total| total <= limit))
             .map(|_| Reservation { budget: self.clone(), bytes })
             .map_err(|used| {
-                SimError::LimitExceeded(format!(
+                CoreError::LimitExceeded(format!(
                     "{what} needs {} of memory; {} of this server's memory budget of {} is reserved already \
                      (limits.memory_bytes)",
                     human(bytes),

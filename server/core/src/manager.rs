@@ -15,10 +15,9 @@ use tracing::info;
 use crate::bounds;
 use crate::budget::{self, MemoryBudget, Reservation};
 use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
-use crate::error::SimError;
-use crate::pool::WorkerPool;
-use crate::protocol::{Request, Response};
+use crate::error::CoreError;
 use crate::session::{check_seed, Session, SessionConfig, SessionStats};
+use crate::simulators::Simulators;
 use crate::space::{DType, Space};
 
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -185,7 +184,7 @@ struct Entry {
 }
 
 pub struct SessionManager {
-    pool: WorkerPool,
+    simulators: Arc<dyn Simulators>,
     limits: Limits,
     budget: Arc<MemoryBudget>,
     names: OnceCell<EnvNames>,
@@ -208,15 +207,16 @@ struct Registry {
 }
 
 impl SessionManager {
-    pub fn new(pool: WorkerPool, limits: Limits) -> SessionManager {
-        let budget_bytes = if limits.memory_bytes > 0 { limits.memory_bytes } else { budget::default_budget_bytes(pool.len()) };
+    pub fn new(simulators: Arc<dyn Simulators>, limits: Limits) -> SessionManager {
+        let budget_bytes =
+            if limits.memory_bytes > 0 { limits.memory_bytes } else { budget::default_budget_bytes(simulators.processes()) };
         info!(
             budget = %budget::human(budget_bytes),
             memory = %budget::human(budget::available_memory_bytes()),
             "memory budget (limits.memory_bytes)"
         );
         SessionManager {
-            pool,
+            simulators,
             limits,
             budget: MemoryBudget::new(budget_bytes),
             names: OnceCell::new(),
@@ -228,29 +228,18 @@ impl SessionManager {
         }
     }
 
-    pub fn pool(&self) -> &WorkerPool {
-        &self.pool
-    }
-
     pub fn limits(&self) -> &Limits {
         &self.limits
     }
 
-    /// Every id the workers can host (asked once of a transient worker).
-    pub async fn names(&self) -> Result<&EnvNames, SimError> {
-        self.names
-            .get_or_try_init(|| async {
-                match self.transient_call(Request::ListNames).await? {
-                    Response::Names(names) => Ok(names),
-                    other => Err(SimError::Simulator(format!("unexpected catalog response {other:?}"))),
-                }
-            })
-            .await
+    /// Every id the simulators can host (asked once).
+    pub async fn names(&self) -> Result<&EnvNames, CoreError> {
+        self.names.get_or_try_init(|| async { Ok(self.simulators.env_names().await?) }).await
     }
 
     /// Every id with its default options and spaces. Building each environment once takes seconds, so
-    /// this is computed once, in a transient worker, and kept.
-    pub async fn catalog(&self) -> Result<&[CatalogEntry], SimError> {
+    /// this is computed once and kept.
+    pub async fn catalog(&self) -> Result<&[CatalogEntry], CoreError> {
         let entries = self
             .catalog
             .get_or_try_init(|| async {
@@ -262,39 +251,24 @@ impl SessionManager {
                     .map(|(id, options)| {
                         let mut worker_options = options.clone();
                         worker_options.remove(FRAME_STACK);
-                        (id.family, id.name.clone(), worker_options)
+                        (id.clone(), worker_options)
                     })
                     .collect();
-                let specs = match self.transient_call(Request::Specs { entries: requests }).await? {
-                    Response::Specs(specs) => specs,
-                    other => return Err(SimError::Simulator(format!("unexpected catalog response {other:?}"))),
-                };
-                Ok(ids
-                    .into_iter()
-                    .zip(defaults)
-                    .zip(specs)
-                    .map(|((id, default_options), spec)| {
-                        let frame_stack = default_options[FRAME_STACK].as_int().unwrap_or(1) as usize;
-                        let spaces = spec.map(|spec| (spec.observation.stacked(frame_stack), spec.action));
-                        CatalogEntry { id, default_options, spaces }
-                    })
-                    .collect())
+                let specs = self.simulators.env_specs(requests).await?;
+                Ok::<_, CoreError>(
+                    ids.into_iter()
+                        .zip(defaults)
+                        .zip(specs)
+                        .map(|((id, default_options), spec)| {
+                            let frame_stack = default_options[FRAME_STACK].as_int().unwrap_or(1) as usize;
+                            let spaces = spec.map(|spec| (spec.observation.stacked(frame_stack), spec.action));
+                            CatalogEntry { id, default_options, spaces }
+                        })
+                        .collect(),
+                )
             })
             .await?;
         Ok(entries)
-    }
-
-    async fn transient_call(&self, request: Request) -> Result<Response, SimError> {
-        let mut worker = self
-            .pool
-            .spawn_transient()
-            .await
-            .map_err(|err| SimError::WorkersUnavailable(format!("cannot start a catalog worker: {err}")))?;
-        match worker.call_within(&request, self.pool.create_timeout()).await {
-            Ok(Response::Failed(message)) => Err(SimError::Simulator(message)),
-            Ok(response) => Ok(response),
-            Err(err) => Err(SimError::WorkersUnavailable(format!("catalog worker failed: {err}"))),
-        }
     }
 
     pub async fn create_session(
@@ -304,12 +278,12 @@ impl SessionManager {
         seed: u64,
         overrides: &Options,
         extras: &SessionExtras,
-    ) -> Result<SessionInfo, SimError> {
+    ) -> Result<SessionInfo, CoreError> {
         if num_envs == 0 {
-            return Err(SimError::InvalidArgument("num_envs must be at least 1".into()));
+            return Err(CoreError::InvalidArgument("num_envs must be at least 1".into()));
         }
         if num_envs > self.limits.max_envs_per_session {
-            return Err(SimError::LimitExceeded(format!(
+            return Err(CoreError::LimitExceeded(format!(
                 "num_envs {num_envs} exceeds this server's limit of {} environments per session",
                 self.limits.max_envs_per_session
             )));
@@ -334,7 +308,7 @@ impl SessionManager {
         )?;
         self.reserve(num_envs)?;
         let config = SessionConfig { env, num_envs, seed, options, frame_stack };
-        let mut session = match Session::create(&self.pool, config).await {
+        let mut session = match Session::create(self.simulators.as_ref(), config).await {
             Ok(session) => session,
             Err(error) => {
                 self.release(num_envs, 1);
@@ -390,25 +364,25 @@ impl SessionManager {
             session.close().await;
             self.release(num_envs, 1);
             self.release_replay(&session);
-            return Err(SimError::ShuttingDown);
+            return Err(CoreError::ShuttingDown);
         }
         info!(session = %session_id, env = %info.env_id, envs = num_envs, seed, "session created");
         Ok(info)
     }
 
-    fn reserve(&self, num_envs: usize) -> Result<(), SimError> {
+    fn reserve(&self, num_envs: usize) -> Result<(), CoreError> {
         let mut registry = self.sessions.lock().expect("registry lock");
         if registry.closing {
-            return Err(SimError::ShuttingDown);
+            return Err(CoreError::ShuttingDown);
         }
         if registry.reserved_sessions >= self.limits.max_sessions {
-            return Err(SimError::LimitExceeded(format!(
+            return Err(CoreError::LimitExceeded(format!(
                 "this server already hosts {} sessions, its limit; close one first",
                 registry.reserved_sessions
             )));
         }
         if registry.reserved_envs + num_envs > self.limits.max_total_envs {
-            return Err(SimError::LimitExceeded(format!(
+            return Err(CoreError::LimitExceeded(format!(
                 "{num_envs} more environments would make {} on this server, above its limit of {}",
                 registry.reserved_envs + num_envs,
                 self.limits.max_total_envs
@@ -422,16 +396,16 @@ impl SessionManager {
     /// What can be known of a buffer before any environment is built (its frame size comes from the
     /// simulator): a capacity in range, and at least the bookkeeping bytes of every transition within
     /// the replay budget. The exact size is checked again once the frames are known.
-    fn precheck_buffer(&self, buffer: BufferRequest, num_envs: usize) -> Result<(), SimError> {
+    fn precheck_buffer(&self, buffer: BufferRequest, num_envs: usize) -> Result<(), CoreError> {
         let capacity = match buffer {
             BufferRequest::Replay { capacity } => capacity,
             BufferRequest::Rollout { steps } => steps.saturating_mul(num_envs),
         };
-        radserve_replay::check_capacity(capacity).map_err(|error| SimError::InvalidArgument(error.to_string()))?;
+        radserve_replay::check_capacity(capacity).map_err(|error| CoreError::InvalidArgument(error.to_string()))?;
         let least = (capacity as u64).saturating_mul(radserve_replay::MIN_BYTES_PER_TRANSITION as u64);
         let budget = self.limits.replay_memory_bytes;
         if least > budget {
-            return Err(SimError::LimitExceeded(format!(
+            return Err(CoreError::LimitExceeded(format!(
                 "a replay buffer of {capacity} transitions takes at least {:.2} GiB ({} bytes per transition \
                  before its frames), above this server's replay budget of {:.2} GiB (limits.replay_memory_bytes)",
                 gib(least),
@@ -442,10 +416,9 @@ impl SessionManager {
         Ok(())
     }
 
-    /// Give `session` a replay (or rollout) buffer if the server's budget allows it.
     /// Reserve memory for `what` against the server's budget (a stream's batches, an acting
     /// channel); held until the reservation is dropped.
-    pub fn reserve_memory(&self, bytes: u64, what: &str) -> Result<Reservation, SimError> {
+    pub fn reserve_memory(&self, bytes: u64, what: &str) -> Result<Reservation, CoreError> {
         self.budget.try_reserve(bytes, what)
     }
 
@@ -454,10 +427,11 @@ impl SessionManager {
         (self.budget.used(), self.budget.limit())
     }
 
-    fn attach_replay(&self, session: &mut Session, buffer: BufferRequest) -> Result<Reservation, SimError> {
+    /// Give `session` a replay (or rollout) buffer if the server's budget allows it.
+    fn attach_replay(&self, session: &mut Session, buffer: BufferRequest) -> Result<Reservation, CoreError> {
         let frame = &session.frame_spec.observation;
         if !matches!(frame.dtype(), DType::Uint8 | DType::Float32) {
-            return Err(SimError::InvalidArgument(format!(
+            return Err(CoreError::InvalidArgument(format!(
                 "replay keeps uint8 images or float32 vectors; {} observes {}",
                 session.config.env.full(),
                 frame.describe()
@@ -472,13 +446,13 @@ impl SessionManager {
             BufferRequest::Rollout { steps } => ReplayLayout::rollout(steps, num_envs, frame_stack, frame_bytes, action_bytes),
         };
         let capacity = layout.capacity;
-        layout.validate().map_err(|error| SimError::InvalidArgument(error.to_string()))?;
+        layout.validate().map_err(|error| CoreError::InvalidArgument(error.to_string()))?;
         let bytes = layout.memory_bytes() as u64;
         {
             let mut registry = self.sessions.lock().expect("registry lock");
             let budget = self.limits.replay_memory_bytes;
             if registry.reserved_replay_bytes.saturating_add(bytes) > budget {
-                return Err(SimError::LimitExceeded(format!(
+                return Err(CoreError::LimitExceeded(format!(
                     "a replay buffer of {capacity} transitions for {} envs of {} takes {:.2} GiB ({} bytes per frame, \
                      {:.3} frames per transition); with the {:.2} GiB already reserved it would exceed this server's \
                      replay budget of {:.2} GiB (limits.replay_memory_bytes)",
@@ -508,7 +482,7 @@ impl SessionManager {
             }
             Err(error) => {
                 self.sessions.lock().expect("registry lock").reserved_replay_bytes -= bytes;
-                Err(SimError::InvalidArgument(error.to_string()))
+                Err(CoreError::InvalidArgument(error.to_string()))
             }
         }
     }
@@ -521,11 +495,11 @@ impl SessionManager {
     }
 
     /// The replay buffer of a session, with what a sampler needs to know about it.
-    pub async fn replay_source(&self, session_id: &str) -> Result<ReplaySource, SimError> {
+    pub async fn replay_source(&self, session_id: &str) -> Result<ReplaySource, CoreError> {
         let session = self.get(session_id)?;
         let session = session.lock().await;
         let Some(buffer) = session.replay() else {
-            return Err(SimError::FailedPrecondition(format!(
+            return Err(CoreError::FailedPrecondition(format!(
                 "session {session_id} keeps no replay buffer; create it with a replay capacity"
             )));
         };
@@ -533,7 +507,7 @@ impl SessionManager {
         // of them is counted.
         let max = self.limits.max_streams_per_session;
         let Some(permit) = buffer.read().expect("replay lock").admit_producer(max) else {
-            return Err(SimError::LimitExceeded(format!(
+            return Err(CoreError::LimitExceeded(format!(
                 "session {session_id} already has {max} sample streams open, this server's limit \
                  (limits.max_streams_per_session); close one first"
             )));
@@ -562,14 +536,14 @@ impl SessionManager {
     }
 
     /// The session, its lease renewed: every call on a session goes through here.
-    pub fn get(&self, session_id: &str) -> Result<SharedSession, SimError> {
+    pub fn get(&self, session_id: &str) -> Result<SharedSession, CoreError> {
         let registry = self.sessions.lock().expect("registry lock");
         Ok(self.touch(&registry, session_id)?.session.clone())
     }
 
     /// The entry of `session_id`, its lease renewed.
-    fn touch<'a>(&self, registry: &'a Registry, session_id: &str) -> Result<&'a Entry, SimError> {
-        let entry = registry.sessions.get(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?;
+    fn touch<'a>(&self, registry: &'a Registry, session_id: &str) -> Result<&'a Entry, CoreError> {
+        let entry = registry.sessions.get(session_id).ok_or_else(|| CoreError::UnknownSession(session_id.to_string()))?;
         entry.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
         Ok(entry)
     }
@@ -583,7 +557,7 @@ impl SessionManager {
     }
 
     /// Keep the session's lease alive for as long as the returned hold lives (a stream on it).
-    pub fn hold(&self, session_id: &str) -> Result<LeaseHold, SimError> {
+    pub fn hold(&self, session_id: &str) -> Result<LeaseHold, CoreError> {
         let registry = self.sessions.lock().expect("registry lock");
         let entry = self.touch(&registry, session_id)?;
         entry.lease.holds.fetch_add(1, Ordering::AcqRel);
@@ -660,7 +634,7 @@ impl SessionManager {
     }
 
     /// Never waits for the session's lock: a step in progress (or a stuck worker) does not delay it.
-    pub async fn describe(&self, session_id: &str) -> Result<SessionInfo, SimError> {
+    pub async fn describe(&self, session_id: &str) -> Result<SessionInfo, CoreError> {
         let (mut info, stats, replay) = {
             let registry = self.sessions.lock().expect("registry lock");
             let entry = self.touch(&registry, session_id)?;
@@ -673,14 +647,14 @@ impl SessionManager {
         Ok(info)
     }
 
-    pub async fn close_session(&self, session_id: &str) -> Result<(), SimError> {
+    pub async fn close_session(&self, session_id: &str) -> Result<(), CoreError> {
         self.close_session_because(session_id, "the client closed it").await
     }
 
-    async fn close_session_because(&self, session_id: &str, reason: &str) -> Result<(), SimError> {
+    async fn close_session_because(&self, session_id: &str, reason: &str) -> Result<(), CoreError> {
         let entry = {
             let mut registry = self.sessions.lock().expect("registry lock");
-            registry.sessions.remove(session_id).ok_or_else(|| SimError::UnknownSession(session_id.to_string()))?
+            registry.sessions.remove(session_id).ok_or_else(|| CoreError::UnknownSession(session_id.to_string()))?
         };
         self.close_entry(session_id, entry, reason).await;
         Ok(())
@@ -764,11 +738,11 @@ fn frame_buffer_bytes(session: &Session) -> u64 {
 }
 
 /// Refuses a session whose step observations could not be sent in one response.
-fn check_observation_bytes(session: &Session) -> Result<(), SimError> {
+fn check_observation_bytes(session: &Session) -> Result<(), CoreError> {
     let per_env = session.observation_space.num_bytes();
     let total = per_env.saturating_mul(session.num_envs());
     if total > MAX_STEP_OBSERVATION_BYTES {
-        return Err(SimError::LimitExceeded(format!(
+        return Err(CoreError::LimitExceeded(format!(
             "{} envs of {} observe {per_env} bytes each ({} as viewed), {total} bytes a step; the most a step \
              may return is {MAX_STEP_OBSERVATION_BYTES} bytes: use fewer envs, smaller frames or a smaller frame_stack",
             session.num_envs(),

@@ -4,7 +4,7 @@
 //! An error message travels in the `grpc-message` trailer, whose size clients cap (grpcio: 8 KiB of
 //! metadata); an unbounded echo would turn the real error into "metadata size exceeds hard limit".
 
-use crate::error::SimError;
+use crate::error::CoreError;
 
 /// Environment ids, session ids and ListEnvs prefixes (the longest real id is under 40 bytes).
 pub const MAX_ID_BYTES: usize = 256;
@@ -27,9 +27,9 @@ pub fn clip(text: &str) -> String {
 }
 
 /// Refuses `value` of request field `field` when it is longer than `max` bytes, without echoing it.
-pub fn check_len(field: &str, value: &str, max: usize) -> Result<(), SimError> {
+pub fn check_len(field: &str, value: &str, max: usize) -> Result<(), CoreError> {
     if value.len() > max {
-        return Err(SimError::InvalidArgument(format!(
+        return Err(CoreError::InvalidArgument(format!(
             "{field} is {} bytes long; the most accepted is {max}",
             value.len()
         )));
@@ -38,9 +38,9 @@ pub fn check_len(field: &str, value: &str, max: usize) -> Result<(), SimError> {
 }
 
 /// Refuses a request that lists more than `max` items in `field`.
-pub fn check_count(field: &str, count: usize, max: usize) -> Result<(), SimError> {
+pub fn check_count(field: &str, count: usize, max: usize) -> Result<(), CoreError> {
     if count > max {
-        return Err(SimError::InvalidArgument(format!("{field} has {count} entries; the most accepted is {max}")));
+        return Err(CoreError::InvalidArgument(format!("{field} has {count} entries; the most accepted is {max}")));
     }
     Ok(())
 }

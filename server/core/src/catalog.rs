@@ -8,7 +8,7 @@ use std::fmt;
 
 use serde::{Deserialize, Serialize};
 
-use crate::error::SimError;
+use crate::error::CoreError;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 pub enum Family {
@@ -182,7 +182,7 @@ pub fn default_options(env: &EnvId) -> Options {
 
 /// Applies `overrides` to the defaults of `env`, rejecting unknown names, wrong types and values
 /// out of range with a message that says what was expected.
-pub fn resolve_options(env: &EnvId, overrides: &Options) -> Result<Options, SimError> {
+pub fn resolve_options(env: &EnvId, overrides: &Options) -> Result<Options, CoreError> {
     use crate::bounds::{check_count, check_len, clip, MAX_OPTIONS, MAX_OPTION_NAME_BYTES, MAX_OPTION_TEXT_BYTES};
     check_count("options", overrides.len(), MAX_OPTIONS)?;
     for (name, value) in overrides {
@@ -199,7 +199,7 @@ pub fn resolve_options(env: &EnvId, overrides: &Options) -> Result<Options, SimE
     for name in overrides.keys() {
         if !schema.iter().any(|entry| entry.name == name) {
             let accepted: Vec<&str> = schema.iter().map(|entry| entry.name).collect();
-            return Err(SimError::InvalidOption(format!(
+            return Err(CoreError::InvalidOption(format!(
                 "unknown option '{name}' for {}; accepted options: {}",
                 env.full(),
                 accepted.join(", ")
@@ -217,9 +217,9 @@ pub fn resolve_options(env: &EnvId, overrides: &Options) -> Result<Options, SimE
     Ok(resolved)
 }
 
-fn check_value(env: &EnvId, entry: &OptionSchema, given: &OptionValue) -> Result<OptionValue, SimError> {
+fn check_value(env: &EnvId, entry: &OptionSchema, given: &OptionValue) -> Result<OptionValue, CoreError> {
     let invalid = |expected: String| {
-        SimError::InvalidOption(format!(
+        CoreError::InvalidOption(format!(
             "option '{}' of {} must be {expected}, got {} ({})",
             entry.name,
             env.full(),
@@ -258,7 +258,7 @@ impl EnvNames {
     }
 
     /// Parses `family/name`, answering an unknown id with the closest known ones.
-    pub fn parse(&self, id: &str) -> Result<EnvId, SimError> {
+    pub fn parse(&self, id: &str) -> Result<EnvId, CoreError> {
         let known = id.split_once('/').and_then(|(prefix, name)| {
             let family = Family::ALL.into_iter().find(|family| family.prefix() == prefix)?;
             let names = self.by_family.get(&family)?;
@@ -270,7 +270,7 @@ impl EnvNames {
         } else {
             Vec::new()
         };
-        known.ok_or_else(|| SimError::UnknownEnv { id: id.to_string(), suggestions })
+        known.ok_or_else(|| CoreError::UnknownEnv { id: id.to_string(), suggestions })
     }
 }
 
@@ -329,11 +329,11 @@ mod tests {
         let names = names();
         assert_eq!(names.parse("dmc/cheetah-run").unwrap().name, "cheetah-run");
         match names.parse("dmc/cheetah-runn") {
-            Err(SimError::UnknownEnv { suggestions, .. }) => assert_eq!(suggestions[0], "dmc/cheetah-run"),
+            Err(CoreError::UnknownEnv { suggestions, .. }) => assert_eq!(suggestions[0], "dmc/cheetah-run"),
             other => panic!("expected UnknownEnv, got {other:?}"),
         }
         match names.parse("gym/halfcheetah-v5") {
-            Err(SimError::UnknownEnv { suggestions, .. }) => assert_eq!(suggestions, vec!["gym/HalfCheetah-v5"]),
+            Err(CoreError::UnknownEnv { suggestions, .. }) => assert_eq!(suggestions, vec!["gym/HalfCheetah-v5"]),
             other => panic!("expected UnknownEnv, got {other:?}"),
         }
         assert!(names.parse("atari/pong").is_err());

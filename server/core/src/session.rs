@@ -5,24 +5,20 @@
 //! episode returns the first observation of the next one, and the last observation of the ended
 //! episode separately, as `final_obs`.
 
-use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 
+use futures_util::future::join_all;
 use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline};
 use radserve_replay::{RecordedStep, ReplayBuffer};
 
 use crate::catalog::{EnvId, Options};
-use crate::error::SimError;
-use crate::pool::{await_generation, await_reply, WorkerFault, WorkerHandle, WorkerPool};
-use crate::protocol::{EnvSpec, GroupConfig, Request, Response};
-use crate::shm::{FrameLayout, SharedFrames};
+use crate::error::CoreError;
+use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators};
 use crate::space::{DType, Space};
 
 /// Largest seed + num_envs: dm_control and ProcGen seeds are 32-bit signed integers.
 pub const MAX_SEED: u64 = i32::MAX as u64;
-
-static NEXT_GROUP: AtomicU64 = AtomicU64::new(1);
 
 /// The counters of a session that change as it acts, readable without its lock.
 #[derive(Debug, Default)]
@@ -39,17 +35,6 @@ pub struct SessionConfig {
     /// Resolved options (defaults included).
     pub options: Options,
     pub frame_stack: usize,
-}
-
-struct Group {
-    worker: WorkerHandle,
-    id: u64,
-    envs: Range<usize>,
-    seeds: Vec<u64>,
-    frames: SharedFrames,
-    /// The worker process generation whose envs this session's stacks follow: a step is refused by a
-    /// newer process (which rebuilt the group unreset), and the episodes end instead.
-    generation: u64,
 }
 
 /// An episode that ended in a step.
@@ -81,7 +66,7 @@ pub struct Session {
     pub frame_spec: EnvSpec,
     /// One (stacked) observation of one environment.
     pub observation_space: Space,
-    groups: Vec<Group>,
+    groups: Vec<Box<dyn EnvGroup>>,
     layout: FrameLayout,
     /// The stacked observation of every env, oldest frame first.
     stacks: Vec<u8>,
@@ -101,76 +86,20 @@ pub struct Session {
 }
 
 impl Session {
-    /// Builds the environments on the least loaded workers, one contiguous group of envs per worker.
-    pub async fn create(pool: &WorkerPool, config: SessionConfig) -> Result<Session, SimError> {
-        let workers = pool.least_loaded(config.num_envs);
-        let ranges = split_evenly(config.num_envs, workers.len());
+    /// Builds the environments in the simulators (env i seeded seed + i) and waits for their first
+    /// reset before stepping.
+    pub async fn create(simulators: &dyn Simulators, config: SessionConfig) -> Result<Session, CoreError> {
         let mut worker_options = config.options.clone();
         worker_options.remove(crate::catalog::FRAME_STACK);
-
-        let mut pending = Vec::new();
-        for (worker, envs) in workers.iter().zip(&ranges) {
-            let group = NEXT_GROUP.fetch_add(1, Ordering::Relaxed);
-            let seeds: Vec<u64> = envs.clone().map(|i| config.seed + i as u64).collect();
-            let request = Request::CreateGroup(GroupConfig {
-                group,
-                family: config.env.family,
-                name: config.env.name.clone(),
-                options: worker_options.clone(),
-                seeds: seeds.clone(),
-            });
-            pending.push((worker.clone(), group, envs.clone(), seeds, worker.submit(request).await));
-        }
-        let mut created = Vec::new();
-        let mut failure = None;
-        let mut spec = None;
-        for (worker, group, envs, seeds, receiver) in pending {
-            match await_generation(receiver).await {
-                Ok((Response::Created(group_spec), generation)) => {
-                    spec.get_or_insert(group_spec);
-                    created.push((worker, group, envs, seeds, generation));
-                }
-                Ok((Response::Failed(message), _)) => {
-                    failure.get_or_insert(SimError::CreateFailed { env_id: config.env.full(), message });
-                }
-                Ok((other, _)) => {
-                    failure.get_or_insert(unexpected(Ok(other)));
-                }
-                Err(fault) => {
-                    failure.get_or_insert(unexpected(Err(fault)));
-                }
-            }
-        }
-        if let Some(error) = failure {
-            for (worker, group, ..) in created {
-                let _ = worker.call(Request::CloseGroup { group }).await;
-            }
-            return Err(error);
-        }
-        let frame_spec = spec.expect("at least one group");
+        let seeds = (0..config.num_envs as u64).map(|i| config.seed + i).collect();
+        let (frame_spec, groups) =
+            simulators.create_groups(&config.env, &worker_options, seeds).await.map_err(|error| match error {
+                SimulatorError::Refused(message) => CoreError::CreateFailed { env_id: config.env.full(), message },
+                other => other.into(),
+            })?;
         let layout = FrameLayout { frame_bytes: frame_spec.observation.num_bytes() };
-
-        let mut groups = Vec::new();
-        for (worker, id, envs, seeds, generation) in &created {
-            match SharedFrames::create(layout.segment_len(envs.len())) {
-                Ok(frames) => groups.push(Group {
-                    worker: worker.clone(),
-                    id: *id,
-                    envs: envs.clone(),
-                    seeds: seeds.clone(),
-                    frames,
-                    generation: *generation,
-                }),
-                Err(err) => {
-                    for (worker, group, ..) in &created {
-                        let _ = worker.call(Request::CloseGroup { group: *group }).await;
-                    }
-                    return Err(resource_error("allocating the session's shared frames", &err));
-                }
-            }
-        }
         let config_seed = config.seed;
-        let mut session = Session {
+        Ok(Session {
             observation_space: frame_spec.observation.stacked(config.frame_stack),
             stacks: vec![0; config.num_envs * config.frame_stack * layout.frame_bytes],
             episode_returns: vec![0.0; config.num_envs],
@@ -186,32 +115,7 @@ impl Session {
             replay: None,
             stats: Arc::new(SessionStats { seed: AtomicU64::new(config_seed), ..SessionStats::default() }),
             view: None,
-        };
-        let attached = session.attach_all().await;
-        for group in &session.groups {
-            group.worker.add_hosted_envs(group.envs.len());
-        }
-        if let Err(error) = attached {
-            session.close().await;
-            return Err(error);
-        }
-        Ok(session)
-    }
-
-    async fn attach_all(&mut self) -> Result<(), SimError> {
-        let mut pending = Vec::new();
-        for group in &self.groups {
-            let request =
-                Request::Attach { group: group.id, shm_path: group.frames.child_path(), shm_len: group.frames.len() };
-            pending.push(group.worker.submit(request).await);
-        }
-        for receiver in pending {
-            match await_reply(receiver).await {
-                Ok(Response::Attached) => {}
-                other => return Err(unexpected(other)),
-            }
-        }
-        Ok(())
+        })
     }
 
     pub fn num_envs(&self) -> usize {
@@ -220,8 +124,8 @@ impl Session {
 
     /// Return observations through `view` (a centre crop or centre translate, RAD's evaluation
     /// views), so that a policy trained on augmented crops acts on the matching view.
-    pub fn set_view(&mut self, text: &str) -> Result<(), SimError> {
-        let invalid = |message: String| SimError::InvalidArgument(format!("observation_view {text:?}: {message}"));
+    pub fn set_view(&mut self, text: &str) -> Result<(), CoreError> {
+        let invalid = |message: String| CoreError::InvalidArgument(format!("observation_view {text:?}: {message}"));
         let pipeline = Pipeline::parse(text).map_err(|error| invalid(error.to_string()))?;
         if let Some(stage) = pipeline
             .stages()
@@ -271,9 +175,9 @@ impl Session {
         let Some(replay) = &self.replay else { return };
         let mut replay = replay.write().expect("replay lock");
         let group = &self.groups[index];
-        for (local, env) in group.envs.clone().enumerate() {
+        for (local, env) in group.envs().enumerate() {
             replay.abandon_episode(env);
-            replay.record_first_frame(env, &group.frames.as_slice()[self.layout.frame(local)], step_index);
+            replay.record_first_frame(env, &group.frames()[self.layout.frame(local)], step_index);
         }
     }
 
@@ -281,29 +185,27 @@ impl Session {
         self.config.frame_stack * self.layout.frame_bytes
     }
 
+    /// Seeds of the envs of group `index` under the session's seed: env i gets seed + i.
+    fn group_seeds(&self, index: usize) -> Vec<u64> {
+        self.groups[index].envs().map(|env| self.config.seed + env as u64).collect()
+    }
+
     /// Resets every environment (re-seeding env i with seed + i when a seed is given) and returns the
     /// stacked observations: the first frame repeated `frame_stack` times.
-    pub async fn reset(&mut self, seed: Option<u64>) -> Result<Vec<u8>, SimError> {
+    pub async fn reset(&mut self, seed: Option<u64>) -> Result<Vec<u8>, CoreError> {
         if let Some(seed) = seed {
             check_seed(seed, self.num_envs())?;
             self.config.seed = seed;
             self.stats.seed.store(seed, Ordering::Relaxed);
-            for group in &mut self.groups {
-                group.seeds = group.envs.clone().map(|i| seed + i as u64).collect();
-            }
         }
-        let mut pending = Vec::new();
-        for group in &self.groups {
-            let seeds = seed.map(|_| group.seeds.clone());
-            pending.push(group.worker.submit(Request::Reset { group: group.id, seeds }).await);
-        }
-        for (index, receiver) in pending.into_iter().enumerate() {
-            match await_generation(receiver).await {
-                Ok((Response::Reset, generation)) => self.groups[index].generation = generation,
-                // The worker was replaced and the group rebuilt from its seeds: reset that one again.
-                Err(WorkerFault::Crashed(_)) => self.reset_group(index).await?,
-                Ok((other, _)) => return Err(unexpected(Ok(other))),
-                Err(fault) => return Err(unexpected(Err(fault))),
+        let seeds: Vec<Option<Vec<u64>>> = (0..self.groups.len()).map(|index| seed.map(|_| self.group_seeds(index))).collect();
+        let results = join_all(self.groups.iter_mut().zip(seeds).map(|(group, seeds)| group.reset(seeds))).await;
+        for (index, result) in results.into_iter().enumerate() {
+            match result {
+                Ok(()) => {}
+                // The group's process was replaced and the group rebuilt from its seeds: reset that one again.
+                Err(SimulatorError::Lost(_)) => self.reset_group(index).await?,
+                Err(error) => return Err(error.into()),
             }
         }
         for index in 0..self.groups.len() {
@@ -316,25 +218,18 @@ impl Session {
         Ok(self.viewed(&self.stacks))
     }
 
-    async fn reset_group(&mut self, index: usize) -> Result<(), SimError> {
-        let group = &self.groups[index];
-        let request = Request::Reset { group: group.id, seeds: Some(group.seeds.clone()) };
-        match group.worker.call_generation(request).await {
-            Ok((Response::Reset, generation)) => {
-                self.groups[index].generation = generation;
-                Ok(())
-            }
-            Ok((other, _)) => Err(unexpected(Ok(other))),
-            Err(fault) => Err(unexpected(Err(fault))),
-        }
+    /// Resets one group with its envs' seeds (after its process was replaced).
+    async fn reset_group(&mut self, index: usize) -> Result<(), CoreError> {
+        let seeds = self.group_seeds(index);
+        Ok(self.groups[index].reset(Some(seeds)).await?)
     }
 
     /// Sets each stack of a group to its env's current frame repeated (the stacking at reset).
     fn fill_stacks_from_current(&mut self, index: usize) {
         let stack_bytes = self.stack_bytes();
         let group = &self.groups[index];
-        for (local, env) in group.envs.clone().enumerate() {
-            let frame = &group.frames.as_slice()[self.layout.frame(local)];
+        for (local, env) in group.envs().enumerate() {
+            let frame = &group.frames()[self.layout.frame(local)];
             for slot in self.stacks[env * stack_bytes..(env + 1) * stack_bytes].chunks_exact_mut(frame.len()) {
                 slot.copy_from_slice(frame);
             }
@@ -342,19 +237,18 @@ impl Session {
     }
 
     /// Steps every environment with `actions` ([num_envs, *action shape] of the action dtype).
-    pub async fn step(&mut self, dtype: DType, shape: &[usize], actions: &[u8]) -> Result<StepOutcome, SimError> {
+    pub async fn step(&mut self, dtype: DType, shape: &[usize], actions: &[u8]) -> Result<StepOutcome, CoreError> {
         if self.needs_reset {
-            return Err(SimError::FailedPrecondition("call Reset on this session before Step".into()));
+            return Err(CoreError::FailedPrecondition("call Reset on this session before Step".into()));
         }
         validate_actions(&self.frame_spec.action, self.num_envs(), dtype, shape, actions)?;
         let action_bytes = self.frame_spec.action.num_bytes();
-        let mut pending = Vec::new();
-        for group in &self.groups {
-            let slice = actions[group.envs.start * action_bytes..group.envs.end * action_bytes].to_vec();
-            // Refused by a newer process of the worker: the group was rebuilt there (another
-            // session's step crashed it, or it was stuck) and its episodes end here instead.
-            pending.push(group.worker.submit_in(Request::Step { group: group.id, actions: slice }, group.generation).await);
-        }
+        let slices: Vec<Vec<u8>> = self
+            .groups
+            .iter()
+            .map(|group| actions[group.envs().start * action_bytes..group.envs().end * action_bytes].to_vec())
+            .collect();
+        let results = join_all(self.groups.iter_mut().zip(slices).map(|(group, slice)| group.step(slice))).await;
         let num_envs = self.num_envs();
         let mut outcome = StepOutcome {
             rewards: vec![0.0; num_envs],
@@ -362,31 +256,33 @@ impl Session {
             truncated: vec![false; num_envs],
             ..StepOutcome::default()
         };
-        for (index, receiver) in pending.into_iter().enumerate() {
-            let result = match await_reply(receiver).await {
-                // A worker's answer sized for another group (a bug, or a broken worker) ends the
-                // step cleanly instead of indexing past it below.
-                Ok(Response::Stepped(result)) if result.fits(self.groups[index].envs.len()) => result,
-                Ok(Response::Stepped(result)) => {
+        for (index, result) in results.into_iter().enumerate() {
+            let group_len = self.groups[index].envs().len();
+            let result = match result {
+                // A group's answer sized for another group (a bug, or a broken worker) ends the step
+                // cleanly instead of indexing past it below.
+                Ok(result) if result.fits(group_len) => result,
+                Ok(result) => {
                     self.needs_reset = true;
-                    return Err(SimError::Simulator(format!(
-                        "worker answered a step of {} envs with {} rewards, {} terminated and {} truncated flags",
-                        self.groups[index].envs.len(),
+                    return Err(CoreError::Simulator(format!(
+                        "worker answered a step of {group_len} envs with {} rewards, {} terminated and {} truncated flags",
                         result.rewards.len(),
                         result.terminated.len(),
                         result.truncated.len()
                     )));
                 }
-                Err(WorkerFault::Crashed(message)) => {
-                    self.recover_crashed_group(index, &message, &mut outcome).await?;
+                // The group's process died, hung, or was replaced since this session last used it
+                // (another session's step crashed it): its episodes end here.
+                Err(SimulatorError::Lost(message)) => {
+                    self.recover_lost_group(index, &message, &mut outcome).await?;
                     continue;
                 }
-                other => {
+                Err(error) => {
                     self.needs_reset = true;
-                    return Err(unexpected(other));
+                    return Err(error.into());
                 }
             };
-            let group_envs = self.groups[index].envs.clone();
+            let group_envs = self.groups[index].envs();
             if let Some(replay) = &self.replay {
                 // Recorded before the stacks move on; sync, so no lock is held across an await.
                 let mut replay = replay.write().expect("replay lock");
@@ -401,12 +297,12 @@ impl Session {
                             reward: result.rewards[local],
                             terminated: result.terminated[local],
                             truncated: result.truncated[local],
-                            next_frame: &group.frames.as_slice()[next],
+                            next_frame: &group.frames()[next],
                             step_index: self.step_calls,
                         },
                     );
                     if ended {
-                        let first = &group.frames.as_slice()[self.layout.frame(local)];
+                        let first = &group.frames()[self.layout.frame(local)];
                         replay.record_first_frame(env, first, self.step_calls + 1);
                     }
                 }
@@ -420,11 +316,11 @@ impl Session {
                 self.episode_returns[env] += reward;
                 self.episode_lengths[env] += 1;
                 let group = &self.groups[index];
-                let frame = &group.frames.as_slice()[self.layout.frame(local)];
+                let frame = &group.frames()[self.layout.frame(local)];
                 let stack = &mut self.stacks[env * self.config.frame_stack * self.layout.frame_bytes..]
                     [..self.config.frame_stack * self.layout.frame_bytes];
                 if terminated || truncated {
-                    let final_frame = &group.frames.as_slice()[self.layout.final_frame(local)];
+                    let final_frame = &group.frames()[self.layout.final_frame(local)];
                     push_frame(stack, final_frame);
                     outcome.final_obs.extend_from_slice(stack);
                     for slot in stack.chunks_exact_mut(frame.len()) {
@@ -446,20 +342,20 @@ impl Session {
         Ok(outcome)
     }
 
-    /// After a worker died mid-step: its envs' episodes end as truncated with the error, their last
-    /// observation is the stack before the step, and they start again from a reset.
-    async fn recover_crashed_group(
+    /// After a group's process was lost mid-step: its envs' episodes end as truncated with the error,
+    /// their last observation is the stack before the step, and they start again from a reset.
+    async fn recover_lost_group(
         &mut self,
         index: usize,
         message: &str,
         outcome: &mut StepOutcome,
-    ) -> Result<(), SimError> {
+    ) -> Result<(), CoreError> {
         if let Err(error) = self.reset_group(index).await {
             self.needs_reset = true;
             return Err(error);
         }
         let stack_bytes = self.stack_bytes();
-        for env in self.groups[index].envs.clone() {
+        for env in self.groups[index].envs() {
             outcome.final_obs.extend_from_slice(&self.stacks[env * stack_bytes..(env + 1) * stack_bytes]);
             outcome.truncated[env] = true;
             self.episode_lengths[env] += 1;
@@ -486,11 +382,10 @@ impl Session {
         episode
     }
 
-    /// Releases the environments in their workers.
+    /// Releases the environments in their simulators.
     pub async fn close(&mut self) {
-        for group in self.groups.drain(..) {
-            let _ = group.worker.call(Request::CloseGroup { group: group.id }).await;
-            group.worker.remove_hosted_envs(group.envs.len());
+        for mut group in self.groups.drain(..) {
+            group.close().await;
         }
     }
 }
@@ -502,49 +397,13 @@ fn push_frame(stack: &mut [u8], frame: &[u8]) {
     stack[tail..].copy_from_slice(frame);
 }
 
-/// `total` items over `parts` contiguous ranges whose sizes differ by at most one.
-fn split_evenly(total: usize, parts: usize) -> Vec<Range<usize>> {
-    let parts = parts.clamp(1, total.max(1));
-    let (base, extra) = (total / parts, total % parts);
-    let mut start = 0;
-    (0..parts)
-        .map(|part| {
-            let len = base + usize::from(part < extra);
-            let range = start..start + len;
-            start += len;
-            range
-        })
-        .collect()
-}
-
-pub fn check_seed(seed: u64, num_envs: usize) -> Result<(), SimError> {
+pub fn check_seed(seed: u64, num_envs: usize) -> Result<(), CoreError> {
     if seed.saturating_add(num_envs as u64) > MAX_SEED {
-        return Err(SimError::InvalidArgument(format!(
+        return Err(CoreError::InvalidArgument(format!(
             "seed + num_envs must be at most {MAX_SEED} (simulators take 32-bit seeds); got seed {seed} with {num_envs} envs"
         )));
     }
     Ok(())
-}
-
-/// An allocation that failed: out of file descriptors or memory is a limit of this server
-/// (RESOURCE_EXHAUSTED, worth retrying elsewhere or later), anything else a server failure.
-pub fn resource_error(what: &str, error: &std::io::Error) -> SimError {
-    match error.raw_os_error() {
-        Some(libc::EMFILE | libc::ENFILE) => {
-            SimError::LimitExceeded(format!("{what}: the server is out of file descriptors ({error}); try again later"))
-        }
-        Some(libc::ENOMEM | libc::ENOSPC) => SimError::LimitExceeded(format!("{what}: the server is out of memory ({error})")),
-        _ => SimError::Simulator(format!("{what}: {error}")),
-    }
-}
-
-fn unexpected(outcome: Result<Response, WorkerFault>) -> SimError {
-    match outcome {
-        Ok(Response::Failed(message)) => SimError::Simulator(message),
-        Ok(other) => SimError::Simulator(format!("unexpected worker response {other:?}")),
-        Err(WorkerFault::Crashed(message)) => SimError::Simulator(message),
-        Err(WorkerFault::Unavailable(message)) => SimError::WorkersUnavailable(message),
-    }
 }
 
 /// Checks a batch of actions against the action space: dtype, shape, finiteness and bounds.
@@ -554,7 +413,7 @@ pub fn validate_actions(
     dtype: DType,
     shape: &[usize],
     data: &[u8],
-) -> Result<(), SimError> {
+) -> Result<(), CoreError> {
     let mut expected_shape = vec![num_envs];
     expected_shape.extend_from_slice(space.shape());
     let expected = || {
@@ -566,11 +425,11 @@ pub fn validate_actions(
         )
     };
     if dtype != space.dtype() || shape != expected_shape.as_slice() {
-        return Err(SimError::InvalidArgument(format!("{}; got {} of shape {:?}", expected(), dtype.name(), shape)));
+        return Err(CoreError::InvalidArgument(format!("{}; got {} of shape {:?}", expected(), dtype.name(), shape)));
     }
     let count: usize = expected_shape.iter().product();
     if data.len() != count * dtype.size_of() {
-        return Err(SimError::InvalidArgument(format!(
+        return Err(CoreError::InvalidArgument(format!(
             "{}; the tensor's shape says {count} elements but it holds {} bytes",
             expected(),
             data.len()
@@ -587,7 +446,7 @@ pub fn validate_actions(
                 };
                 let (lo, hi) = (bound(low, f64::NEG_INFINITY), bound(high, f64::INFINITY));
                 if value.is_nan() || value < lo || value > hi {
-                    return Err(SimError::InvalidArgument(format!(
+                    return Err(CoreError::InvalidArgument(format!(
                         "action {value} of env {}, element {element} is outside [{lo}, {hi}]; {}",
                         index / per_env,
                         expected()
@@ -599,7 +458,7 @@ pub fn validate_actions(
             for (env, chunk) in data.chunks_exact(8).enumerate() {
                 let value = i64::from_le_bytes(chunk.try_into().expect("8 bytes"));
                 if value < 0 || value >= *n {
-                    return Err(SimError::InvalidArgument(format!(
+                    return Err(CoreError::InvalidArgument(format!(
                         "action {value} of env {env} is outside [0, {n}); {}",
                         expected()
                     )));
@@ -674,13 +533,6 @@ mod tests {
         let mut single = vec![7, 7];
         push_frame(&mut single, &[8, 8]);
         assert_eq!(single, vec![8, 8]);
-    }
-
-    #[test]
-    fn envs_split_evenly_over_workers() {
-        assert_eq!(split_evenly(5, 2), vec![0..3, 3..5]);
-        assert_eq!(split_evenly(1, 4), vec![0..1]);
-        assert_eq!(split_evenly(4, 4), vec![0..1, 1..2, 2..3, 3..4]);
     }
 
     #[test]

@@ -1,0 +1,96 @@
+use thiserror::Error;
+
+use crate::simulators::SimulatorError;
+
+/// Everything that can go wrong in the core. The service maps each variant to a gRPC code on
+/// purpose (no catch-all arm), so a new variant has to be placed there.
+#[derive(Debug, Error)]
+pub enum CoreError {
+    #[error("unknown environment id '{}'{}", crate::bounds::clip(.id), suggestion_text(.suggestions))]
+    UnknownEnv { id: String, suggestions: Vec<String> },
+
+    #[error("{0}")]
+    InvalidOption(String),
+
+    /// A request that does not fit the session: action shape, dtype, bounds, NaN, seed range.
+    #[error("{0}")]
+    InvalidArgument(String),
+
+    #[error("unknown session '{}' (it was never created, or it was closed)", crate::bounds::clip(.0))]
+    UnknownSession(String),
+
+    /// The request is valid but the session is not in a state to take it.
+    #[error("{0}")]
+    FailedPrecondition(String),
+
+    /// A server limit (sessions, environments) would be exceeded.
+    #[error("{0}")]
+    LimitExceeded(String),
+
+    /// The simulator refused to build the environment with these options.
+    #[error("the simulator could not create {env_id}: {message}")]
+    CreateFailed { env_id: String, message: String },
+
+    /// The simulator failed in a way that is not the caller's fault.
+    #[error("simulator failure: {0}")]
+    Simulator(String),
+
+    /// No worker process could be started or reached.
+    #[error("simulator workers unavailable: {0}")]
+    WorkersUnavailable(String),
+
+    #[error("the server is shutting down")]
+    ShuttingDown,
+}
+
+impl From<SimulatorError> for CoreError {
+    /// A simulator's failure as the caller sees it. A refusal to build envs is placed by the caller,
+    /// which knows the env id (`CoreError::CreateFailed`); anywhere else it is the simulator's fault.
+    fn from(error: SimulatorError) -> CoreError {
+        match error {
+            SimulatorError::Refused(message) | SimulatorError::Failed(message) | SimulatorError::Lost(message) => {
+                CoreError::Simulator(message)
+            }
+            SimulatorError::Unavailable(message) => CoreError::WorkersUnavailable(message),
+            SimulatorError::OutOfResources(message) => CoreError::LimitExceeded(message),
+        }
+    }
+}
+
+/// An allocation that failed: out of file descriptors or memory is a limit of this server
+/// (RESOURCE_EXHAUSTED, worth retrying elsewhere or later), anything else a server failure.
+pub fn resource_error(what: &str, error: &std::io::Error) -> CoreError {
+    match exhaustion(what, error) {
+        Some(message) => CoreError::LimitExceeded(message),
+        None => CoreError::Simulator(format!("{what}: {error}")),
+    }
+}
+
+impl SimulatorError {
+    /// An allocation for a group that failed, placed as [`resource_error`] places it.
+    pub fn allocation(what: &str, error: &std::io::Error) -> SimulatorError {
+        match exhaustion(what, error) {
+            Some(message) => SimulatorError::OutOfResources(message),
+            None => SimulatorError::Failed(format!("{what}: {error}")),
+        }
+    }
+}
+
+/// What to say when `error` means the host ran out of file descriptors or memory.
+fn exhaustion(what: &str, error: &std::io::Error) -> Option<String> {
+    match error.raw_os_error() {
+        Some(libc::EMFILE | libc::ENFILE) => {
+            Some(format!("{what}: the server is out of file descriptors ({error}); try again later"))
+        }
+        Some(libc::ENOMEM | libc::ENOSPC) => Some(format!("{what}: the server is out of memory ({error})")),
+        _ => None,
+    }
+}
+
+fn suggestion_text(suggestions: &[String]) -> String {
+    if suggestions.is_empty() {
+        "; list the available ids with ListEnvs (`radserve envs`)".to_string()
+    } else {
+        format!("; did you mean {}?", suggestions.join(", "))
+    }
+}

@@ -1,0 +1,27 @@
+//! radserve's application core: sessions of vectorized environments with frame stacking, same-step
+//! autoreset, evaluation views and replay recording; the server's limits and memory budget; the
+//! environment catalog. Simulators are reached through the [`Simulators`] trait, so nothing here
+//! links Python: `radserve-sim` implements it with worker processes, [`fake`] with plain Rust for
+//! tests. No transport either: `radserve-service` maps this onto gRPC.
+
+pub mod bounds;
+pub mod budget;
+pub mod catalog;
+pub mod error;
+#[cfg(any(test, feature = "testing"))]
+pub mod fake;
+pub mod manager;
+pub mod session;
+pub mod simulators;
+pub mod space;
+#[cfg(test)]
+mod tests;
+
+pub use catalog::{EnvId, EnvNames, Family, OptionValue, Options};
+pub use error::CoreError;
+pub use manager::{
+    BufferRequest, CatalogEntry, LeaseHold, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
+};
+pub use session::{EpisodeEnd, StepOutcome};
+pub use simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
+pub use space::{DType, Space};

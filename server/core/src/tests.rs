@@ -1,0 +1,317 @@
+//! Sessions and the manager against the fake simulators: stacking across episode ends, same-step
+//! autoreset with final observations, replay recording of both kinds of episode end, recovery of a
+//! lost group, simulators that raise, and the server's limits. The same behaviour is tested against
+//! the real simulators end to end (tests/*.py); here every case is exact and needs no Python.
+
+use std::sync::Arc;
+
+use rand::SeedableRng;
+use radserve_replay::TransitionRef;
+
+use crate::error::CoreError;
+use crate::fake::{self, FakeSimulators, FAKE_ENV, FRAME_BYTES};
+use crate::manager::{BufferRequest, Limits, SessionExtras, SessionManager};
+use crate::session::StepOutcome;
+use crate::space::DType;
+
+/// A small memory budget, so that budget tests need few sessions (the fake's envs cost 2 MiB each).
+const BUDGET: u64 = 64 << 20;
+
+fn limits() -> Limits {
+    Limits { memory_bytes: BUDGET, session_idle_timeout_s: 0, ..Limits::default() }
+}
+
+fn manager(processes: usize, limits: Limits) -> (Arc<FakeSimulators>, SessionManager) {
+    let simulators = FakeSimulators::new(processes);
+    (simulators.clone(), SessionManager::new(simulators, limits))
+}
+
+async fn create(manager: &SessionManager, num_envs: usize, seed: u64, frame_stack: i64, extras: SessionExtras) -> String {
+    let info = manager.create_session(FAKE_ENV, num_envs, seed, &fake::fake_options(frame_stack), &extras).await.unwrap();
+    info.session_id
+}
+
+fn actions(values: &[i64]) -> Vec<u8> {
+    values.iter().flat_map(|value| value.to_le_bytes()).collect()
+}
+
+async fn step(manager: &SessionManager, id: &str, values: &[i64]) -> Result<StepOutcome, CoreError> {
+    let session = manager.get(id).unwrap();
+    let mut session = session.lock().await;
+    session.step(DType::Int64, &[values.len()], &actions(values)).await
+}
+
+async fn reset(manager: &SessionManager, id: &str, seed: Option<u64>) -> Vec<u8> {
+    manager.get(id).unwrap().lock().await.reset(seed).await.unwrap()
+}
+
+/// What a session should show of one env, computed from the fake's rules alone.
+#[derive(Clone, Debug)]
+struct EnvModel {
+    seed: u64,
+    episode: u64,
+    /// Frames of the current episode so far.
+    frames: Vec<[u8; FRAME_BYTES]>,
+    episode_return: f64,
+}
+
+impl EnvModel {
+    fn new(seed: u64) -> EnvModel {
+        EnvModel { seed, episode: 0, frames: vec![fake::frame(seed, 0, 0)], episode_return: 0.0 }
+    }
+
+    /// The last `k` frames, the episode's first repeated where there are fewer (stacking at reset).
+    fn stack(frames: &[[u8; FRAME_BYTES]], k: usize) -> Vec<u8> {
+        (0..k).flat_map(|i| frames[(frames.len() + i).saturating_sub(k)]).collect()
+    }
+
+    /// One step with `action`: (reward, terminated, truncated, final stack if the episode ended).
+    fn step(&mut self, action: i64, k: usize) -> (f64, bool, bool, Option<(Vec<u8>, f64, u64)>) {
+        let reward = action as f64 + 1.0;
+        self.episode_return += reward;
+        let t = self.frames.len() as u64;
+        self.frames.push(fake::frame(self.seed, self.episode, t));
+        if t < fake::episode_length(self.seed) {
+            return (reward, false, false, None);
+        }
+        let ended = (Self::stack(&self.frames, k), self.episode_return, t);
+        let terminated = fake::ends_terminated(self.episode);
+        self.episode += 1;
+        self.frames = vec![fake::frame(self.seed, self.episode, 0)];
+        self.episode_return = 0.0;
+        (reward, terminated, !terminated, Some(ended))
+    }
+}
+
+#[tokio::test]
+async fn stacks_and_same_step_autoreset_follow_the_episodes_of_each_env() {
+    let (_, manager) = manager(2, limits());
+    let (num_envs, k) = (3, 3);
+    let id = create(&manager, num_envs, 10, k as i64, SessionExtras::default()).await;
+    let mut models: Vec<EnvModel> = (0..num_envs).map(|env| EnvModel::new(10 + env as u64)).collect();
+    let obs = reset(&manager, &id, None).await;
+    let expected: Vec<u8> = models.iter().flat_map(|model| EnvModel::stack(&model.frames, k)).collect();
+    assert_eq!(obs, expected, "at reset each stack is the first frame repeated");
+
+    let mut kinds = (0, 0);
+    for step_index in 0..25 {
+        let values: Vec<i64> = (0..num_envs).map(|env| ((step_index + env) % 3) as i64).collect();
+        let outcome = step(&manager, &id, &values).await.unwrap();
+        let mut final_obs = Vec::new();
+        let mut episodes = Vec::new();
+        for (env, model) in models.iter_mut().enumerate() {
+            let (reward, terminated, truncated, ended) = model.step(values[env], k);
+            assert_eq!(
+                (outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]),
+                (reward, terminated, truncated),
+                "env {env} at step {step_index}"
+            );
+            if let Some((stack, episode_return, length)) = ended {
+                final_obs.extend(stack);
+                episodes.push((env, episode_return, length, terminated, truncated));
+                kinds.0 += usize::from(terminated);
+                kinds.1 += usize::from(truncated);
+            }
+        }
+        let expected: Vec<u8> = models.iter().flat_map(|model| EnvModel::stack(&model.frames, k)).collect();
+        assert_eq!(outcome.obs, expected, "observations after step {step_index}");
+        assert_eq!(outcome.final_obs, final_obs, "final observations of step {step_index}");
+        let reported: Vec<_> = outcome
+            .episodes
+            .iter()
+            .map(|end| (end.env_index, end.episode_return, end.episode_length, end.terminated, end.truncated))
+            .collect();
+        assert_eq!(reported, episodes, "episodes ended in step {step_index}");
+        assert!(outcome.episodes.iter().all(|end| end.error.is_none()));
+    }
+    assert!(kinds.0 > 0 && kinds.1 > 0, "both kinds of episode end were seen: {kinds:?}");
+    let info = manager.describe(&id).await.unwrap();
+    assert_eq!(info.total_env_steps, 25 * num_envs as u64);
+}
+
+#[tokio::test]
+async fn replay_records_every_transition_with_both_kinds_of_episode_end() {
+    let (_, manager) = manager(2, limits());
+    let (num_envs, k) = (3, 2);
+    let extras = SessionExtras { buffer: Some(BufferRequest::Replay { capacity: 1000 }), observation_view: None };
+    let id = create(&manager, num_envs, 4, k as i64, extras).await;
+    reset(&manager, &id, None).await;
+    for step_index in 0..30 {
+        step(&manager, &id, &[(step_index % 3) as i64; 3]).await.unwrap();
+    }
+    let session = manager.get(&id).unwrap();
+    let session = session.lock().await;
+    let replay = session.replay().unwrap().clone();
+    let mut replay = replay.write().unwrap();
+    assert_eq!(replay.len(), 30 * num_envs, "one transition per env and step");
+
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut refs: Vec<TransitionRef> = Vec::new();
+    replay.sample(600, &mut rng, &mut refs).unwrap();
+    let mut metadata = radserve_replay::TransitionMetadata::default();
+    replay.gather_metadata(&refs, &mut metadata);
+    let (mut obs, mut next_obs) = (vec![0; k * FRAME_BYTES], vec![0; k * FRAME_BYTES]);
+    let mut kinds = (0, 0);
+    for (row, transition) in refs.iter().enumerate() {
+        replay.copy_observation(*transition, false, &mut obs);
+        replay.copy_observation(*transition, true, &mut next_obs);
+        let env = metadata.env_indices[row] as usize;
+        let seed = 4 + env as u64;
+        // The next frame says where the transition is: episode e, step t >= 1 of it.
+        let [next_seed, episode, t, mark] = next_obs[(k - 1) * FRAME_BYTES..].try_into().unwrap();
+        assert_eq!((next_seed as u64, mark), (seed, fake::MARK), "row {row}");
+        let (episode, t) = (episode as u64, t as u64);
+        assert!(t >= 1, "an episode's first frame is never a transition's next frame");
+        let frames: Vec<_> = (0..=t).map(|i| fake::frame(seed, episode, i)).collect();
+        assert_eq!(next_obs, EnvModel::stack(&frames, k), "next_obs of row {row}");
+        assert_eq!(obs, EnvModel::stack(&frames[..t as usize], k), "obs of row {row}: same episode, one step earlier");
+        let ended = t == fake::episode_length(seed);
+        let terminated = ended && fake::ends_terminated(episode);
+        let truncated = ended && !fake::ends_terminated(episode);
+        assert_eq!((metadata.terminated[row] != 0, metadata.truncated[row] != 0), (terminated, truncated), "row {row}");
+        kinds.0 += usize::from(terminated);
+        kinds.1 += usize::from(truncated);
+    }
+    assert!(kinds.0 > 0 && kinds.1 > 0, "both kinds of episode end are recorded: {kinds:?}");
+}
+
+#[tokio::test]
+async fn a_lost_group_ends_its_episodes_and_restarts_from_its_seeds() {
+    let (simulators, manager) = manager(2, limits());
+    let extras = SessionExtras { buffer: Some(BufferRequest::Replay { capacity: 100 }), observation_view: None };
+    let id = create(&manager, 4, 19, 2, extras).await;
+    reset(&manager, &id, None).await;
+    step(&manager, &id, &[0, 0, 0, 0]).await.unwrap();
+    let before = step(&manager, &id, &[1, 1, 1, 1]).await.unwrap().obs;
+
+    // Envs 2 and 3 are the second group's.
+    simulators.lose_group_of(3);
+    let outcome = step(&manager, &id, &[2, 2, 2, 2]).await.unwrap();
+    let stack = 2 * FRAME_BYTES;
+    let lost: Vec<_> = outcome.episodes.iter().map(|end| (end.env_index, end.truncated, end.episode_length)).collect();
+    assert_eq!(lost, vec![(2, true, 3), (3, true, 3)], "the lost group's episodes end as truncated");
+    assert!(outcome.episodes.iter().all(|end| end.error.as_deref() == Some("fake worker died")));
+    assert_eq!(outcome.final_obs, before[2 * stack..], "their last observation is the one before the lost step");
+    assert_eq!(outcome.obs[2 * stack..3 * stack], [fake::frame(21, 0, 0), fake::frame(21, 0, 0)].concat());
+    assert_eq!(outcome.obs[3 * stack..], [fake::frame(22, 0, 0), fake::frame(22, 0, 0)].concat(), "restarted from the seed");
+    assert!(!outcome.terminated[2] && outcome.truncated[2] && outcome.truncated[3]);
+    assert_eq!(outcome.obs[..stack], [fake::frame(19, 0, 2), fake::frame(19, 0, 3)].concat(), "the other group went on");
+
+    let next = step(&manager, &id, &[0, 0, 0, 0]).await.unwrap();
+    assert_eq!(next.obs[3 * stack..], [fake::frame(22, 0, 0), fake::frame(22, 0, 1)].concat(), "the session steps on");
+    assert_eq!(manager.describe(&id).await.unwrap().episodes_completed, 3, "two lost, env 0's ended at step 4");
+}
+
+#[tokio::test]
+async fn a_simulator_that_raises_ends_only_that_episode() {
+    let (simulators, manager) = manager(1, limits());
+    let id = create(&manager, 2, 0, 1, SessionExtras::default()).await;
+    reset(&manager, &id, None).await;
+    step(&manager, &id, &[0, 0]).await.unwrap();
+    simulators.raise_in(1);
+    let outcome = step(&manager, &id, &[0, 0]).await.unwrap();
+    assert_eq!(outcome.episodes.len(), 1);
+    let end = &outcome.episodes[0];
+    assert_eq!((end.env_index, end.truncated, end.terminated), (1, true, false));
+    assert_eq!(end.error.as_deref(), Some("FakeError: the simulator raised"));
+    assert_eq!(outcome.final_obs, fake::frame(1, 0, 1), "the last frame before the step that raised");
+    assert_eq!(outcome.obs, [fake::frame(0, 0, 2), fake::frame(1, 1, 0)].concat());
+}
+
+#[tokio::test]
+async fn a_failed_step_asks_for_a_reset_and_bad_actions_reach_no_simulator() {
+    let (simulators, manager) = manager(2, limits());
+    let id = create(&manager, 2, 0, 1, SessionExtras::default()).await;
+    let before_reset = step(&manager, &id, &[0, 0]).await.unwrap_err();
+    assert!(matches!(before_reset, CoreError::FailedPrecondition(_)), "{before_reset}");
+    reset(&manager, &id, None).await;
+
+    let steps = simulators.steps();
+    let out_of_range = step(&manager, &id, &[0, 3]).await.unwrap_err().to_string();
+    assert!(out_of_range.contains("action 3 of env 1 is outside [0, 3)"), "{out_of_range}");
+    let session = manager.get(&id).unwrap();
+    let wrong_dtype = session.lock().await.step(DType::Float32, &[2], &[0; 8]).await.unwrap_err().to_string();
+    assert!(wrong_dtype.contains("actions must be int64 of shape [2]"), "{wrong_dtype}");
+    assert_eq!(simulators.steps(), steps, "refused actions are never sent");
+
+    simulators.fail_next_step("nonsense from the simulator");
+    let failed = step(&manager, &id, &[0, 0]).await.unwrap_err();
+    assert!(matches!(&failed, CoreError::Simulator(message) if message.contains("nonsense")), "{failed}");
+    assert!(matches!(step(&manager, &id, &[0, 0]).await.unwrap_err(), CoreError::FailedPrecondition(_)));
+    reset(&manager, &id, Some(5)).await;
+    let outcome = step(&manager, &id, &[0, 0]).await.unwrap();
+    assert_eq!(outcome.obs, [fake::frame(5, 0, 1), fake::frame(6, 0, 1)].concat(), "reseeded: env i gets 5 + i");
+}
+
+#[tokio::test]
+async fn limits_refuse_before_anything_is_built_and_closing_returns_everything() {
+    let limits = Limits { max_sessions: 3, max_envs_per_session: 8, max_total_envs: 12, ..limits() };
+    let (simulators, manager) = manager(2, limits);
+    let baseline = manager.memory().0;
+    let no_extras = SessionExtras::default;
+
+    let too_many = manager.create_session(FAKE_ENV, 9, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    assert!(matches!(&too_many, CoreError::LimitExceeded(m) if m.contains("limit of 8 environments per session")), "{too_many}");
+    let zero = manager.create_session(FAKE_ENV, 0, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    assert!(matches!(zero, CoreError::InvalidArgument(_)));
+    let unknown = manager.create_session("gym/Fak-v0", 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    assert!(matches!(&unknown, CoreError::UnknownEnv { suggestions, .. } if suggestions == &["gym/Fake-v0"]), "{unknown}");
+    simulators.refuse_next_create("no such option in the simulator");
+    let refused = manager.create_session(FAKE_ENV, 2, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    assert!(matches!(&refused, CoreError::CreateFailed { env_id, .. } if env_id == FAKE_ENV), "{refused}");
+    assert_eq!(simulators.groups_alive(), 0);
+    assert_eq!(manager.memory().0, baseline, "a refused request reserves nothing");
+
+    let first = create(&manager, 8, 0, 1, no_extras()).await;
+    let second = create(&manager, 3, 0, 1, no_extras()).await;
+    let over_total = manager.create_session(FAKE_ENV, 2, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    assert!(matches!(&over_total, CoreError::LimitExceeded(m) if m.contains("above its limit of 12")), "{over_total}");
+    create(&manager, 1, 0, 1, no_extras()).await;
+    let over_sessions = manager.create_session(FAKE_ENV, 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    assert!(matches!(&over_sessions, CoreError::LimitExceeded(m) if m.contains("already hosts 3 sessions")), "{over_sessions}");
+    assert_eq!(simulators.groups_alive(), 2 + 2 + 1);
+    for id in [&first, &second] {
+        manager.close_session(id).await.unwrap();
+    }
+    manager.shutdown().await;
+    assert_eq!(simulators.groups_alive(), 0, "every group was closed");
+    assert_eq!(manager.memory().0, baseline, "every reservation came back");
+    assert!(matches!(manager.get(&first), Err(CoreError::UnknownSession(_))));
+}
+
+#[tokio::test]
+async fn the_memory_budget_refuses_what_would_not_fit() {
+    let (simulators, manager) = manager(1, limits());
+    let extras = |capacity| SessionExtras { buffer: Some(BufferRequest::Replay { capacity }), observation_view: None };
+    // 16 fake envs at 2 MiB each take half of the 64 MiB budget.
+    let first = manager.create_session(FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(100_000)).await.unwrap();
+    let envs_refused = manager.create_session(FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(10)).await.unwrap_err();
+    assert!(
+        matches!(&envs_refused, CoreError::LimitExceeded(m) if m.contains("16 envs of gym/Fake-v0") && m.contains("limits.memory_bytes")),
+        "{envs_refused}"
+    );
+    // These envs fit; their replay buffer, known only once they are built, does not.
+    let replay_refused = manager.create_session(FAKE_ENV, 8, 0, &fake::fake_options(1), &extras(1_000_000)).await.unwrap_err();
+    assert!(
+        matches!(&replay_refused, CoreError::LimitExceeded(m) if m.contains("a replay buffer of 1000000 transitions")),
+        "{replay_refused}"
+    );
+    assert_eq!(simulators.groups_alive(), 1, "what was built for the refused session was closed");
+    manager.close_session(&first.session_id).await.unwrap();
+    assert_eq!(manager.memory().0, 0);
+}
+
+#[tokio::test]
+async fn idle_sessions_are_reaped_and_held_ones_are_not() {
+    let (simulators, manager) = manager(1, Limits { session_idle_timeout_s: 1, ..limits() });
+    let idle = create(&manager, 1, 0, 1, SessionExtras::default()).await;
+    let held = create(&manager, 1, 0, 1, SessionExtras::default()).await;
+    let hold = manager.hold(&held).unwrap();
+    tokio::time::sleep(std::time::Duration::from_millis(1100)).await;
+    assert_eq!(manager.reap_idle().await, vec![idle.clone()]);
+    assert!(matches!(manager.describe(&idle).await, Err(CoreError::UnknownSession(_))));
+    assert_eq!(simulators.groups_alive(), 1);
+    drop(hold);
+    assert!(manager.reap_idle().await.is_empty(), "releasing the hold renews the lease");
+    manager.close_session(&held).await.unwrap();
+}
