@@ -4,6 +4,10 @@
 //! links Python: `radserve-sim` implements it with worker processes, [`fake`] with plain Rust for
 //! tests. No transport either: `radserve-service` maps this onto gRPC.
 
+// Errors and messages are matched in full in the crates that map them: a new variant must be
+// placed on purpose (the Status mapping, the worker protocol), never fall into a `_` arm.
+#![warn(clippy::wildcard_enum_match_arm)]
+
 pub mod bounds;
 pub mod budget;
 pub mod catalog;
@@ -22,6 +26,6 @@ pub use error::CoreError;
 pub use manager::{
     BufferRequest, CatalogEntry, LeaseHold, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
 };
-pub use session::{EpisodeEnd, StepOutcome};
+pub use session::{AutoresetMode, EpisodeEnd, StepOutcome};
 pub use simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
 pub use space::{DType, Space};

@@ -16,7 +16,7 @@ use crate::bounds;
 use crate::budget::{self, MemoryBudget, Reservation};
 use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
 use crate::error::CoreError;
-use crate::session::{check_seed, Session, SessionConfig, SessionStats};
+use crate::session::{check_seed, AutoresetMode, Session, SessionConfig, SessionStats};
 use crate::simulators::Simulators;
 use crate::space::{DType, Space};
 
@@ -124,6 +124,7 @@ pub struct SessionInfo {
     pub observation_space: Space,
     pub action_space: Space,
     pub frame_stack: usize,
+    pub autoreset_mode: AutoresetMode,
     pub total_env_steps: u64,
     pub episodes_completed: u64,
     pub replay: Option<ReplayInfo>,
@@ -422,6 +423,19 @@ impl SessionManager {
         self.budget.try_reserve(bytes, what)
     }
 
+    /// Reserve the batches a sample stream holds at once, `bytes` for (`prefetch` + 2) batches: within
+    /// the per-stream limit and the memory budget, for as long as the reservation lives.
+    pub fn reserve_stream(&self, bytes: u64, prefetch: usize) -> Result<Reservation, CoreError> {
+        let limit = self.limits.stream_memory_bytes;
+        if bytes > limit {
+            return Err(CoreError::LimitExceeded(format!(
+                "this stream would hold {bytes} bytes of batches ((prefetch {prefetch} + 2) batches of observations), over \
+                 this server's limit of {limit} (limits.stream_memory_bytes): lower prefetch or batch_size"
+            )));
+        }
+        self.budget.try_reserve(bytes, &format!("a sample stream of (prefetch {prefetch} + 2) batches"))
+    }
+
     /// The server's memory budget: (bytes reserved now, limit).
     pub fn memory(&self) -> (u64, u64) {
         (self.budget.used(), self.budget.limit())
@@ -698,6 +712,7 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
         observation_space: session.observation_space.clone(),
         action_space: session.frame_spec.action.clone(),
         frame_stack: session.config.frame_stack,
+        autoreset_mode: AutoresetMode::SameStep,
         total_env_steps: session.total_env_steps,
         episodes_completed: session.episodes_completed,
         replay: session.replay().map(|replay| replay_info(&replay.read().expect("replay lock"))),

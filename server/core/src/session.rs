@@ -20,6 +20,23 @@ use crate::space::{DType, Space};
 /// Largest seed + num_envs: dm_control and ProcGen seeds are 32-bit signed integers.
 pub const MAX_SEED: u64 = i32::MAX as u64;
 
+/// What a step that ends an episode returns (gymnasium's `AutoresetMode` names the same choices).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AutoresetMode {
+    /// The ending step already returns the next episode's first observation, and the ended
+    /// episode's last one as `final_obs` (EnvPool; gymnasium's `SAME_STEP`).
+    SameStep,
+}
+
+impl AutoresetMode {
+    /// The name clients see (`SessionInfo.autoreset_mode`).
+    pub fn name(self) -> &'static str {
+        match self {
+            AutoresetMode::SameStep => "same-step",
+        }
+    }
+}
+
 /// The counters of a session that change as it acts, readable without its lock.
 #[derive(Debug, Default)]
 pub struct SessionStats {
@@ -95,7 +112,10 @@ impl Session {
         let (frame_spec, groups) =
             simulators.create_groups(&config.env, &worker_options, seeds).await.map_err(|error| match error {
                 SimulatorError::Refused(message) => CoreError::CreateFailed { env_id: config.env.full(), message },
-                other => other.into(),
+                other @ (SimulatorError::Failed(_)
+                | SimulatorError::Lost(_)
+                | SimulatorError::Unavailable(_)
+                | SimulatorError::OutOfResources(_)) => other.into(),
             })?;
         let layout = FrameLayout { frame_bytes: frame_spec.observation.num_bytes() };
         let config_seed = config.seed;

@@ -9,9 +9,6 @@ pub enum ReplayError {
     /// The session has no buffer of the kind asked for.
     #[error("{0}")]
     FailedPrecondition(String),
-    /// The buffer would not fit in the server's memory budget.
-    #[error("{0}")]
-    OverBudget(String),
     #[error(transparent)]
     Augment(#[from] AugmentError),
     /// The stream's client left while its batch was being made (never sent to anyone).

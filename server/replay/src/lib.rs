@@ -4,7 +4,12 @@
 //! samples it, rebuilds the frame stacks and augments them with `radserve-augment`, ahead of the
 //! learner, into reused buffers or into a [`SharedRing`] that a learner on the same host maps.
 
+// Errors and messages are matched in full in the crates that map them: a new variant must be
+// placed on purpose (the Status mapping, the worker protocol), never fall into a `_` arm.
+#![warn(clippy::wildcard_enum_match_arm)]
+
 mod buffer;
+mod delivery;
 mod error;
 mod producer;
 mod shared;
@@ -13,6 +18,7 @@ pub use buffer::{
     check_capacity, BufferKind, ProducerPermit, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata,
     TransitionRef, MAX_CAPACITY, MIN_BYTES_PER_TRANSITION,
 };
+pub use delivery::{HeldSlots, InFlight};
 pub use error::{ReplayError, Result};
 pub use producer::{Batch, ObservationFormat, Output, Producer, Recycler, SampleSpec, Source, MAX_BATCH_BYTES};
 pub use shared::{SharedRing, Slot, SHARED_HEADER_BYTES, SHARED_MAGIC};

@@ -6,7 +6,7 @@
 //! 2-core host. Here the client writes its actions into memory both processes map, sends 16 bytes on
 //! a Unix socket, and reads the results in place after an 8-byte answer. The protocol is written
 //! down in the proto (`SharedActingChannel`). This is a transport beside the gRPC handlers: it calls
-//! the same `Session::reset`/`Session::step` and maps errors through the same `to_status`.
+//! the same `Session::reset`/`Session::step` and answers with the same statuses (`ServiceError`).
 //!
 //! The memory is a memfd opened by the client through `/proc/<server pid>/fd/<fd>` (as the workers'
 //! frames and the shared-memory minibatches are); the socket is in the abstract namespace, so nothing
@@ -26,7 +26,7 @@ use tokio::time::{timeout_at, Instant};
 use tonic::{Code, Status};
 use tracing::debug;
 
-use crate::error::to_status;
+use crate::error::{Result, ServiceError};
 use crate::proto;
 
 /// Bytes 0..16 of the region; the token follows.
@@ -125,16 +125,16 @@ pub async fn open(
     manager: Arc<SessionManager>,
     session_id: &str,
     open: &OpenChannels,
-) -> Result<(proto::SharedActingChannel, ActingChannel), Status> {
+) -> Result<(proto::SharedActingChannel, ActingChannel)> {
     let layout = {
-        let session = manager.get(session_id).map_err(to_status)?;
+        let session = manager.get(session_id)?;
         let session = session.lock().await;
         ActingLayout::new(session.num_envs(), session.frame_spec.action.num_bytes(), session.observation_space.num_bytes())
     };
     let claim = {
         let mut sessions = open.0.lock().expect("channel set lock");
         if !sessions.insert(session_id.to_string()) {
-            return Err(Status::failed_precondition(format!(
+            return Err(ServiceError::AlreadyOpen(format!(
                 "session {session_id} already has a shared-memory acting channel; close that one (or its \
                  process) first"
             )));
@@ -143,12 +143,12 @@ pub async fn open(
     };
     let memory_reservation = manager
         .reserve_memory(layout.len as u64, &format!("a shared-memory acting channel of {} bytes", layout.len))
-        .map_err(to_status)?;
-    let internal = |what: &str, error: io::Error| Status::internal(format!("{what}: {error}"));
+        ?;
     let (memory, Header { token, .. }) = MemFile::create_with_header(c"radserve-acting", layout.len, ACTING_MAGIC)
-        .map_err(|error| to_status(radserve_core::error::resource_error("creating the acting memory", &error)))?;
+        .map_err(|error| radserve_core::error::resource_error("creating the acting memory", &error))?;
     let name = format!("radserve-acting-{}-{}", std::process::id(), hex(&token[..8]));
-    let listener = bind_abstract(&name).map_err(|error| internal("binding the acting socket", error))?;
+    let listener =
+        bind_abstract(&name).map_err(|error| ServiceError::Internal(format!("binding the acting socket: {error}")))?;
     let description = proto::SharedActingChannel {
         path: memory.proc_path(),
         size: memory.len() as u64,
@@ -163,7 +163,7 @@ pub async fn open(
         episode_return_offset: layout.episode_return as u64,
         episode_length_offset: layout.episode_length as u64,
     };
-    let lease = manager.hold(session_id).map_err(to_status)?;
+    let lease = manager.hold(session_id)?;
     let channel =
         ActingChannel { manager, layout, memory, token, listener, _claim: claim, _lease: lease, _memory: memory_reservation };
     Ok((description, channel))
@@ -192,7 +192,10 @@ impl ActingChannel {
         while stream.read_exact(&mut request).await.is_ok() {
             let (code, body) = match self.handle(&session_id, &request).await {
                 Ok(errors) => (Code::Ok, errors),
-                Err(status) => (status.code(), status.message().as_bytes().to_vec()),
+                Err(error) => {
+                    let status = Status::from(error);
+                    (status.code(), status.message().as_bytes().to_vec())
+                }
             };
             let mut answer = Vec::with_capacity(8 + body.len());
             answer.extend_from_slice(&(code as u32).to_le_bytes());
@@ -220,21 +223,21 @@ impl ActingChannel {
     }
 
     /// One request: Ok holds the simulator errors of ended episodes, encoded for the answer.
-    async fn handle(&mut self, session_id: &str, request: &[u8; REQUEST_BYTES]) -> Result<Vec<u8>, Status> {
+    async fn handle(&mut self, session_id: &str, request: &[u8; REQUEST_BYTES]) -> Result<Vec<u8>> {
         let seed = match request[1] {
             0 => None,
             1 => Some(u64::from_le_bytes(request[8..16].try_into().expect("8 bytes"))),
             other => {
-                return Err(Status::invalid_argument(format!("byte 1 of a request is 0 or 1 (a seed follows), got {other}")))
+                return Err(ServiceError::BadRequest(format!("byte 1 of a request is 0 or 1 (a seed follows), got {other}")))
             }
         };
         let layout = self.layout;
-        let session = self.manager.get(session_id).map_err(to_status)?;
+        let session = self.manager.get(session_id)?;
         let mut session = session.lock().await;
         let memory = self.memory.as_mut_slice();
         match request[0] {
             b'R' => {
-                let obs = session.reset(seed).await.map_err(to_status)?;
+                let obs = session.reset(seed).await?;
                 check_len("observations", obs.len(), layout.num_envs * layout.obs_bytes)?;
                 memory[layout.obs..][..obs.len()].copy_from_slice(&obs);
                 Ok(Vec::new())
@@ -244,7 +247,7 @@ impl ActingChannel {
                 let (dtype, mut shape) = (action.dtype(), vec![layout.num_envs]);
                 shape.extend_from_slice(action.shape());
                 let actions = memory[layout.actions..][..layout.num_envs * layout.action_bytes].to_vec();
-                let outcome = session.step(dtype, &shape, &actions).await.map_err(to_status)?;
+                let outcome = session.step(dtype, &shape, &actions).await?;
                 check_len("observations", outcome.obs.len(), layout.num_envs * layout.obs_bytes)?;
                 memory[layout.obs..][..outcome.obs.len()].copy_from_slice(&outcome.obs);
                 for (env, reward) in outcome.rewards.iter().enumerate() {
@@ -267,16 +270,16 @@ impl ActingChannel {
                 }
                 Ok(errors)
             }
-            other => Err(Status::invalid_argument(format!(
+            other => Err(ServiceError::BadRequest(format!(
                 "a request starts with 'S' (step) or 'R' (reset), got byte {other:#04x}"
             ))),
         }
     }
 }
 
-fn check_len(what: &str, got: usize, expected: usize) -> Result<(), Status> {
+fn check_len(what: &str, got: usize, expected: usize) -> Result<()> {
     if got != expected {
-        return Err(Status::internal(format!("the session produced {got} bytes of {what}, the channel holds {expected}")));
+        return Err(ServiceError::Internal(format!("the session produced {got} bytes of {what}, the channel holds {expected}")));
     }
     Ok(())
 }

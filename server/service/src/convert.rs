@@ -4,12 +4,12 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use radserve_augment::{Pipeline, Sharing};
-use radserve_replay::{Batch, SampleSpec, Slot, Source};
+use radserve_replay::{Batch, ReplayError, SampleSpec, Slot, Source};
 use radserve_core::{
     BufferRequest, CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, SessionSummary, Space, StepOutcome,
 };
-use tonic::Status;
 
+use crate::error::{Result, ServiceError};
 use crate::proto;
 
 pub fn dtype_to_proto(dtype: DType) -> proto::DType {
@@ -23,7 +23,7 @@ pub fn dtype_to_proto(dtype: DType) -> proto::DType {
     }
 }
 
-pub fn dtype_from_proto(raw: i32) -> Result<DType, Status> {
+pub fn dtype_from_proto(raw: i32) -> Result<DType> {
     match proto::DType::try_from(raw) {
         Ok(proto::DType::DtypeUint8) => Ok(DType::Uint8),
         Ok(proto::DType::DtypeInt32) => Ok(DType::Int32),
@@ -32,7 +32,7 @@ pub fn dtype_from_proto(raw: i32) -> Result<DType, Status> {
         Ok(proto::DType::DtypeFloat64) => Ok(DType::Float64),
         Ok(proto::DType::DtypeBool) => Ok(DType::Bool),
         Ok(proto::DType::DtypeUnspecified) | Err(_) => {
-            Err(Status::invalid_argument(format!("tensor dtype {raw} is not one of the DType values")))
+            Err(ServiceError::BadRequest(format!("tensor dtype {raw} is not one of the DType values")))
         }
     }
 }
@@ -65,7 +65,7 @@ pub fn options_to_proto(options: &Options) -> HashMap<String, proto::OptionValue
     options.iter().map(|(name, value)| (name.clone(), option_to_proto(value))).collect()
 }
 
-pub fn options_from_proto(options: &HashMap<String, proto::OptionValue>) -> Result<Options, Status> {
+pub fn options_from_proto(options: &HashMap<String, proto::OptionValue>) -> Result<Options> {
     use proto::option_value::Value;
     options
         .iter()
@@ -75,7 +75,7 @@ pub fn options_from_proto(options: &HashMap<String, proto::OptionValue>) -> Resu
                 Some(Value::IntValue(v)) => OptionValue::Int(*v),
                 Some(Value::FloatValue(v)) => OptionValue::Float(*v),
                 Some(Value::StringValue(v)) => OptionValue::Str(v.clone()),
-                None => return Err(Status::invalid_argument(format!("option '{name}' has no value"))),
+                None => return Err(ServiceError::BadRequest(format!("option '{name}' has no value"))),
             };
             Ok((name.clone(), value))
         })
@@ -106,7 +106,7 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
         observation_space: Some(space_to_proto(&info.observation_space)),
         action_space: Some(space_to_proto(&info.action_space)),
         frame_stack: info.frame_stack as u32,
-        autoreset_mode: "same-step".to_string(),
+        autoreset_mode: info.autoreset_mode.name().to_string(),
         total_env_steps: info.total_env_steps,
         episodes_completed: info.episodes_completed,
         replay: info.replay.as_ref().map(|replay| proto::ReplayInfo {
@@ -157,12 +157,12 @@ pub const MIN_CHUNK_BYTES: usize = 64 << 10;
 
 /// The chunk size a SampleBatches request asks for (0: the default), within
 /// [`MIN_CHUNK_BYTES`, `crate::MAX_MESSAGE_BYTES` / 2].
-pub fn chunk_bytes(requested: u32) -> Result<usize, Status> {
+pub fn chunk_bytes(requested: u32) -> Result<usize> {
     let max = crate::MAX_MESSAGE_BYTES / 2;
     match requested as usize {
         0 => Ok(DEFAULT_CHUNK_BYTES),
         bytes if (MIN_CHUNK_BYTES..=max).contains(&bytes) => Ok(bytes),
-        bytes => Err(Status::invalid_argument(format!(
+        bytes => Err(ServiceError::BadRequest(format!(
             "chunk_bytes must be 0 (the default, {DEFAULT_CHUNK_BYTES}) or between {MIN_CHUNK_BYTES} and {max}, got {bytes}"
         ))),
     }
@@ -170,11 +170,11 @@ pub fn chunk_bytes(requested: u32) -> Result<usize, Status> {
 
 /// A typed pipeline's stages in the text form, every name and key checked to be a plain name first
 /// (so that no key can carry text that the parser would read as more stages or arguments).
-fn typed_pipeline_text(typed: &proto::AugmentationPipeline) -> Result<String, Status> {
+fn typed_pipeline_text(typed: &proto::AugmentationPipeline) -> Result<String> {
     use radserve_core::bounds::clip;
     let plain = |text: &str| !text.is_empty() && text.len() <= 32 && text.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
     if typed.stages.len() > radserve_augment::MAX_STAGES {
-        return Err(Status::invalid_argument(format!(
+        return Err(ServiceError::BadRequest(format!(
             "a pipeline has at most {} stages, got {}",
             radserve_augment::MAX_STAGES,
             typed.stages.len()
@@ -183,13 +183,13 @@ fn typed_pipeline_text(typed: &proto::AugmentationPipeline) -> Result<String, St
     let mut stages = Vec::with_capacity(typed.stages.len());
     for stage in &typed.stages {
         if !plain(&stage.name) {
-            return Err(Status::invalid_argument(format!(
+            return Err(ServiceError::BadRequest(format!(
                 "augmentation stage names are plain names such as \"crop\", got {:?}",
                 clip(&stage.name)
             )));
         }
         if let Some(key) = stage.args.keys().find(|key| !plain(key)) {
-            return Err(Status::invalid_argument(format!(
+            return Err(ServiceError::BadRequest(format!(
                 "argument names of {} are plain names such as \"size\", got {:?}",
                 stage.name,
                 clip(key)
@@ -204,21 +204,21 @@ fn typed_pipeline_text(typed: &proto::AugmentationPipeline) -> Result<String, St
 }
 
 /// A SampleBatches request as the producer's spec, every field checked.
-pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<SampleSpec, Status> {
+pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<SampleSpec> {
     use proto::sample_batches_request::Augmentation as Choice;
     let pipeline = match &request.augmentation {
         None => Pipeline::identity(),
-        Some(Choice::PipelineText(text)) => Pipeline::parse(text).map_err(|e| Status::invalid_argument(e.to_string()))?,
+        Some(Choice::PipelineText(text)) => Pipeline::parse(text).map_err(ReplayError::from)?,
         // The typed form goes through the text form's parser, so both are checked the same way.
         Some(Choice::Pipeline(typed)) => {
-            Pipeline::parse(&typed_pipeline_text(typed)?).map_err(|e| Status::invalid_argument(e.to_string()))?
+            Pipeline::parse(&typed_pipeline_text(typed)?).map_err(ReplayError::from)?
         }
     };
     let sharing = match proto::DrawSharing::try_from(request.sharing) {
         Ok(proto::DrawSharing::Reference) => Sharing::Reference,
         Ok(proto::DrawSharing::Shared) => Sharing::Shared,
         Ok(proto::DrawSharing::Independent) => Sharing::Independent,
-        Err(_) => return Err(Status::invalid_argument(format!("unknown DrawSharing value {}", request.sharing))),
+        Err(_) => return Err(ServiceError::BadRequest(format!("unknown DrawSharing value {}", request.sharing))),
     };
     let batch_size = request.batch_size as usize;
     let source = match proto::BatchSource::try_from(request.source) {
@@ -226,7 +226,7 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
         Ok(proto::BatchSource::SourceRollout) => {
             Source::Rollout { epochs: request.epochs.max(1) as usize, per_env_draws: request.per_env_augmentation }
         }
-        Err(_) => return Err(Status::invalid_argument(format!("unknown BatchSource value {}", request.source))),
+        Err(_) => return Err(ServiceError::BadRequest(format!("unknown BatchSource value {}", request.source))),
     };
     let include_next_obs = request.include_next_obs.unwrap_or(source == Source::Replay);
     Ok(SampleSpec {
@@ -378,14 +378,14 @@ pub fn observation_tensor(space: &Space, rows: usize, data: Vec<u8>) -> proto::T
 }
 
 /// Reads a request tensor's dtype and shape; the core checks them against the session's spec.
-pub fn tensor_header(tensor: Option<&proto::Tensor>, what: &str) -> Result<(DType, Vec<usize>), Status> {
-    let tensor = tensor.ok_or_else(|| Status::invalid_argument(format!("{what} tensor is missing")))?;
+pub fn tensor_header(tensor: Option<&proto::Tensor>, what: &str) -> Result<(DType, Vec<usize>)> {
+    let tensor = tensor.ok_or_else(|| ServiceError::BadRequest(format!("{what} tensor is missing")))?;
     let dtype = dtype_from_proto(tensor.dtype)?;
     let shape = tensor
         .shape
         .iter()
-        .map(|&d| usize::try_from(d).map_err(|_| Status::invalid_argument(format!("{what} shape has a negative dimension {d}"))))
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|&d| usize::try_from(d).map_err(|_| ServiceError::BadRequest(format!("{what} shape has a negative dimension {d}"))))
+        .collect::<Result<Vec<_>>>()?;
     Ok((dtype, shape))
 }
 

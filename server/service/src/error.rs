@@ -1,50 +1,93 @@
-use radserve_replay::ReplayError;
+//! Every failure a handler answers with, and the one place each becomes a gRPC status.
+
 use radserve_core::CoreError;
+use radserve_replay::ReplayError;
+use thiserror::Error;
 use tonic::{Code, Status};
 
-/// Every core error gets its code on purpose: there is no catch-all arm, so a new variant must be
-/// placed here (qdrant's StorageError -> Status conversion is the model).
-pub fn to_status(error: CoreError) -> Status {
-    let code = match &error {
-        CoreError::UnknownEnv { .. } | CoreError::UnknownSession(_) => Code::NotFound,
-        CoreError::InvalidOption(_) | CoreError::InvalidArgument(_) | CoreError::CreateFailed { .. } => {
-            Code::InvalidArgument
-        }
-        CoreError::FailedPrecondition(_) => Code::FailedPrecondition,
-        CoreError::LimitExceeded(_) => Code::ResourceExhausted,
-        CoreError::WorkersUnavailable(_) | CoreError::ShuttingDown => Code::Unavailable,
-        CoreError::Simulator(_) => Code::Internal,
-    };
-    Status::new(code, error.to_string())
+#[derive(Debug, Error)]
+pub enum ServiceError {
+    #[error(transparent)]
+    Core(#[from] CoreError),
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
+    /// A message that does not say what the RPC needs: a missing field, an unknown enum value, a
+    /// negative dimension, a size outside its range, a message out of the stream's order.
+    #[error("{0}")]
+    BadRequest(String),
+    /// The session already has what the request would open (one acting channel per session).
+    #[error("{0}")]
+    AlreadyOpen(String),
+    /// The client's deadline passed before the call could start, or a stream's first message did
+    /// not come in time.
+    #[error("{0}")]
+    TooLate(String),
+    /// The server began to shut down: the stream ends (its session is closed at exit).
+    #[error("the server is shutting down; this stream ended (its session is closed at exit)")]
+    StreamEnded,
+    /// The server failed in a way that is not the request's fault.
+    #[error("{0}")]
+    Internal(String),
+    /// What the transport answered for a message it could not take (undecodable bytes, a stream
+    /// the client reset), passed on with its code.
+    #[error("{}", .0.message())]
+    Transport(Status),
 }
 
-/// The replay crate's errors, placed the same way.
-pub fn replay_status(error: ReplayError) -> Status {
-    let code = match &error {
-        ReplayError::InvalidArgument(_) | ReplayError::Augment(_) => Code::InvalidArgument,
-        ReplayError::FailedPrecondition(_) => Code::FailedPrecondition,
-        ReplayError::OverBudget(_) => Code::ResourceExhausted,
-        ReplayError::Cancelled => Code::Cancelled,
-    };
-    Status::new(code, error.to_string())
+pub type Result<T> = std::result::Result<T, ServiceError>;
+
+impl From<ServiceError> for Status {
+    /// Every error gets its code on purpose: there is no catch-all arm, so a new variant (here or
+    /// in the core's and replay's enums) must be placed (qdrant's StorageError -> Status is the model).
+    fn from(error: ServiceError) -> Status {
+        let code = match &error {
+            ServiceError::Core(core) => match core {
+                CoreError::UnknownEnv { .. } | CoreError::UnknownSession(_) => Code::NotFound,
+                CoreError::InvalidOption(_) | CoreError::InvalidArgument(_) | CoreError::CreateFailed { .. } => {
+                    Code::InvalidArgument
+                }
+                CoreError::FailedPrecondition(_) => Code::FailedPrecondition,
+                CoreError::LimitExceeded(_) => Code::ResourceExhausted,
+                CoreError::WorkersUnavailable(_) | CoreError::ShuttingDown => Code::Unavailable,
+                CoreError::Simulator(_) => Code::Internal,
+            },
+            ServiceError::Replay(replay) => match replay {
+                ReplayError::InvalidArgument(_) | ReplayError::Augment(_) => Code::InvalidArgument,
+                ReplayError::FailedPrecondition(_) => Code::FailedPrecondition,
+                ReplayError::Cancelled => Code::Cancelled,
+            },
+            ServiceError::BadRequest(_) => Code::InvalidArgument,
+            ServiceError::AlreadyOpen(_) => Code::FailedPrecondition,
+            ServiceError::TooLate(_) => Code::DeadlineExceeded,
+            ServiceError::StreamEnded => Code::Unavailable,
+            ServiceError::Internal(_) => Code::Internal,
+            ServiceError::Transport(status) => status.code(),
+        };
+        Status::new(code, error.to_string())
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn status(error: impl Into<ServiceError>) -> Status {
+        Status::from(error.into())
+    }
+
     #[test]
     fn codes_follow_the_kind_of_mistake() {
-        let unknown = CoreError::UnknownEnv { id: "dmc/x".into(), suggestions: vec!["dmc/y".into()] };
-        let status = to_status(unknown);
-        assert_eq!(status.code(), Code::NotFound);
-        assert!(status.message().contains("did you mean dmc/y"));
-        assert_eq!(to_status(CoreError::InvalidArgument("bad".into())).code(), Code::InvalidArgument);
-        assert_eq!(to_status(CoreError::LimitExceeded("full".into())).code(), Code::ResourceExhausted);
-        assert_eq!(to_status(CoreError::ShuttingDown).code(), Code::Unavailable);
+        let unknown = status(CoreError::UnknownEnv { id: "dmc/x".into(), suggestions: vec!["dmc/y".into()] });
+        assert_eq!(unknown.code(), Code::NotFound);
+        assert!(unknown.message().contains("did you mean dmc/y"));
+        assert_eq!(status(CoreError::InvalidArgument("bad".into())).code(), Code::InvalidArgument);
+        assert_eq!(status(CoreError::LimitExceeded("full".into())).code(), Code::ResourceExhausted);
+        assert_eq!(status(CoreError::ShuttingDown).code(), Code::Unavailable);
         let augment = radserve_augment::Pipeline::parse("crpo").unwrap_err();
-        let status = replay_status(ReplayError::Augment(augment));
+        let status = status(ReplayError::Augment(augment));
         assert_eq!(status.code(), Code::InvalidArgument);
         assert!(status.message().contains("did you mean \"crop\""), "{}", status.message());
+        let ended = Status::from(ServiceError::StreamEnded);
+        assert_eq!((ended.code(), ended.message()), (Code::Unavailable, ServiceError::StreamEnded.to_string().as_str()));
     }
 }

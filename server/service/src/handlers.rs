@@ -9,11 +9,11 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 use tracing::debug;
 
+use radserve_replay::{HeldSlots, InFlight, Output, Producer, SharedRing};
+
 use crate::acting::{self, OpenChannels};
 use crate::convert::{self, observation_tensor};
-use radserve_replay::{Output, Producer, SharedRing, Slot};
-
-use crate::error::{replay_status, to_status};
+use crate::error::{Result as ServiceResult, ServiceError};
 use crate::proto::{self, act_request, act_response, rad_serve_server::RadServe};
 
 /// Responses of an `Act` stream that may wait for the client to read them.
@@ -50,11 +50,6 @@ impl StreamStopper {
     }
 }
 
-/// The status an open stream ends with when the server shuts down.
-fn shutting_down() -> Status {
-    Status::unavailable("the server is shutting down; this stream ended (its session is closed at exit)")
-}
-
 /// Resolves once `stopping` turns true (never, if its sender is gone without stopping).
 async fn stopped(mut stopping: watch::Receiver<bool>) {
     if stopping.wait_for(|stop| *stop).await.is_err() {
@@ -65,9 +60,9 @@ async fn stopped(mut stopping: watch::Receiver<bool>) {
 /// Runs `work` on a task of its own and waits for it: dropping the caller's future (tonic does when
 /// the client's deadline passes or the client leaves) does not stop `work` halfway.
 async fn run_to_end<T: Send + 'static>(
-    work: impl std::future::Future<Output = Result<T, Status>> + Send + 'static,
-) -> Result<T, Status> {
-    tokio::spawn(work).await.unwrap_or_else(|error| Err(Status::internal(format!("the call's task failed: {error}"))))
+    work: impl std::future::Future<Output = ServiceResult<T>> + Send + 'static,
+) -> ServiceResult<T> {
+    tokio::spawn(work).await.unwrap_or_else(|error| Err(ServiceError::Internal(format!("the call's task failed: {error}"))))
 }
 
 /// When the client stops waiting, from its `grpc-timeout` header (gRPC over HTTP/2: an ASCII
@@ -91,9 +86,9 @@ pub fn client_deadline<T>(request: &Request<T>) -> Option<Instant> {
     Instant::now().checked_add(timeout)
 }
 
-fn check_deadline(deadline: Option<Instant>, what: &str) -> Result<(), Status> {
+fn check_deadline(deadline: Option<Instant>, what: &str) -> ServiceResult<()> {
     match deadline {
-        Some(deadline) if Instant::now() >= deadline => Err(Status::deadline_exceeded(format!(
+        Some(deadline) if Instant::now() >= deadline => Err(ServiceError::TooLate(format!(
             "the {what} waited for the session (another call on it was running) past the client's deadline; it was \
              not sent to the simulators, and the session is as it was"
         ))),
@@ -104,7 +99,7 @@ fn check_deadline(deadline: Option<Instant>, what: &str) -> Result<(), Status> {
 /// Ends a stream with the shutdown status; a client that does not read within a second misses it
 /// (its stream then just ends: nothing it would read is lost).
 async fn end_with_shutdown<T>(sender: &mpsc::Sender<Result<T, Status>>) {
-    let _ = tokio::time::timeout(Duration::from_secs(1), sender.send(Err(shutting_down()))).await;
+    let _ = tokio::time::timeout(Duration::from_secs(1), sender.send(Err(ServiceError::StreamEnded.into()))).await;
 }
 
 /// Sends `item` unless the server stops or the client leaves first; false when it was not sent.
@@ -129,57 +124,35 @@ impl RadServeService {
     /// a step ahead of the session's stacks and replay. What the deadline can still prevent is
     /// checked once the session is free: a request whose client deadline has passed by then is
     /// answered DEADLINE_EXCEEDED without being sent.
-    async fn reset(&self, request: proto::ResetRequest, deadline: Option<Instant>) -> Result<proto::ResetResponse, Status> {
-        let session = self.manager.get(&request.session_id).map_err(to_status)?;
+    async fn reset(&self, request: proto::ResetRequest, deadline: Option<Instant>) -> ServiceResult<proto::ResetResponse> {
+        let session = self.manager.get(&request.session_id)?;
         run_to_end(async move {
             let mut session = session.lock().await;
             check_deadline(deadline, "Reset")?;
-            let obs = session.reset(request.seed).await.map_err(to_status)?;
+            let obs = session.reset(request.seed).await?;
             Ok(proto::ResetResponse { obs: Some(observation_tensor(&session.observation_space, session.num_envs(), obs)) })
         })
         .await
     }
 
-    async fn step(&self, request: proto::StepRequest, deadline: Option<Instant>) -> Result<proto::StepResponse, Status> {
+    async fn step(&self, request: proto::StepRequest, deadline: Option<Instant>) -> ServiceResult<proto::StepResponse> {
         let (dtype, shape) = convert::tensor_header(request.actions.as_ref(), "actions")?;
         let actions = request.actions.map(|tensor| tensor.data).unwrap_or_default();
-        let session = self.manager.get(&request.session_id).map_err(to_status)?;
+        let session = self.manager.get(&request.session_id)?;
         run_to_end(async move {
             let mut session = session.lock().await;
             check_deadline(deadline, "Step")?;
-            let outcome = session.step(dtype, &shape, &actions).await.map_err(to_status)?;
+            let outcome = session.step(dtype, &shape, &actions).await?;
             Ok(convert::step_to_proto(&session.observation_space, outcome))
         })
         .await
     }
 
-    /// A stream's batches produced ahead must fit the server's per-stream limit and its memory
-    /// budget; the reservation is held for as long as the stream runs.
-    fn reserve_stream_memory(&self, producer: &Producer) -> Result<radserve_core::budget::Reservation, Status> {
-        self.check_stream_memory(producer)?;
-        let what = format!("a sample stream of (prefetch {} + 2) batches", producer.prefetch());
-        self.manager.reserve_memory(producer.stream_memory_bytes(), &what).map_err(to_status)
-    }
-
-    /// A stream's batches produced ahead must fit the server's per-stream limit.
-    fn check_stream_memory(&self, producer: &Producer) -> Result<(), Status> {
-        let limit = self.manager.limits().stream_memory_bytes;
-        let needed = producer.stream_memory_bytes();
-        if needed > limit {
-            return Err(Status::resource_exhausted(format!(
-                "this stream would hold {needed} bytes of batches ((prefetch {} + 2) batches of observations), over \
-                 this server's limit of {limit} (limits.stream_memory_bytes): lower prefetch or batch_size",
-                producer.prefetch()
-            )));
-        }
-        Ok(())
-    }
-
-    async fn act_once(&self, request: proto::ActRequest) -> Result<proto::ActResponse, Status> {
+    async fn act_once(&self, request: proto::ActRequest) -> ServiceResult<proto::ActResponse> {
         let response = match request.request {
             Some(act_request::Request::Reset(reset)) => act_response::Response::Reset(self.reset(reset, None).await?),
             Some(act_request::Request::Step(step)) => act_response::Response::Step(self.step(step, None).await?),
-            None => return Err(Status::invalid_argument("ActRequest must hold a reset or a step")),
+            None => return Err(ServiceError::BadRequest("ActRequest must hold a reset or a step".into())),
         };
         Ok(proto::ActResponse { response: Some(response) })
     }
@@ -193,8 +166,8 @@ type SharedSampleStream = Pin<Box<dyn Stream<Item = Result<proto::SharedSampleRe
 impl RadServe for RadServeService {
     async fn list_envs(&self, request: Request<proto::ListEnvsRequest>) -> Result<Response<proto::ListEnvsResponse>, Status> {
         let prefix = request.into_inner().prefix;
-        radserve_core::bounds::check_len("prefix", &prefix, radserve_core::bounds::MAX_ID_BYTES).map_err(to_status)?;
-        let catalog = self.manager.catalog().await.map_err(to_status)?;
+        radserve_core::bounds::check_len("prefix", &prefix, radserve_core::bounds::MAX_ID_BYTES).map_err(ServiceError::from)?;
+        let catalog = self.manager.catalog().await.map_err(ServiceError::from)?;
         let envs = catalog
             .iter()
             .filter(|entry| entry.id.full().starts_with(&prefix))
@@ -222,7 +195,7 @@ impl RadServe for RadServeService {
                 },
             )
             .await
-            .map_err(to_status)?;
+            .map_err(ServiceError::from)?;
         Ok(Response::new(convert::session_info_to_proto(&info)))
     }
 
@@ -239,7 +212,7 @@ impl RadServe for RadServeService {
         &self,
         request: Request<proto::DescribeSessionRequest>,
     ) -> Result<Response<proto::SessionInfo>, Status> {
-        let info = self.manager.describe(&request.into_inner().session_id).await.map_err(to_status)?;
+        let info = self.manager.describe(&request.into_inner().session_id).await.map_err(ServiceError::from)?;
         Ok(Response::new(convert::session_info_to_proto(&info)))
     }
 
@@ -247,7 +220,7 @@ impl RadServe for RadServeService {
         &self,
         request: Request<proto::CloseSessionRequest>,
     ) -> Result<Response<proto::CloseSessionResponse>, Status> {
-        self.manager.close_session(&request.into_inner().session_id).await.map_err(to_status)?;
+        self.manager.close_session(&request.into_inner().session_id).await.map_err(ServiceError::from)?;
         Ok(Response::new(proto::CloseSessionResponse {}))
     }
 
@@ -279,7 +252,7 @@ impl RadServe for RadServeService {
                 };
                 let Some(message) = message else { break };
                 let outcome = match message {
-                    Ok(request) => service.act_once(request).await,
+                    Ok(request) => service.act_once(request).await.map_err(Status::from),
                     Err(status) => Err(status),
                 };
                 let outcome = match outcome {
@@ -304,7 +277,7 @@ impl RadServe for RadServeService {
         request: Request<proto::ShareActingRequest>,
     ) -> Result<Response<proto::SharedActingChannel>, Status> {
         let session_id = request.into_inner().session_id;
-        let (description, channel) = acting::open(self.manager.clone(), &session_id, &self.acting_channels).await?;
+        let (description, channel) = acting::open(self.manager.clone(), &session_id, &self.acting_channels).await.map_err(Status::from)?;
         tokio::spawn(channel.serve(session_id));
         Ok(Response::new(description))
     }
@@ -315,13 +288,40 @@ impl RadServe for RadServeService {
         &self,
         request: Request<proto::SampleBatchesRequest>,
     ) -> Result<Response<SampleStream>, Status> {
-        let request = request.into_inner();
-        let spec = convert::sample_spec_from_proto(&request)?;
-        let source = self.manager.replay_source(&request.session_id).await.map_err(to_status)?;
-        let lease = self.manager.hold(&request.session_id).map_err(to_status)?;
-        // Everything is checked here, before the stream starts.
-        let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?.with_permit(source.permit);
-        let memory = self.reserve_stream_memory(&producer)?;
+        Ok(Response::new(self.open_sample_stream(request.into_inner()).await?))
+    }
+
+    type SampleBatchesSharedStream = SharedSampleStream;
+
+    async fn sample_batches_shared(
+        &self,
+        request: Request<Streaming<proto::SharedSampleRequest>>,
+    ) -> Result<Response<SharedSampleStream>, Status> {
+        Ok(Response::new(self.open_shared_sample_stream(request.into_inner()).await?))
+    }
+}
+
+/// A checked stream, ready to run: its producer, and what it holds while it runs (the session's
+/// lease and the memory its batches take).
+struct StreamStart {
+    producer: Producer,
+    action_space: radserve_core::Space,
+    holds: (radserve_core::LeaseHold, radserve_core::budget::Reservation),
+}
+
+impl RadServeService {
+    /// Everything a sample stream needs is checked here, before it starts.
+    async fn start_stream(&self, request: &proto::SampleBatchesRequest) -> ServiceResult<StreamStart> {
+        let spec = convert::sample_spec_from_proto(request)?;
+        let source = self.manager.replay_source(&request.session_id).await?;
+        let lease = self.manager.hold(&request.session_id)?;
+        let producer = Producer::new(source.buffer, source.format, spec)?.with_permit(source.permit);
+        let memory = self.manager.reserve_stream(producer.stream_memory_bytes(), producer.prefetch())?;
+        Ok(StreamStart { producer, action_space: source.action_space, holds: (lease, memory) })
+    }
+
+    async fn open_sample_stream(&self, request: proto::SampleBatchesRequest) -> ServiceResult<SampleStream> {
+        let StreamStart { producer, action_space, holds } = self.start_stream(&request).await?;
         let chunk_bytes = convert::chunk_bytes(request.chunk_bytes)?;
         let (mut ready, recycler) = producer.start(self.augment_pool.clone(), Output::Heap);
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
@@ -330,19 +330,10 @@ impl RadServe for RadServeService {
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
             // The open stream keeps the session's lease alive and its memory reserved.
-            let (_lease, _memory) = (lease, memory);
-            // Observation buffers of sent batches, handed back to the producer once tonic has
-            // dropped every chunk that points into them.
-            let mut in_flight: Vec<Arc<Vec<u8>>> = Vec::new();
+            let _holds = holds;
+            let mut in_flight = InFlight::new(recycler);
             loop {
-                let (done, pending): (Vec<_>, Vec<_>) =
-                    in_flight.drain(..).partition(|buffer| Arc::strong_count(buffer) == 1);
-                in_flight = pending;
-                for buffer in done {
-                    if let Ok(buffer) = Arc::try_unwrap(buffer) {
-                        let _ = recycler.send(buffer);
-                    }
-                }
+                in_flight.recycle();
                 // A client that leaves while the producer waits for data must still free it.
                 let batch = tokio::select! {
                     batch = ready.recv() => batch,
@@ -355,16 +346,16 @@ impl RadServe for RadServeService {
                         return;
                     }
                 };
-                let Some(batch) = batch else { break };
                 let batch = match batch {
-                    Ok(batch) => batch,
-                    Err(error) => {
-                        let _ = sender.send(Err(replay_status(error))).await;
+                    None => break,
+                    Some(Ok(batch)) => batch,
+                    Some(Err(error)) => {
+                        let _ = sender.send(Err(ServiceError::from(error).into())).await;
                         break;
                     }
                 };
-                let (chunks, observation_buffers) = convert::batch_to_chunks(batch, &source.action_space, chunk_bytes);
-                in_flight.extend(observation_buffers);
+                let (chunks, observation_buffers) = convert::batch_to_chunks(batch, &action_space, chunk_bytes);
+                in_flight.track(observation_buffers);
                 if repeat_first_batch {
                     drop(ready);
                     // The same chunks over and over (cloning Bytes, not data): the transport alone.
@@ -388,49 +379,49 @@ impl RadServe for RadServeService {
             }
             debug!(session = %session_id, "sample stream ended");
         });
-        Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
+        Ok(Box::pin(ReceiverStream::new(receiver)))
     }
 
-    type SampleBatchesSharedStream = SharedSampleStream;
-
-    async fn sample_batches_shared(
-        &self,
-        request: Request<Streaming<proto::SharedSampleRequest>>,
-    ) -> Result<Response<SharedSampleStream>, Status> {
-        use proto::{shared_sample_request::Request as Inbound, shared_sample_response::Response as Outbound};
-        let mut inbound = request.into_inner();
+    /// The first message of a SampleBatchesShared stream: what to sample.
+    async fn first_shared_request(
+        inbound: &mut Streaming<proto::SharedSampleRequest>,
+    ) -> ServiceResult<proto::SampleBatchesRequest> {
+        use proto::shared_sample_request::Request as Inbound;
         let first = tokio::time::timeout(FIRST_MESSAGE_TIMEOUT, inbound.message()).await.map_err(|_| {
-            Status::deadline_exceeded(format!(
+            ServiceError::TooLate(format!(
                 "no SharedSampleRequest with `start` arrived within {} s of opening the stream",
                 FIRST_MESSAGE_TIMEOUT.as_secs()
             ))
         })?;
-        let start = match first? {
+        let start = match first.map_err(ServiceError::Transport)? {
             Some(proto::SharedSampleRequest { request: Some(Inbound::Start(start)) }) => start,
             _ => {
-                return Err(Status::invalid_argument(
-                    "the first SharedSampleRequest must hold `start` (the SampleBatchesRequest); releases come after it",
+                return Err(ServiceError::BadRequest(
+                    "the first SharedSampleRequest must hold `start` (the SampleBatchesRequest); releases come after it".into(),
                 ))
             }
         };
         if start.repeat_first_batch {
-            return Err(Status::invalid_argument(
-                "repeat_first_batch measures the SampleBatches byte stream; it does not apply to shared memory",
+            return Err(ServiceError::BadRequest(
+                "repeat_first_batch measures the SampleBatches byte stream; it does not apply to shared memory".into(),
             ));
         }
-        let spec = convert::sample_spec_from_proto(&start)?;
-        let source = self.manager.replay_source(&start.session_id).await.map_err(to_status)?;
-        let lease = self.manager.hold(&start.session_id).map_err(to_status)?;
-        let producer = Producer::new(source.buffer, source.format, spec).map_err(replay_status)?.with_permit(source.permit);
-        let memory = self.reserve_stream_memory(&producer)?;
+        Ok(start)
+    }
+
+    async fn open_shared_sample_stream(
+        &self,
+        mut inbound: Streaming<proto::SharedSampleRequest>,
+    ) -> ServiceResult<SharedSampleStream> {
+        use proto::{shared_sample_request::Request as Inbound, shared_sample_response::Response as Outbound};
+        let start = Self::first_shared_request(&mut inbound).await?;
+        let StreamStart { producer, action_space, holds } = self.start_stream(&start).await?;
         // A slot per batch waiting in the prefetch queue, one being filled and one the learner
         // reads: the producer never waits on a learner that releases each batch before the next.
         let slots = producer.prefetch() + 2;
         let ring = SharedRing::create(slots, producer.observation_bytes()).map_err(|error| {
-            Status::resource_exhausted(format!(
-                "could not create {slots} shared-memory slots of 2 x {} bytes for the batches: {error}",
-                producer.observation_bytes()
-            ))
+            let what = format!("creating {slots} shared-memory slots of 2 x {} bytes for the batches", producer.observation_bytes());
+            radserve_core::error::resource_error(&what, &error)
         })?;
         let region = proto::SharedMemoryRegion {
             path: ring.path(),
@@ -448,9 +439,9 @@ impl RadServe for RadServeService {
         let session_id = start.session_id;
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            let (_lease, _memory) = (lease, memory);
-            // Slots of batches sent and not yet released; dropping one hands it back to the producer.
-            let mut held: std::collections::HashMap<u64, Slot> = std::collections::HashMap::new();
+            let _holds = holds;
+            // Slots of batches sent and not yet released; releasing one hands it back to the producer.
+            let mut held = HeldSlots::default();
             loop {
                 tokio::select! {
                     batch = ready.recv() => {
@@ -458,46 +449,38 @@ impl RadServe for RadServeService {
                             None => break,
                             Some(Ok(batch)) => batch,
                             Some(Err(error)) => {
-                                let _ = sender.send(Err(replay_status(error))).await;
+                                let _ = sender.send(Err(ServiceError::from(error).into())).await;
                                 break;
                             }
                         };
                         let index = batch.index;
-                        let (message, slot) = convert::shared_batch_to_proto(batch, &source.action_space);
-                        held.insert(index, slot);
+                        let (message, slot) = convert::shared_batch_to_proto(batch, &action_space);
+                        held.hold(index, slot);
                         let response = proto::SharedSampleResponse { response: Some(Outbound::Batch(message)) };
                         if !send_or_stop(&sender, response, &stopping).await {
                             debug!(session = %session_id, "shared sample stream cancelled");
                             return;
                         }
                     }
-                    message = inbound.message() => match message {
-                        Ok(Some(proto::SharedSampleRequest { request: Some(Inbound::Release(index)) })) => {
-                            if held.remove(&index).is_none() {
-                                let mut holding: Vec<_> = held.keys().copied().collect();
-                                holding.sort_unstable();
-                                let _ = sender
-                                    .send(Err(Status::invalid_argument(format!(
-                                        "release of batch {index}, which the client does not hold (it holds {holding:?})"
-                                    ))))
-                                    .await;
+                    message = inbound.message() => {
+                        let released = match message {
+                            Ok(Some(proto::SharedSampleRequest { request: Some(Inbound::Release(index)) })) => {
+                                held.release(index).map_err(ServiceError::from)
+                            }
+                            Ok(Some(_)) => Err(ServiceError::BadRequest(
+                                "after the first SharedSampleRequest, requests may only release batches".into(),
+                            )),
+                            // The client closed its side or left: dropping `ready` stops the producer.
+                            Ok(None) | Err(_) => {
+                                debug!(session = %session_id, "shared sample stream closed by the client");
                                 return;
                             }
-                        }
-                        Ok(Some(_)) => {
-                            let _ = sender
-                                .send(Err(Status::invalid_argument(
-                                    "after the first SharedSampleRequest, requests may only release batches",
-                                )))
-                                .await;
+                        };
+                        if let Err(error) = released {
+                            let _ = sender.send(Err(error.into())).await;
                             return;
                         }
-                        // The client closed its side or left: dropping `ready` stops the producer.
-                        Ok(None) | Err(_) => {
-                            debug!(session = %session_id, "shared sample stream closed by the client");
-                            return;
-                        }
-                    },
+                    }
                     () = sender.closed() => {
                         debug!(session = %session_id, "shared sample stream cancelled");
                         return;
@@ -510,6 +493,6 @@ impl RadServe for RadServeService {
             }
             debug!(session = %session_id, "shared sample stream ended");
         });
-        Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
+        Ok(Box::pin(ReceiverStream::new(receiver)))
     }
 }

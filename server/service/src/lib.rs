@@ -1,6 +1,10 @@
 //! The gRPC face of radserve. Handlers here only validate and convert messages, call the core
 //! (`radserve_sim`), and map its errors to statuses; no logic lives in the transport.
 
+// Errors and messages are matched in full in the crates that map them: a new variant must be
+// placed on purpose (the Status mapping, the worker protocol), never fall into a `_` arm.
+#![warn(clippy::wildcard_enum_match_arm)]
+
 pub mod acting;
 pub mod codec;
 pub mod convert;
