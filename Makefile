@@ -38,11 +38,13 @@ demo: setup torch
 	$(BIN) augment-preview --env dmc/cartpole-balance --out runs/demo/augment-preview.png
 	@echo "curve: $$(ls -td runs/demo/*/ | head -1)curve.png; augmentations: runs/demo/augment-preview.png"
 
-## test: every test: Rust unit and integration tests, the server's end-to-end tests, then (after the
+## test: every test: clippy, Rust unit and integration tests, the server's end-to-end tests, then (after the
 ## learners' extra is installed, so the server's tests never wait for torch) the learners' smoke tests
 test: setup test-rust test-python test-learners
 
+# clippy first: its findings (warnings are errors) are cheaper to read than a failing test run.
 test-rust:
+	cargo clippy --release --workspace --all-targets -- -D warnings
 	cargo test --release --workspace
 
 test-python:

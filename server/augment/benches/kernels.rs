@@ -5,43 +5,18 @@
 use std::time::Duration;
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use radserve_augment::speed::{noise, PAPER_CASES};
 use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline};
 
 const BATCH: usize = 512;
 
-fn random_bytes(len: usize) -> Vec<u8> {
-    let mut state = 0x2545_F491_4F6C_DD1Du64;
-    (0..len)
-        .map(|_| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 32) as u8
-        })
-        .collect()
-}
-
 fn kernels(c: &mut Criterion) {
-    let cases: [(&str, usize); 12] = [
-        ("crop(84)", 100),
-        ("translate(108)", 100),
-        ("window(84)", 100),
-        ("center_crop(84)", 100),
-        ("flip(p=1)", 84),
-        ("rotate(p=1)", 84),
-        ("cutout", 84),
-        ("cutout_color", 84),
-        ("grayscale(p=1)", 84),
-        ("conv", 84),
-        ("color_jitter", 84),
-        ("crop(84)|grayscale(p=0.3)", 100),
-    ];
     let mut group = c.benchmark_group("augment");
     group.sample_size(10).warm_up_time(Duration::from_secs(1)).measurement_time(Duration::from_secs(2));
     let mut copied = std::collections::HashSet::new();
-    for (text, side) in cases {
+    for (text, side) in PAPER_CASES {
         let plan = ImagePlan::new(&Pipeline::parse(text).unwrap(), FrameShape::new(3, 3, side, side)).unwrap();
-        let input = random_bytes(BATCH * plan.input_shape().sample_len());
+        let input = noise(BATCH * plan.input_shape().sample_len(), 1);
         let mut output = vec![0u8; BATCH * plan.output_shape().sample_len()];
         group.throughput(Throughput::Bytes(output.len() as u64));
         let mut seed = 0;
@@ -55,7 +30,7 @@ fn kernels(c: &mut Criterion) {
         if !copied.insert(output.len()) {
             continue;
         }
-        let source = random_bytes(output.len());
+        let source = noise(output.len(), 2);
         group.bench_function(BenchmarkId::new("copy", format!("{}B", output.len())), |b| {
             b.iter(|| parallel_copy(&source, &mut output))
         });

@@ -11,6 +11,37 @@ use crate::plan::ImagePlan;
 use crate::shape::FrameShape;
 use crate::spec::Pipeline;
 
+/// The paper's cases: crop/translate/window on 100x100 renders, the rest on 84x84 crops, three
+/// stacked RGB frames per sample (the criterion benches and `radserve augment-bench` time these).
+pub const PAPER_CASES: [(&str, usize); 12] = [
+    ("crop(84)", 100),
+    ("translate(108)", 100),
+    ("window(84)", 100),
+    ("center_crop(84)", 100),
+    ("flip(p=1)", 84),
+    ("rotate(p=1)", 84),
+    ("cutout", 84),
+    ("cutout_color", 84),
+    ("grayscale(p=1)", 84),
+    ("conv", 84),
+    ("color_jitter", 84),
+    ("crop(84)|grayscale(p=0.3)", 100),
+];
+
+/// `len` pseudo-random bytes from a xorshift stream seeded by `seed`: every byte value appears and
+/// neighbouring pixels differ, so benchmarks and tests see no shortcut a constant image would give.
+pub fn noise(len: usize, seed: u64) -> Vec<u8> {
+    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..len)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 24) as u8
+        })
+        .collect()
+}
+
 /// One measured pipeline.
 #[derive(Clone, Debug)]
 pub struct Measurement {

@@ -4,17 +4,9 @@ use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline, Sha
 
 const SHAPE: FrameShape = FrameShape::new(3, 3, 100, 100);
 
-/// Bytes in 1..=255 (no zeros, so zeroed regions are visible) from a xorshift stream.
+/// Bytes in 1..=255 (no zeros, so zeroed regions are visible).
 fn nonzero_batch(len: usize, seed: u64) -> Vec<u8> {
-    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..len)
-        .map(|_| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            1 + (state >> 24) as u8 % 255
-        })
-        .collect()
+    radserve_augment::speed::noise(len, seed).into_iter().map(|byte| 1 + byte % 255).collect()
 }
 
 fn plan(text: &str, shape: FrameShape) -> ImagePlan {

@@ -2,26 +2,14 @@
 //! awkward shapes: batch 1, odd widths, widths that are not a multiple of the vector width, k = 1
 //! and k = 3 stacks, translate from inputs smaller than the canvas.
 
+use radserve_augment::speed::noise;
 use radserve_augment::{reference, Draws, FrameShape, ImagePlan, Isa, Pipeline};
-
-fn noise_batch(len: usize, seed: u64) -> Vec<u8> {
-    // A xorshift stream: every byte value appears, and neighbouring pixels differ.
-    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..len)
-        .map(|_| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 24) as u8
-        })
-        .collect()
-}
 
 /// Run `text` on `batch` samples of `shape` through the plan (every ISA) and the reference; the
 /// largest per-byte difference must not exceed `tolerance`.
 fn check(text: &str, shape: FrameShape, batch: usize, tolerance: u8) {
     let pipeline = Pipeline::parse(text).unwrap();
-    let input = noise_batch(batch * shape.sample_len(), batch as u64 + shape.width as u64);
+    let input = noise(batch * shape.sample_len(), batch as u64 + shape.width as u64);
     for isa in Isa::available() {
         let plan = ImagePlan::new(&pipeline, shape).unwrap().with_isa(isa);
         let output_len = plan.output_shape().sample_len();

@@ -59,14 +59,14 @@ impl OptionValue {
     pub fn as_int(&self) -> Option<i64> {
         match self {
             OptionValue::Int(value) => Some(*value),
-            _ => None,
+            OptionValue::Bool(_) | OptionValue::Float(_) | OptionValue::Str(_) => None,
         }
     }
 
     pub fn as_bool(&self) -> Option<bool> {
         match self {
             OptionValue::Bool(value) => Some(*value),
-            _ => None,
+            OptionValue::Int(_) | OptionValue::Float(_) | OptionValue::Str(_) => None,
         }
     }
 }

@@ -42,7 +42,7 @@ pub fn episode_length(seed: u64) -> u64 {
 
 /// Whether episode `episode` ends as terminated (else truncated).
 pub fn ends_terminated(episode: u64) -> bool {
-    episode % 2 == 0
+    episode.is_multiple_of(2)
 }
 
 fn spec() -> EnvSpec {

@@ -45,6 +45,9 @@ async fn reset(manager: &SessionManager, id: &str, seed: Option<u64>) -> Vec<u8>
     manager.get(id).unwrap().lock().await.reset(seed).await.unwrap()
 }
 
+/// An episode that ended: its final stack, return and length.
+type Ended = (Vec<u8>, f64, u64);
+
 /// What a session should show of one env, computed from the fake's rules alone.
 #[derive(Clone, Debug)]
 struct EnvModel {
@@ -65,8 +68,8 @@ impl EnvModel {
         (0..k).flat_map(|i| frames[(frames.len() + i).saturating_sub(k)]).collect()
     }
 
-    /// One step with `action`: (reward, terminated, truncated, final stack if the episode ended).
-    fn step(&mut self, action: i64, k: usize) -> (f64, bool, bool, Option<(Vec<u8>, f64, u64)>) {
+    /// One step with `action`: (reward, terminated, truncated, the episode if it ended).
+    fn step(&mut self, action: i64, k: usize) -> (f64, bool, bool, Option<Ended>) {
         let reward = action as f64 + 1.0;
         self.episode_return += reward;
         let t = self.frames.len() as u64;

@@ -4,38 +4,9 @@
 use std::path::Path;
 
 use anyhow::{bail, Context};
-use radserve_augment::speed::{self, Measurement};
+use radserve_augment::speed::{self, noise, Measurement, PAPER_CASES};
 use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline};
 use radserve_core::{DType, OptionValue, Options, SessionExtras, SessionManager, Space};
-
-/// The paper's cases: crop/translate/window on 100x100 renders, the rest on 84x84 crops, three
-/// stacked RGB frames per sample.
-pub const PAPER_CASES: [(&str, usize); 12] = [
-    ("crop(84)", 100),
-    ("translate(108)", 100),
-    ("window(84)", 100),
-    ("center_crop(84)", 100),
-    ("flip(p=1)", 84),
-    ("rotate(p=1)", 84),
-    ("cutout", 84),
-    ("cutout_color", 84),
-    ("grayscale(p=1)", 84),
-    ("conv", 84),
-    ("color_jitter", 84),
-    ("crop(84)|grayscale(p=0.3)", 100),
-];
-
-fn random_bytes(len: usize, seed: u64) -> Vec<u8> {
-    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..len)
-        .map(|_| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 32) as u8
-        })
-        .collect()
-}
 
 /// Time every case at `batch` samples on `threads` threads (0: one per core) and print a table,
 /// or one JSON object per line.
@@ -50,7 +21,7 @@ pub fn bench(batch: usize, repeats: usize, threads: usize, filter: &str, json: b
     for (text, side) in PAPER_CASES.iter().filter(|(text, _)| text.contains(filter)) {
         let pipeline = Pipeline::parse(text)?;
         let shape = FrameShape::new(3, 3, *side, *side);
-        let input = random_bytes(batch * shape.sample_len(), *side as u64);
+        let input = noise(batch * shape.sample_len(), *side as u64);
         let measurement: Measurement = pool.install(|| speed::measure(&pipeline, shape, &input, repeats))?;
         let output = measurement.output;
         if json {

@@ -221,7 +221,7 @@ async fn pipelines_are_bounded_and_typed_keys_cannot_smuggle_stages() {
     let status = client.sample_batches(with(Augmentation::PipelineText(text))).await.unwrap_err();
     assert_eq!(status.code(), Code::InvalidArgument);
     assert!(status.message().contains("at most 1024 bytes"), "{}", status.message());
-    let status = client.sample_batches(with(Augmentation::PipelineText(vec!["noise"; 9].join("|")))).await.unwrap_err();
+    let status = client.sample_batches(with(Augmentation::PipelineText(["noise"; 9].join("|")))).await.unwrap_err();
     assert!(status.message().contains("at most 8 stages, got 9"), "{}", status.message());
     let stage = |name: &str, args: &[(&str, f64)]| proto::AugmentationStage {
         name: name.into(),

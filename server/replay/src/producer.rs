@@ -479,7 +479,7 @@ impl Producer {
             Plan::Image(plan) => {
                 // Rollouts visit fixed (t, env) transitions; only replay samples are drawn again.
                 let redraw = matches!(self.spec.source, Source::Replay);
-                let mut rng = ChaCha8Rng::seed_from_u64(draw_seed ^ 0x5EED_0F_D2A5);
+                let mut rng = ChaCha8Rng::seed_from_u64(draw_seed ^ 0x5E_ED0F_D2A5);
                 let (refs, metadata) = (&mut batch.refs, &mut batch.metadata);
                 let (frame_bytes, stack_bytes) = {
                     let buffer = self.buffer.read().expect("replay lock");

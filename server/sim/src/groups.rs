@@ -116,18 +116,20 @@ impl Simulators for WorkerPool {
     }
 
     async fn env_names(&self) -> Result<EnvNames, SimulatorError> {
-        match self.transient_call(Request::ListNames).await? {
-            Response::Names(names) => Ok(names),
-            other => Err(SimulatorError::Failed(format!("unexpected catalog response {other:?}"))),
+        let response = self.transient_call(Request::ListNames).await?;
+        if let Response::Names(names) = response {
+            return Ok(names);
         }
+        Err(unexpected(Ok((response, 0))))
     }
 
     async fn env_specs(&self, envs: Vec<(EnvId, Options)>) -> Result<Vec<Result<EnvSpec, String>>, SimulatorError> {
         let entries = envs.into_iter().map(|(id, options)| (id.family, id.name, options)).collect();
-        match self.transient_call(Request::Specs { entries }).await? {
-            Response::Specs(specs) => Ok(specs),
-            other => Err(SimulatorError::Failed(format!("unexpected catalog response {other:?}"))),
+        let response = self.transient_call(Request::Specs { entries }).await?;
+        if let Response::Specs(specs) = response {
+            return Ok(specs);
         }
+        Err(unexpected(Ok((response, 0))))
     }
 
     async fn create_groups(
