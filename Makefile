@@ -97,9 +97,9 @@ bench-learning: setup torch
 	$(PYTHON) bench/learning.py rad-sac
 	$(PYTHON) bench/learning.py ppo
 
-## preview: a PNG grid of a dm_control frame under every augmentation
+## preview: docs/augment-preview.png, a grid of a dm_control frame under every augmentation
 preview: setup
-	$(BIN) augment-preview --out augment-preview.png
+	$(BIN) augment-preview --env dmc/cartpole-balance --out docs/augment-preview.png
 
 ## lock: re-pin requirements.lock from requirements.in
 lock: | $(PYTHON)
