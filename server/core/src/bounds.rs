@@ -29,7 +29,7 @@ pub fn clip(text: &str) -> String {
 /// Refuses `value` of request field `field` when it is longer than `max` bytes, without echoing it.
 pub fn check_len(field: &str, value: &str, max: usize) -> Result<(), CoreError> {
     if value.len() > max {
-        return Err(CoreError::InvalidArgument(format!(
+        return Err(CoreError::OutOfBounds(format!(
             "{field} is {} bytes long; the most accepted is {max}",
             value.len()
         )));
@@ -40,7 +40,7 @@ pub fn check_len(field: &str, value: &str, max: usize) -> Result<(), CoreError> 
 /// Refuses a request that lists more than `max` items in `field`.
 pub fn check_count(field: &str, count: usize, max: usize) -> Result<(), CoreError> {
     if count > max {
-        return Err(CoreError::InvalidArgument(format!("{field} has {count} entries; the most accepted is {max}")));
+        return Err(CoreError::OutOfBounds(format!("{field} has {count} entries; the most accepted is {max}")));
     }
     Ok(())
 }

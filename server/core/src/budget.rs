@@ -110,7 +110,7 @@ impl MemoryBudget {
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |used| used.checked_add(bytes).filter(|&total| total <= limit))
             .map(|_| Reservation { budget: self.clone(), bytes })
             .map_err(|used| {
-                CoreError::LimitExceeded(format!(
+                CoreError::OutOfMemory(format!(
                     "{what} needs {} of memory; {} of this server's memory budget of {} is reserved already \
                      (limits.memory_bytes)",
                     human(bytes),

@@ -1,31 +1,62 @@
 use thiserror::Error;
 
+use radserve_replay::ReplayError;
+
 use crate::simulators::SimulatorError;
 
-/// Everything that can go wrong in the core. The service maps each variant to a gRPC code on
-/// purpose (no catch-all arm), so a new variant has to be placed there.
+/// Everything that can go wrong in the core, by what went wrong. The service maps each variant to a
+/// gRPC code on purpose (no catch-all arm), so a new variant has to be placed there.
 #[derive(Debug, Error)]
 pub enum CoreError {
     #[error("unknown environment id '{}'{}", crate::bounds::clip(.id), suggestion_text(.suggestions))]
     UnknownEnv { id: String, suggestions: Vec<String> },
 
+    /// An option the env's family does not have, or a value of the wrong type or range.
     #[error("{0}")]
     InvalidOption(String),
 
-    /// A request that does not fit the session: action shape, dtype, bounds, NaN, seed range.
+    /// A request field longer or larger than the server accepts, refused before any work.
     #[error("{0}")]
-    InvalidArgument(String),
+    OutOfBounds(String),
+
+    /// Actions that do not fit the action space: dtype, shape, size, NaN, bounds.
+    #[error("{0}")]
+    InvalidActions(String),
+
+    /// A seed beyond the simulators' 32-bit seeds.
+    #[error("seed + num_envs must be at most {max} (simulators take 32-bit seeds); got seed {seed} with {num_envs} envs")]
+    InvalidSeed { seed: u64, num_envs: usize, max: u64 },
+
+    /// An evaluation view that is not a view, or does not fit the observation.
+    #[error("observation_view {text:?}: {message}")]
+    InvalidView { text: String, message: String },
+
+    /// A session that cannot be built as asked: no envs, a buffer its observations cannot go in.
+    #[error("{0}")]
+    InvalidSession(String),
+
+    /// A replay or rollout buffer that cannot be laid out as asked.
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
 
     #[error("unknown session '{}' (it was never created, or it was closed)", crate::bounds::clip(.0))]
     UnknownSession(String),
 
-    /// The request is valid but the session is not in a state to take it.
-    #[error("{0}")]
-    FailedPrecondition(String),
+    /// Step before the first Reset, or after a step that failed.
+    #[error("call Reset on this session before Step")]
+    NotReset,
 
-    /// A server limit (sessions, environments) would be exceeded.
+    /// A sample stream on a session without a buffer.
+    #[error("session {0} keeps no replay buffer; create it with a replay capacity")]
+    NoReplayBuffer(String),
+
+    /// A configured limit of the server: sessions, envs, streams, replay bytes, a step's size.
     #[error("{0}")]
-    LimitExceeded(String),
+    OverLimit(String),
+
+    /// The server's memory budget, or the host's memory or file descriptors.
+    #[error("{0}")]
+    OutOfMemory(String),
 
     /// The simulator refused to build the environment with these options.
     #[error("the simulator could not create {env_id}: {message}")]
@@ -52,7 +83,7 @@ impl From<SimulatorError> for CoreError {
                 CoreError::Simulator(message)
             }
             SimulatorError::Unavailable(message) => CoreError::WorkersUnavailable(message),
-            SimulatorError::OutOfResources(message) => CoreError::LimitExceeded(message),
+            SimulatorError::OutOfResources(message) => CoreError::OutOfMemory(message),
         }
     }
 }
@@ -61,7 +92,7 @@ impl From<SimulatorError> for CoreError {
 /// (RESOURCE_EXHAUSTED, worth retrying elsewhere or later), anything else a server failure.
 pub fn resource_error(what: &str, error: &std::io::Error) -> CoreError {
     match exhaustion(what, error) {
-        Some(message) => CoreError::LimitExceeded(message),
+        Some(message) => CoreError::OutOfMemory(message),
         None => CoreError::Simulator(format!("{what}: {error}")),
     }
 }

@@ -281,10 +281,10 @@ impl SessionManager {
         extras: &SessionExtras,
     ) -> Result<SessionInfo, CoreError> {
         if num_envs == 0 {
-            return Err(CoreError::InvalidArgument("num_envs must be at least 1".into()));
+            return Err(CoreError::InvalidSession("num_envs must be at least 1".into()));
         }
         if num_envs > self.limits.max_envs_per_session {
-            return Err(CoreError::LimitExceeded(format!(
+            return Err(CoreError::OverLimit(format!(
                 "num_envs {num_envs} exceeds this server's limit of {} environments per session",
                 self.limits.max_envs_per_session
             )));
@@ -377,13 +377,13 @@ impl SessionManager {
             return Err(CoreError::ShuttingDown);
         }
         if registry.reserved_sessions >= self.limits.max_sessions {
-            return Err(CoreError::LimitExceeded(format!(
+            return Err(CoreError::OverLimit(format!(
                 "this server already hosts {} sessions, its limit; close one first",
                 registry.reserved_sessions
             )));
         }
         if registry.reserved_envs + num_envs > self.limits.max_total_envs {
-            return Err(CoreError::LimitExceeded(format!(
+            return Err(CoreError::OverLimit(format!(
                 "{num_envs} more environments would make {} on this server, above its limit of {}",
                 registry.reserved_envs + num_envs,
                 self.limits.max_total_envs
@@ -402,11 +402,11 @@ impl SessionManager {
             BufferRequest::Replay { capacity } => capacity,
             BufferRequest::Rollout { steps } => steps.saturating_mul(num_envs),
         };
-        radserve_replay::check_capacity(capacity).map_err(|error| CoreError::InvalidArgument(error.to_string()))?;
+        radserve_replay::check_capacity(capacity)?;
         let least = (capacity as u64).saturating_mul(radserve_replay::MIN_BYTES_PER_TRANSITION as u64);
         let budget = self.limits.replay_memory_bytes;
         if least > budget {
-            return Err(CoreError::LimitExceeded(format!(
+            return Err(CoreError::OverLimit(format!(
                 "a replay buffer of {capacity} transitions takes at least {:.2} GiB ({} bytes per transition \
                  before its frames), above this server's replay budget of {:.2} GiB (limits.replay_memory_bytes)",
                 gib(least),
@@ -428,7 +428,7 @@ impl SessionManager {
     pub fn reserve_stream(&self, bytes: u64, prefetch: usize) -> Result<Reservation, CoreError> {
         let limit = self.limits.stream_memory_bytes;
         if bytes > limit {
-            return Err(CoreError::LimitExceeded(format!(
+            return Err(CoreError::OverLimit(format!(
                 "this stream would hold {bytes} bytes of batches ((prefetch {prefetch} + 2) batches of observations), over \
                  this server's limit of {limit} (limits.stream_memory_bytes): lower prefetch or batch_size"
             )));
@@ -445,7 +445,7 @@ impl SessionManager {
     fn attach_replay(&self, session: &mut Session, buffer: BufferRequest) -> Result<Reservation, CoreError> {
         let frame = &session.frame_spec.observation;
         if !matches!(frame.dtype(), DType::Uint8 | DType::Float32) {
-            return Err(CoreError::InvalidArgument(format!(
+            return Err(CoreError::InvalidSession(format!(
                 "replay keeps uint8 images or float32 vectors; {} observes {}",
                 session.config.env.full(),
                 frame.describe()
@@ -460,13 +460,13 @@ impl SessionManager {
             BufferRequest::Rollout { steps } => ReplayLayout::rollout(steps, num_envs, frame_stack, frame_bytes, action_bytes),
         };
         let capacity = layout.capacity;
-        layout.validate().map_err(|error| CoreError::InvalidArgument(error.to_string()))?;
+        layout.validate()?;
         let bytes = layout.memory_bytes() as u64;
         {
             let mut registry = self.sessions.lock().expect("registry lock");
             let budget = self.limits.replay_memory_bytes;
             if registry.reserved_replay_bytes.saturating_add(bytes) > budget {
-                return Err(CoreError::LimitExceeded(format!(
+                return Err(CoreError::OverLimit(format!(
                     "a replay buffer of {capacity} transitions for {} envs of {} takes {:.2} GiB ({} bytes per frame, \
                      {:.3} frames per transition); with the {:.2} GiB already reserved it would exceed this server's \
                      replay budget of {:.2} GiB (limits.replay_memory_bytes)",
@@ -496,7 +496,7 @@ impl SessionManager {
             }
             Err(error) => {
                 self.sessions.lock().expect("registry lock").reserved_replay_bytes -= bytes;
-                Err(CoreError::InvalidArgument(error.to_string()))
+                Err(error.into())
             }
         }
     }
@@ -513,15 +513,13 @@ impl SessionManager {
         let session = self.get(session_id)?;
         let session = session.lock().await;
         let Some(buffer) = session.replay() else {
-            return Err(CoreError::FailedPrecondition(format!(
-                "session {session_id} keeps no replay buffer; create it with a replay capacity"
-            )));
+            return Err(CoreError::NoReplayBuffer(session_id.to_string()));
         };
         // Reserved here, atomically: concurrent requests cannot all pass a check made before any
         // of them is counted.
         let max = self.limits.max_streams_per_session;
         let Some(permit) = buffer.read().expect("replay lock").admit_producer(max) else {
-            return Err(CoreError::LimitExceeded(format!(
+            return Err(CoreError::OverLimit(format!(
                 "session {session_id} already has {max} sample streams open, this server's limit \
                  (limits.max_streams_per_session); close one first"
             )));
@@ -757,7 +755,7 @@ fn check_observation_bytes(session: &Session) -> Result<(), CoreError> {
     let per_env = session.observation_space.num_bytes();
     let total = per_env.saturating_mul(session.num_envs());
     if total > MAX_STEP_OBSERVATION_BYTES {
-        return Err(CoreError::LimitExceeded(format!(
+        return Err(CoreError::OverLimit(format!(
             "{} envs of {} observe {per_env} bytes each ({} as viewed), {total} bytes a step; the most a step \
              may return is {MAX_STEP_OBSERVATION_BYTES} bytes: use fewer envs, smaller frames or a smaller frame_stack",
             session.num_envs(),

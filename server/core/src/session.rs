@@ -145,7 +145,7 @@ impl Session {
     /// Return observations through `view` (a centre crop or centre translate, RAD's evaluation
     /// views), so that a policy trained on augmented crops acts on the matching view.
     pub fn set_view(&mut self, text: &str) -> Result<(), CoreError> {
-        let invalid = |message: String| CoreError::InvalidArgument(format!("observation_view {text:?}: {message}"));
+        let invalid = |message: String| CoreError::InvalidView { text: text.to_string(), message };
         let pipeline = Pipeline::parse(text).map_err(|error| invalid(error.to_string()))?;
         if let Some(stage) = pipeline
             .stages()
@@ -259,7 +259,7 @@ impl Session {
     /// Steps every environment with `actions` ([num_envs, *action shape] of the action dtype).
     pub async fn step(&mut self, dtype: DType, shape: &[usize], actions: &[u8]) -> Result<StepOutcome, CoreError> {
         if self.needs_reset {
-            return Err(CoreError::FailedPrecondition("call Reset on this session before Step".into()));
+            return Err(CoreError::NotReset);
         }
         validate_actions(&self.frame_spec.action, self.num_envs(), dtype, shape, actions)?;
         let action_bytes = self.frame_spec.action.num_bytes();
@@ -419,9 +419,7 @@ fn push_frame(stack: &mut [u8], frame: &[u8]) {
 
 pub fn check_seed(seed: u64, num_envs: usize) -> Result<(), CoreError> {
     if seed.saturating_add(num_envs as u64) > MAX_SEED {
-        return Err(CoreError::InvalidArgument(format!(
-            "seed + num_envs must be at most {MAX_SEED} (simulators take 32-bit seeds); got seed {seed} with {num_envs} envs"
-        )));
+        return Err(CoreError::InvalidSeed { seed, num_envs, max: MAX_SEED });
     }
     Ok(())
 }
@@ -445,11 +443,11 @@ pub fn validate_actions(
         )
     };
     if dtype != space.dtype() || shape != expected_shape.as_slice() {
-        return Err(CoreError::InvalidArgument(format!("{}; got {} of shape {:?}", expected(), dtype.name(), shape)));
+        return Err(CoreError::InvalidActions(format!("{}; got {} of shape {:?}", expected(), dtype.name(), shape)));
     }
     let count: usize = expected_shape.iter().product();
     if data.len() != count * dtype.size_of() {
-        return Err(CoreError::InvalidArgument(format!(
+        return Err(CoreError::InvalidActions(format!(
             "{}; the tensor's shape says {count} elements but it holds {} bytes",
             expected(),
             data.len()
@@ -466,7 +464,7 @@ pub fn validate_actions(
                 };
                 let (lo, hi) = (bound(low, f64::NEG_INFINITY), bound(high, f64::INFINITY));
                 if value.is_nan() || value < lo || value > hi {
-                    return Err(CoreError::InvalidArgument(format!(
+                    return Err(CoreError::InvalidActions(format!(
                         "action {value} of env {}, element {element} is outside [{lo}, {hi}]; {}",
                         index / per_env,
                         expected()
@@ -478,7 +476,7 @@ pub fn validate_actions(
             for (env, chunk) in data.chunks_exact(8).enumerate() {
                 let value = i64::from_le_bytes(chunk.try_into().expect("8 bytes"));
                 if value < 0 || value >= *n {
-                    return Err(CoreError::InvalidArgument(format!(
+                    return Err(CoreError::InvalidActions(format!(
                         "action {value} of env {env} is outside [0, {n}); {}",
                         expected()
                     )));

@@ -226,7 +226,7 @@ async fn a_failed_step_asks_for_a_reset_and_bad_actions_reach_no_simulator() {
     let (simulators, manager) = manager(2, limits());
     let id = create(&manager, 2, 0, 1, SessionExtras::default()).await;
     let before_reset = step(&manager, &id, &[0, 0]).await.unwrap_err();
-    assert!(matches!(before_reset, CoreError::FailedPrecondition(_)), "{before_reset}");
+    assert!(matches!(before_reset, CoreError::NotReset), "{before_reset}");
     reset(&manager, &id, None).await;
 
     let steps = simulators.steps();
@@ -240,7 +240,7 @@ async fn a_failed_step_asks_for_a_reset_and_bad_actions_reach_no_simulator() {
     simulators.fail_next_step("nonsense from the simulator");
     let failed = step(&manager, &id, &[0, 0]).await.unwrap_err();
     assert!(matches!(&failed, CoreError::Simulator(message) if message.contains("nonsense")), "{failed}");
-    assert!(matches!(step(&manager, &id, &[0, 0]).await.unwrap_err(), CoreError::FailedPrecondition(_)));
+    assert!(matches!(step(&manager, &id, &[0, 0]).await.unwrap_err(), CoreError::NotReset));
     reset(&manager, &id, Some(5)).await;
     let outcome = step(&manager, &id, &[0, 0]).await.unwrap();
     assert_eq!(outcome.obs, [fake::frame(5, 0, 1), fake::frame(6, 0, 1)].concat(), "reseeded: env i gets 5 + i");
@@ -254,9 +254,9 @@ async fn limits_refuse_before_anything_is_built_and_closing_returns_everything()
     let no_extras = SessionExtras::default;
 
     let too_many = manager.create_session(FAKE_ENV, 9, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
-    assert!(matches!(&too_many, CoreError::LimitExceeded(m) if m.contains("limit of 8 environments per session")), "{too_many}");
+    assert!(matches!(&too_many, CoreError::OverLimit(m) if m.contains("limit of 8 environments per session")), "{too_many}");
     let zero = manager.create_session(FAKE_ENV, 0, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
-    assert!(matches!(zero, CoreError::InvalidArgument(_)));
+    assert!(matches!(zero, CoreError::InvalidSession(_)));
     let unknown = manager.create_session("gym/Fak-v0", 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
     assert!(matches!(&unknown, CoreError::UnknownEnv { suggestions, .. } if suggestions == &["gym/Fake-v0"]), "{unknown}");
     simulators.refuse_next_create("no such option in the simulator");
@@ -268,11 +268,14 @@ async fn limits_refuse_before_anything_is_built_and_closing_returns_everything()
     let first = create(&manager, 8, 0, 1, no_extras()).await;
     let second = create(&manager, 3, 0, 1, no_extras()).await;
     let over_total = manager.create_session(FAKE_ENV, 2, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
-    assert!(matches!(&over_total, CoreError::LimitExceeded(m) if m.contains("above its limit of 12")), "{over_total}");
+    assert!(matches!(&over_total, CoreError::OverLimit(m) if m.contains("above its limit of 12")), "{over_total}");
     create(&manager, 1, 0, 1, no_extras()).await;
     let over_sessions = manager.create_session(FAKE_ENV, 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
-    assert!(matches!(&over_sessions, CoreError::LimitExceeded(m) if m.contains("already hosts 3 sessions")), "{over_sessions}");
+    assert!(matches!(&over_sessions, CoreError::OverLimit(m) if m.contains("already hosts 3 sessions")), "{over_sessions}");
     assert_eq!(simulators.groups_alive(), 2 + 2 + 1);
+    for error in [&too_many, &zero, &unknown, &refused, &over_total, &over_sessions] {
+        assert!(!error.to_string().contains("  "), "a message continued across lines keeps its indentation: {error}");
+    }
     for id in [&first, &second] {
         manager.close_session(id).await.unwrap();
     }
@@ -290,13 +293,13 @@ async fn the_memory_budget_refuses_what_would_not_fit() {
     let first = manager.create_session(FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(100_000)).await.unwrap();
     let envs_refused = manager.create_session(FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(10)).await.unwrap_err();
     assert!(
-        matches!(&envs_refused, CoreError::LimitExceeded(m) if m.contains("16 envs of gym/Fake-v0") && m.contains("limits.memory_bytes")),
+        matches!(&envs_refused, CoreError::OutOfMemory(m) if m.contains("16 envs of gym/Fake-v0") && m.contains("limits.memory_bytes")),
         "{envs_refused}"
     );
     // These envs fit; their replay buffer, known only once they are built, does not.
     let replay_refused = manager.create_session(FAKE_ENV, 8, 0, &fake::fake_options(1), &extras(1_000_000)).await.unwrap_err();
     assert!(
-        matches!(&replay_refused, CoreError::LimitExceeded(m) if m.contains("a replay buffer of 1000000 transitions")),
+        matches!(&replay_refused, CoreError::OutOfMemory(m) if m.contains("a replay buffer of 1000000 transitions")),
         "{replay_refused}"
     );
     assert_eq!(simulators.groups_alive(), 1, "what was built for the refused session was closed");

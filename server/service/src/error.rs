@@ -43,19 +43,20 @@ impl From<ServiceError> for Status {
         let code = match &error {
             ServiceError::Core(core) => match core {
                 CoreError::UnknownEnv { .. } | CoreError::UnknownSession(_) => Code::NotFound,
-                CoreError::InvalidOption(_) | CoreError::InvalidArgument(_) | CoreError::CreateFailed { .. } => {
-                    Code::InvalidArgument
-                }
-                CoreError::FailedPrecondition(_) => Code::FailedPrecondition,
-                CoreError::LimitExceeded(_) => Code::ResourceExhausted,
+                CoreError::InvalidOption(_)
+                | CoreError::OutOfBounds(_)
+                | CoreError::InvalidActions(_)
+                | CoreError::InvalidSeed { .. }
+                | CoreError::InvalidView { .. }
+                | CoreError::InvalidSession(_)
+                | CoreError::CreateFailed { .. } => Code::InvalidArgument,
+                CoreError::Replay(replay) => replay_code(replay),
+                CoreError::NotReset | CoreError::NoReplayBuffer(_) => Code::FailedPrecondition,
+                CoreError::OverLimit(_) | CoreError::OutOfMemory(_) => Code::ResourceExhausted,
                 CoreError::WorkersUnavailable(_) | CoreError::ShuttingDown => Code::Unavailable,
                 CoreError::Simulator(_) => Code::Internal,
             },
-            ServiceError::Replay(replay) => match replay {
-                ReplayError::InvalidArgument(_) | ReplayError::Augment(_) => Code::InvalidArgument,
-                ReplayError::FailedPrecondition(_) => Code::FailedPrecondition,
-                ReplayError::Cancelled => Code::Cancelled,
-            },
+            ServiceError::Replay(replay) => replay_code(replay),
             ServiceError::BadRequest(_) => Code::InvalidArgument,
             ServiceError::AlreadyOpen(_) => Code::FailedPrecondition,
             ServiceError::TooLate(_) => Code::DeadlineExceeded,
@@ -64,6 +65,14 @@ impl From<ServiceError> for Status {
             ServiceError::Transport(status) => status.code(),
         };
         Status::new(code, error.to_string())
+    }
+}
+
+fn replay_code(error: &ReplayError) -> Code {
+    match error {
+        ReplayError::InvalidArgument(_) | ReplayError::Augment(_) => Code::InvalidArgument,
+        ReplayError::FailedPrecondition(_) => Code::FailedPrecondition,
+        ReplayError::Cancelled => Code::Cancelled,
     }
 }
 
@@ -80,8 +89,11 @@ mod tests {
         let unknown = status(CoreError::UnknownEnv { id: "dmc/x".into(), suggestions: vec!["dmc/y".into()] });
         assert_eq!(unknown.code(), Code::NotFound);
         assert!(unknown.message().contains("did you mean dmc/y"));
-        assert_eq!(status(CoreError::InvalidArgument("bad".into())).code(), Code::InvalidArgument);
-        assert_eq!(status(CoreError::LimitExceeded("full".into())).code(), Code::ResourceExhausted);
+        assert_eq!(status(CoreError::InvalidActions("bad".into())).code(), Code::InvalidArgument);
+        assert_eq!(status(CoreError::OverLimit("full".into())).code(), Code::ResourceExhausted);
+        assert_eq!(status(CoreError::NotReset).code(), Code::FailedPrecondition);
+        let capacity = radserve_replay::check_capacity(usize::MAX).unwrap_err();
+        assert_eq!(status(CoreError::Replay(capacity)).code(), Code::InvalidArgument);
         assert_eq!(status(CoreError::ShuttingDown).code(), Code::Unavailable);
         let augment = radserve_augment::Pipeline::parse("crpo").unwrap_err();
         let status = status(ReplayError::Augment(augment));
