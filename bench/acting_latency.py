@@ -1,7 +1,8 @@
 """Acting latency while a learner drains augmented batches: p50/p99 of one Step over gRPC, quiet and
 while another thread streams colour-jitter batches as fast as it reads them, in one run.
 
-    .venv/bin/python bench/acting_latency.py [--binary A --binary B ...] [--rounds 3] [--steps 2000]
+    .venv/bin/python bench/acting_latency.py [--binary A --binary B@NAME=VALUE,NAME=VALUE ...] [--rounds 3]
+        [--steps 2000]
 
 Two cases, each measured quiet and while draining:
 - own buffer: a dm_control cartpole-balance session (1 env, pixels, `fast` look) with a replay
@@ -10,8 +11,10 @@ Two cases, each measured quiet and while draining:
 - other session: gym/CartPole-v1 (1 env, states, no buffer) acting while the learner drains another
   session's buffer (the augmentation threads and the acting calls share the cores).
 
-With several binaries (a build before a change and after it), rounds alternate between them: these
-machines are noisy, compare ratios within one run.
+With several binaries (a build before a change and after it), or one binary with and without settings
+(`--binary target/release/radserve --binary target/release/radserve@RADSERVE__AUGMENT__NICE=10`: the
+variables after `@` are set for that server only), rounds alternate between them: these machines are
+noisy, compare ratios within one run.
 """
 
 import argparse
@@ -46,9 +49,10 @@ def drain(client, session_id, stop, counted):
     stream.close()
 
 
-def measure(binary, steps):
+def measure(binary, server_env, steps):
     rows = {}
-    with radserve.LocalServer(workers=2, binary=binary, env={"RADSERVE__SIM__VENV": sys.prefix}) as server:
+    env = {"RADSERVE__SIM__VENV": sys.prefix, **server_env}
+    with radserve.LocalServer(workers=2, binary=binary, env=env) as server:
         client = radserve.Client(server.address)
         pixels = client.make_vec("dmc/cartpole-balance", num_envs=1, seed=0, replay_capacity=5000, render_profile="fast")
         pixel_actions = np.random.default_rng(0).uniform(-1, 1, (64, 1, 1)).astype(np.float32)
@@ -80,17 +84,22 @@ def percentile(values, q):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--binary", action="append", default=None)
+    parser.add_argument("--binary", action="append", default=None,
+                        help="PATH or PATH@NAME=VALUE[,NAME=VALUE]: a server to measure, with these variables set")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--steps", type=int, default=2000)
     args = parser.parse_args()
-    binaries = args.binary or [None]
+    variants = []
+    for text in args.binary or ["target/release/radserve"]:
+        binary, _, settings = text.partition("@")
+        variants.append((binary, dict(item.split("=", 1) for item in settings.split(",") if item)))
     results = {}
     for round_index in range(args.rounds):
-        for binary in binaries:
-            for case, row in measure(binary, args.steps).items():
-                results.setdefault((binary or "target/release/radserve", case), []).append(row)
-            print(f"round {round_index + 1}/{args.rounds} {binary or 'default'} done", file=sys.stderr, flush=True)
+        for binary, env in variants:
+            label = " ".join([binary] + [f"{name}={value}" for name, value in env.items()])
+            for case, row in measure(binary, env, args.steps).items():
+                results.setdefault((label, case), []).append(row)
+            print(f"round {round_index + 1}/{args.rounds} {label} done", file=sys.stderr, flush=True)
 
     print("| build | acting | quiet p50 / p99 ms | while draining p50 / p99 ms | p99 ratio | batches/s drained |")
     print("|---|---|---:|---:|---:|---:|")

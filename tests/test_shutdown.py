@@ -1,7 +1,10 @@
 """SIGTERM drains: NOT_SERVING at once, new sessions refused, open streams ended with a status, exit
 within the drain deadline with no worker left; a second signal exits at once."""
 
+import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -98,3 +101,14 @@ def test_a_second_signal_exits_at_once():
         stream.close()
         client.close()
         server.stop()
+
+
+def test_a_server_whose_launcher_already_died_exits_at_once():
+    # (A launcher killed later takes its server along: client-py/tests/test_client.py.)
+    binary = radserve.server.find_binary()
+    # Our pid is not the server's parent's (a shell in between): as if the launcher had died.
+    shell = subprocess.run(["sh", "-c", f'"{binary}" serve --address 127.0.0.1:0 --workers 1; echo status $?'],
+                           env={**os.environ, "RADSERVE_PARENT_PID": str(os.getpid())},
+                           capture_output=True, text=True, timeout=30)
+    assert "status 1" in shell.stdout, shell
+    assert "has already exited" in shell.stderr, shell.stderr

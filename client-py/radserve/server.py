@@ -1,22 +1,11 @@
 """Starting a radserve server on this machine, for scripts, examples and tests."""
 
-import ctypes
 import os
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 from pathlib import Path
-
-_PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent() -> None:
-    """In the child before exec: the kernel sends it SIGTERM when the process that started it dies, so a
-    learner killed without cleanup (SIGKILL, or SIGTERM's default action) leaves no server behind."""
-    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-
 
 def find_binary() -> str:
     """$RADSERVE_BIN, else the release build of the repository this package lives in, else PATH."""
@@ -34,8 +23,10 @@ def find_binary() -> str:
 
 
 class LocalServer:
-    """A `radserve serve` child process on a free localhost port. On Linux it is stopped when the
-    thread that started it ends, cleanup or not (PR_SET_PDEATHSIG); start it from the main thread.
+    """A `radserve serve` child process on a free localhost port. It is stopped when the thread that
+    started it ends, cleanup or not: the server asks the kernel for SIGTERM when its parent dies
+    (`RADSERVE_PARENT_PID`, PR_SET_PDEATHSIG), so a learner killed without cleanup leaves no server
+    behind. Start it from the main thread.
 
     >>> with LocalServer(workers=2) as server:
     ...     client = radserve.Client(server.address)
@@ -47,14 +38,15 @@ class LocalServer:
         self.args = [self.binary, "serve", "--address", address]
         if workers is not None:
             self.args += ["--workers", str(workers)]
-        self.env = {**os.environ, **(env or {})}
+        self.env = {**os.environ, **(env or {}), "RADSERVE_PARENT_PID": str(os.getpid())}
         self.startup_timeout = startup_timeout
         self.process: "subprocess.Popen | None" = None
         self.address: "str | None" = None
 
     def start(self) -> str:
-        self.process = subprocess.Popen(self.args, stdout=subprocess.PIPE, env=self.env, text=True,
-                                        preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+        # No preexec_fn: code run between fork and exec in a process with threads (grpcio's) can
+        # deadlock the child before it starts.
+        self.process = subprocess.Popen(self.args, stdout=subprocess.PIPE, env=self.env, text=True)
         found: dict = {}
 
         def read_address():

@@ -27,6 +27,9 @@ pub struct Config {
 pub struct AugmentConfig {
     /// Threads that sample and augment minibatches; 0 means one per core.
     pub threads: usize,
+    /// Niceness of those threads (0..=19): above 0, acting (the gRPC handlers, the simulator
+    /// workers) gets the cores first when both want them, and augmentation takes what is left.
+    pub nice: i32,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -147,6 +150,9 @@ impl Config {
             );
         }
         let limits = &self.limits;
+        if !(0..=19).contains(&self.augment.nice) {
+            bail!("augment.nice must be between 0 and 19 (a lower priority than the server's), got {}", self.augment.nice);
+        }
         if limits.max_sessions == 0
             || limits.max_envs_per_session == 0
             || limits.max_total_envs == 0
@@ -161,6 +167,7 @@ impl Config {
     pub fn serve_options(&self) -> crate::ServeOptions {
         crate::ServeOptions {
             augment_threads: self.augment.threads,
+            augment_nice: self.augment.nice,
             drain_timeout: Duration::from_secs_f64(self.server.drain_timeout_s),
             shutdown_notice: Duration::from_secs_f64(self.server.shutdown_notice_s),
             max_connections: self.server.max_connections,

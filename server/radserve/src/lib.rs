@@ -47,6 +47,8 @@ pub fn session_manager(settings: ServerSettings) -> (Arc<SessionManager>, Arc<Wo
 pub struct ServeOptions {
     /// Threads that sample and augment minibatches; 0: one per core.
     pub augment_threads: usize,
+    /// Niceness of the augmentation threads (0: the server's own priority).
+    pub augment_nice: i32,
     /// From the shutdown signal to exit, at most.
     pub drain_timeout: Duration,
     /// How long the server keeps answering (NOT_SERVING, new sessions refused) before it stops
@@ -66,6 +68,7 @@ impl Default for ServeOptions {
     fn default() -> Self {
         ServeOptions {
             augment_threads: 0,
+            augment_nice: 0,
             drain_timeout: Duration::from_secs(20),
             shutdown_notice: Duration::from_secs(1),
             max_connections: 1024,
@@ -73,6 +76,18 @@ impl Default for ServeOptions {
             keepalive_interval: Duration::from_secs(30),
             keepalive_timeout: Duration::from_secs(20),
         }
+    }
+}
+
+/// Lowers the calling thread's priority by `nice` (Linux: niceness is per thread).
+fn lower_thread_priority(nice: i32) {
+    if nice <= 0 {
+        return;
+    }
+    // SAFETY: gettid and setpriority only read and return integers; the id is this thread's own.
+    let failed = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, nice) } != 0;
+    if failed {
+        warn!(nice, error = %std::io::Error::last_os_error(), "could not lower an augmentation thread's priority");
     }
 }
 
@@ -92,6 +107,7 @@ pub async fn serve(
         rayon::ThreadPoolBuilder::new()
             .num_threads(options.augment_threads)
             .thread_name(|index| format!("radserve-augment-{index}"))
+            .start_handler(move |_| lower_thread_priority(options.augment_nice))
             .build()?,
     );
     let (health_reporter, health_service) = tonic_health::server::health_reporter();

@@ -99,6 +99,10 @@ fn main() -> ExitCode {
             }
         };
     }
+    if let Err(error) = exit_with_parent() {
+        eprintln!("radserve: {error}");
+        return ExitCode::FAILURE;
+    }
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_env_filter(
@@ -113,6 +117,27 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// A launcher that wants the server gone with it (the Python client's `LocalServer`) sets
+/// `RADSERVE_PARENT_PID` to its own pid: the kernel then sends SIGTERM when that process dies
+/// (PR_SET_PDEATHSIG), and a server whose launcher died before this call exits at once. Done here
+/// rather than by the launcher between fork and exec, which in a multithreaded launcher (grpcio's
+/// threads) can deadlock the child before it ever runs.
+fn exit_with_parent() -> Result<(), String> {
+    let Some(value) = std::env::var_os("RADSERVE_PARENT_PID") else { return Ok(()) };
+    let expected: libc::pid_t =
+        value.to_str().and_then(|text| text.parse().ok()).ok_or("RADSERVE_PARENT_PID must be a process id")?;
+    // SAFETY: prctl with PR_SET_PDEATHSIG reads two integers; getppid has no arguments.
+    unsafe {
+        if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+            return Err(format!("setting the parent-death signal: {}", std::io::Error::last_os_error()));
+        }
+        if libc::getppid() != expected {
+            return Err(format!("the process that started radserve ({expected}) has already exited"));
+        }
+    }
+    Ok(())
 }
 
 fn settings(config: &Config) -> anyhow::Result<ServerSettings> {
