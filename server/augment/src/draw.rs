@@ -10,7 +10,7 @@ use crate::spec::Augmentation;
 
 /// Which observation of a transition is being augmented.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum View {
+pub enum TransitionPart {
     #[default]
     Obs,
     NextObs,
@@ -33,7 +33,7 @@ pub enum Sharing {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Draws {
     pub seed: u64,
-    pub view: View,
+    pub part: TransitionPart,
     pub sharing: Sharing,
 }
 
@@ -42,8 +42,8 @@ impl Draws {
         Self { seed, ..Self::default() }
     }
 
-    pub fn with_view(self, view: View) -> Self {
-        Self { view, ..self }
+    pub fn with_part(self, part: TransitionPart) -> Self {
+        Self { part, ..self }
     }
 
     pub fn with_sharing(self, sharing: Sharing) -> Self {
@@ -59,7 +59,7 @@ impl Draws {
             Sharing::Shared => true,
             Sharing::Independent => false,
         };
-        let separate_next = self.view == View::NextObs && !shared;
+        let separate_next = self.part == TransitionPart::NextObs && !shared;
         let mut seed = [0u8; 32];
         seed[..8].copy_from_slice(&self.seed.to_le_bytes());
         seed[8..16].copy_from_slice(&(stage_index as u64).to_le_bytes());

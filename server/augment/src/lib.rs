@@ -27,7 +27,7 @@ mod shape;
 pub mod speed;
 mod spec;
 
-pub use draw::{Draws, JitterOp, JitterParams, Sharing, StageParams, View, CONV_WEIGHT_STD};
+pub use draw::{Draws, JitterOp, JitterParams, Sharing, StageParams, TransitionPart, CONV_WEIGHT_STD};
 pub use error::{AugmentError, Result};
 pub use kernels::Isa;
 pub use plan::{ImagePlan, StatePlan, MAX_SAMPLE_BYTES};

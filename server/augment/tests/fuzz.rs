@@ -4,7 +4,7 @@
 //! default 2048 per property); `make fuzz` runs the same properties with many more cases.
 
 use proptest::prelude::*;
-use radserve_augment::{Domain, Draws, FrameShape, ImagePlan, Pipeline, Sharing, StatePlan, View, MAX_PIPELINE_TEXT_BYTES, MAX_STAGES};
+use radserve_augment::{Domain, Draws, FrameShape, ImagePlan, Pipeline, Sharing, StatePlan, TransitionPart, MAX_PIPELINE_TEXT_BYTES, MAX_STAGES};
 
 fn config() -> ProptestConfig {
     let cases = std::env::var("PROPTEST_CASES").ok().and_then(|value| value.parse().ok()).unwrap_or(2048);
@@ -128,7 +128,7 @@ proptest! {
         next in any::<bool>(),
     ) {
         let Ok(pipeline) = Pipeline::parse(&text) else { return Ok(()) };
-        let draws = Draws::new(seed).with_sharing(sharing).with_view(if next { View::NextObs } else { View::Obs });
+        let draws = Draws::new(seed).with_sharing(sharing).with_part(if next { TransitionPart::NextObs } else { TransitionPart::Obs });
         if pipeline.stages().iter().all(|stage| stage.domain() == Domain::State) && !pipeline.is_empty() {
             let dim = shape.sample_len() % 17 + 1;
             let plan = StatePlan::new(&pipeline, dim).expect("state pipelines take any dimension");

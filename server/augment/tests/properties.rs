@@ -1,6 +1,6 @@
 //! Properties of the semantics, checked on the output bytes (not on the drawn parameters).
 
-use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline, Sharing, StageParams, StatePlan, View};
+use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline, Sharing, StageParams, StatePlan, TransitionPart};
 
 const SHAPE: FrameShape = FrameShape::new(3, 3, 100, 100);
 
@@ -180,7 +180,7 @@ fn transitions_share_draws_as_configured() {
     ] {
         let augment = plan(text, SHAPE);
         let obs = run(&augment, &input, &draws.with_sharing(sharing));
-        let next = run(&augment, &input, &draws.with_sharing(sharing).with_view(View::NextObs));
+        let next = run(&augment, &input, &draws.with_sharing(sharing).with_part(TransitionPart::NextObs));
         assert_eq!(obs == next, same, "{text} with {sharing:?}");
     }
 }
@@ -248,8 +248,8 @@ fn state_augmentations_scale_and_perturb_as_specified() {
     let draws = Draws::new(5);
     let noise = StatePlan::new(&Pipeline::parse("noise(std=0.1)").unwrap(), dim).unwrap();
     noise.apply(&input, &mut output, &draws).unwrap();
-    noise.apply(&input, &mut next, &draws.with_view(View::NextObs)).unwrap();
+    noise.apply(&input, &mut next, &draws.with_part(TransitionPart::NextObs)).unwrap();
     assert_eq!(output, next);
-    noise.apply(&input, &mut next, &draws.with_view(View::NextObs).with_sharing(Sharing::Independent)).unwrap();
+    noise.apply(&input, &mut next, &draws.with_part(TransitionPart::NextObs).with_sharing(Sharing::Independent)).unwrap();
     assert_ne!(output, next);
 }

@@ -9,7 +9,7 @@ use std::ops::Range;
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
-use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline, Sharing, StatePlan, View};
+use radserve_augment::{Draws, FrameShape, ImagePlan, Pipeline, Sharing, StatePlan, TransitionPart};
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -239,14 +239,14 @@ impl Producer {
             Plan::Image(plan) => plan.output_shape().sample_len(),
             Plan::State(plan) => plan.dim() * 4,
         };
-        let views = if spec.include_next_obs { 2 } else { 1 };
-        let batch_bytes = spec.batch_size.saturating_mul(obs_bytes).saturating_mul(views);
+        let parts = if spec.include_next_obs { 2 } else { 1 };
+        let batch_bytes = spec.batch_size.saturating_mul(obs_bytes).saturating_mul(parts);
         if batch_bytes > MAX_BATCH_BYTES {
             return invalid(format!(
                 "a batch of {} observations of {obs_bytes} bytes{} is {batch_bytes} bytes; the most allowed is \
                  {MAX_BATCH_BYTES} (use a smaller batch_size or augmentation output)",
                 spec.batch_size,
-                if views == 2 { " (obs and next_obs)" } else { "" },
+                if parts == 2 { " (obs and next_obs)" } else { "" },
             ));
         }
         Ok(Self { buffer, spec, plan, obs_shape, obs_bytes, permit: None })
@@ -276,8 +276,8 @@ impl Producer {
     /// Observation bytes the stream may hold at once, whichever the output: `prefetch` batches
     /// ready, one being filled and one with the transport or the learner.
     pub fn stream_memory_bytes(&self) -> u64 {
-        let views = if self.spec.include_next_obs { 2 } else { 1 };
-        ((self.spec.prefetch + 2) * views * self.observation_bytes()) as u64
+        let parts = if self.spec.include_next_obs { 2 } else { 1 };
+        ((self.spec.prefetch + 2) * parts * self.observation_bytes()) as u64
     }
 
     /// Start producing on a thread of its own, augmenting on `pool`. Batches arrive on the returned
@@ -467,7 +467,7 @@ impl Producer {
         batch.obs_shape.clone_from(&self.obs_shape);
         batch.obs_float32 = matches!(self.plan, Plan::State(_));
         batch.has_next_obs = self.spec.include_next_obs;
-        let draws = Draws { seed: draw_seed, view: View::Obs, sharing: self.spec.sharing };
+        let draws = Draws { seed: draw_seed, part: TransitionPart::Obs, sharing: self.spec.sharing };
         let observation_len = size * self.obs_bytes;
         let (obs, next_obs) = match &mut batch.slot {
             Some(slot) => slot.regions_mut(observation_len),
@@ -488,7 +488,7 @@ impl Producer {
                     (layout.frame_bytes, layout.frame_stack * layout.frame_bytes)
                 };
                 let bytes = self.obs_bytes;
-                let (obs_draws, next_draws) = (draws.with_view(View::Obs), draws.with_view(View::NextObs));
+                let (obs_draws, next_draws) = (draws.with_part(TransitionPart::Obs), draws.with_part(TransitionPart::NextObs));
                 let with_next = !next_obs.is_empty();
                 // A transition the buffer overwrote since it was drawn is replaced by a fresh draw.
                 let refresh = |buffer: &ReplayBuffer, transition: &mut TransitionRef, rng: &mut ChaCha8Rng| {
@@ -577,17 +577,17 @@ impl Producer {
                 let buffer = self.buffer.read().expect("replay lock");
                 let refs = &batch.refs;
                 buffer.gather_metadata(refs, &mut batch.metadata);
-                for (view, out) in [(View::Obs, obs), (View::NextObs, next_obs)] {
+                for (part, out) in [(TransitionPart::Obs, obs), (TransitionPart::NextObs, next_obs)] {
                     if out.is_empty() {
                         continue;
                     }
                     for (sample, dst) in out.chunks_exact_mut(self.obs_bytes).enumerate() {
-                        buffer.copy_observation(refs[sample], view == View::NextObs, dst);
+                        buffer.copy_observation(refs[sample], part == TransitionPart::NextObs, dst);
                     }
                     let values: Vec<f32> =
                         out.chunks_exact(4).map(|bytes| f32::from_le_bytes(bytes.try_into().unwrap())).collect();
                     let mut augmented = vec![0.0f32; values.len()];
-                    plan.apply_keyed(&values, &mut augmented, &draws.with_view(view), keys)?;
+                    plan.apply_keyed(&values, &mut augmented, &draws.with_part(part), keys)?;
                     for (bytes, value) in out.chunks_exact_mut(4).zip(&augmented) {
                         bytes.copy_from_slice(&value.to_le_bytes());
                     }
