@@ -47,3 +47,24 @@ def test_frames_rewards_and_episode_ends_equal_one_game_envs_seeded_s_plus_i(cli
                 obs[i], direct_frame(ProcgenGym3Env(num=1, env_name=game, rand_seed=40 + i, distribution_mode="easy")))
     finally:
         envs.close()
+
+
+def test_unseeded_resets_go_on_to_new_levels_the_same_way_for_the_same_seed(client):
+    # gym3 games have no reset: an unseeded reset must not replay the levels of the last seeding.
+    def first_frames(resets):
+        envs = client.make_vec("procgen/starpilot", num_envs=2, seed=3)
+        try:
+            frames = [envs.reset()[0].copy()]
+            for _ in range(resets):
+                envs.step(np.zeros(2, dtype=np.int64))
+                frames.append(envs.reset()[0].copy())
+            return frames
+        finally:
+            envs.close()
+
+    frames = first_frames(3)
+    for earlier in range(len(frames)):
+        for later in range(earlier + 1, len(frames)):
+            assert not np.array_equal(frames[earlier], frames[later]), f"reset {later} replayed reset {earlier}'s levels"
+    for mine, again in zip(frames, first_frames(3)):
+        np.testing.assert_array_equal(mine, again)

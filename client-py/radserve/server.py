@@ -59,10 +59,20 @@ class LocalServer:
         reader.start()
         reader.join(self.startup_timeout)
         if "address" not in found:
+            # The reader ends early only when the server closed its stdout: it is exiting.
+            code = None if reader.is_alive() else self._wait_quietly(5)
             self.stop()
+            if code is not None:
+                raise RuntimeError(f"radserve exited with status {code} before it was listening (its stderr says why)")
             raise RuntimeError(f"radserve did not report its address within {self.startup_timeout} s")
         self.address = found["address"]
         return self.address
+
+    def _wait_quietly(self, timeout: float) -> "int | None":
+        try:
+            return self.process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            return None
 
     def stop(self, timeout: float = 20.0) -> "int | None":
         if self.process is None or self.process.poll() is not None:

@@ -112,10 +112,14 @@ pub async fn serve(
     );
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
     health_reporter.set_serving::<RadServeServer<RadServeService>>().await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()?;
+    // Both reflection versions: grpcurl and grpcui speak v1, grpc_cli, grpcio-reflection's Python
+    // client and Postman still v1alpha.
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let (reflection_v1, reflection_v1alpha) = (reflection().build_v1()?, reflection().build_v1alpha()?);
     let (service, streams) = RadServeService::new(manager.clone(), augment_pool);
     let service = RadServeServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
@@ -170,7 +174,8 @@ pub async fn serve(
         .http2_keepalive_interval(Some(options.keepalive_interval))
         .http2_keepalive_timeout(Some(options.keepalive_timeout))
         .add_service(health_service)
-        .add_service(reflection)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
         .add_service(service)
         .serve_with_incoming_shutdown(connections, graceful);
     tokio::pin!(server);

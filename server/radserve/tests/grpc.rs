@@ -22,19 +22,27 @@ async fn serves_health_reflection_and_answers_bad_input() {
         .status;
     assert_eq!(status, tonic_health::pb::health_check_response::ServingStatus::Serving as i32);
 
-    use tonic_reflection::pb::v1::{
-        server_reflection_client::ServerReflectionClient, server_reflection_request::MessageRequest,
-        server_reflection_response::MessageResponse, ServerReflectionRequest,
-    };
-    let mut reflection = ServerReflectionClient::new(channel.clone());
-    let request = ServerReflectionRequest { host: String::new(), message_request: Some(MessageRequest::ListServices(String::new())) };
-    let mut replies = reflection.server_reflection_info(tokio_stream::iter(vec![request])).await.unwrap().into_inner();
-    let services = match replies.next().await.unwrap().unwrap().message_response {
-        Some(MessageResponse::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect::<Vec<_>>(),
-        other => panic!("unexpected reflection answer {other:?}"),
-    };
-    assert!(services.contains(&"radserve.v1.RadServe".to_string()), "{services:?}");
-    assert!(services.contains(&"grpc.health.v1.Health".to_string()), "{services:?}");
+    // Reflection answers in both versions, with the same services.
+    macro_rules! list_services {
+        ($version:ident) => {{
+            use tonic_reflection::pb::$version::{
+                server_reflection_client::ServerReflectionClient, server_reflection_request::MessageRequest,
+                server_reflection_response::MessageResponse, ServerReflectionRequest,
+            };
+            let mut reflection = ServerReflectionClient::new(channel.clone());
+            let request =
+                ServerReflectionRequest { host: String::new(), message_request: Some(MessageRequest::ListServices(String::new())) };
+            let mut replies = reflection.server_reflection_info(tokio_stream::iter(vec![request])).await.unwrap().into_inner();
+            match replies.next().await.unwrap().unwrap().message_response {
+                Some(MessageResponse::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect::<Vec<_>>(),
+                other => panic!("unexpected reflection answer {other:?}"),
+            }
+        }};
+    }
+    for services in [list_services!(v1), list_services!(v1alpha)] {
+        assert!(services.contains(&"radserve.v1.RadServe".to_string()), "{services:?}");
+        assert!(services.contains(&"grpc.health.v1.Health".to_string()), "{services:?}");
+    }
 
     let mut client = RadServeClient::new(channel);
     let unknown = client

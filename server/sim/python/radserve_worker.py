@@ -164,9 +164,11 @@ class GymEnv:
         return {"observation": observation, "action": action}
 
     def reset(self, seed):
-        # The first reset seeds the environment with its own seed; later ones continue its stream.
-        if seed is None and self.seed is not None:
-            seed, self.seed = self.seed, None
+        # The first reset seeds the environment with its own seed unless it is given one; every later
+        # unseeded reset (autoresets included) continues the stream of the last seed.
+        if seed is None:
+            seed = self.seed
+        self.seed = None
         obs, _ = self.env.reset(seed=seed)
         return obs
 
@@ -328,6 +330,7 @@ class ProcgenGroup(Group):
     def __init__(self, name, options, seeds):
         self.family, self.name, self.options = "procgen", name, options
         self.seeds = list(seeds)
+        self.unseeded_resets = 0
         self.n = len(self.seeds)
         self.vec = self._fresh_vector()
         self.fresh = True
@@ -348,10 +351,21 @@ class ProcgenGroup(Group):
     def reset(self, seeds):
         if seeds is not None:
             self.seeds = list(seeds)
-        if seeds is not None or not self.fresh:
-            self.vec.set_state([_procgen(1, self.name, self.options, seed).get_state()[0] for seed in self.seeds])
+            self.unseeded_resets = 0
+            self._start([_procgen(1, self.name, self.options, seed) for seed in self.seeds])
+        elif not self.fresh:
+            # gym3 games have no reset of their own: an unseeded reset starts each game from a seed
+            # drawn from its own, so that later resets go on to new levels (the same ones for the
+            # same seed and the same number of resets).
+            self.unseeded_resets += 1
+            draws = [np.random.SeedSequence([seed, self.unseeded_resets]).generate_state(1)[0] & 0x7FFFFFFF
+                     for seed in self.seeds]
+            self._start([_procgen(1, self.name, self.options, int(seed)) for seed in draws])
         self.fresh = True
         self.current[:] = self._frames()
+
+    def _start(self, games):
+        self.vec.set_state([game.get_state()[0] for game in games])
 
     def step(self, actions):
         actions = np.frombuffer(actions, dtype=self.action_dtype).astype(np.int32)
