@@ -99,6 +99,14 @@ pub struct SampleSpec {
     pub max_batches: Option<u64>,
 }
 
+impl SampleSpec {
+    /// Batches produced ahead when a request does not say (the wire's 0).
+    pub const DEFAULT_PREFETCH: usize = 2;
+    /// Passes over a rollout when a request does not say (the wire's 0). A spec itself must say:
+    /// `Producer::new` refuses 0 epochs from a caller that builds specs directly.
+    pub const DEFAULT_EPOCHS: usize = 1;
+}
+
 /// Where the transport returns observation buffers it has finished sending.
 pub type Recycler = std::sync::mpsc::Sender<Vec<u8>>;
 

@@ -203,7 +203,8 @@ fn typed_pipeline_text(typed: &proto::AugmentationPipeline) -> Result<String> {
     Ok(stages.join("|"))
 }
 
-/// A SampleBatches request as the producer's spec, every field checked.
+/// A SampleBatches request as the producer's spec, every field checked; a field the request leaves
+/// at its proto3 zero gets the default the proto documents.
 pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<SampleSpec> {
     use proto::sample_batches_request::Augmentation as Choice;
     let pipeline = match &request.augmentation {
@@ -224,7 +225,8 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
     let source = match proto::BatchSource::try_from(request.source) {
         Ok(proto::BatchSource::SourceReplay) => Source::Replay,
         Ok(proto::BatchSource::SourceRollout) => {
-            Source::Rollout { epochs: request.epochs.max(1) as usize, per_env_draws: request.per_env_augmentation }
+            let epochs = if request.epochs == 0 { SampleSpec::DEFAULT_EPOCHS } else { request.epochs as usize };
+            Source::Rollout { epochs, per_env_draws: request.per_env_augmentation }
         }
         Err(_) => return Err(ServiceError::BadRequest(format!("unknown BatchSource value {}", request.source))),
     };
@@ -236,7 +238,7 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
         pipeline,
         sharing,
         seed: request.seed,
-        prefetch: if request.prefetch == 0 { 2 } else { request.prefetch as usize },
+        prefetch: if request.prefetch == 0 { SampleSpec::DEFAULT_PREFETCH } else { request.prefetch as usize },
         min_size: if source == Source::Replay { request.min_size.map_or(batch_size, |size| size as usize) } else { 0 },
         samples_per_insert: request.samples_per_insert,
         error_buffer: request.error_buffer,
