@@ -2,7 +2,7 @@
 while another thread streams colour-jitter batches as fast as it reads them, in one run.
 
     .venv/bin/python bench/acting_latency.py [--binary A --binary B@NAME=VALUE,NAME=VALUE ...] [--rounds 3]
-        [--steps 2000]
+        [--steps 2000] [--drain-in-process]
 
 Two cases, each measured quiet and while draining:
 - own buffer: a dm_control cartpole-balance session (1 env, pixels, `fast` look) with a replay
@@ -11,6 +11,10 @@ Two cases, each measured quiet and while draining:
 - other session: gym/CartPole-v1 (1 env, states, no buffer) acting while the learner drains another
   session's buffer (the augmentation threads and the acting calls share the cores).
 
+The learner drains from a process of its own (as a learner whose sampling runs apart from its
+acting would), so that the acting thread's latency is the server's, not the client's GIL;
+`--drain-in-process` drains from a thread of the acting process instead.
+
 With several binaries (a build before a change and after it), or one binary with and without settings
 (`--binary target/release/radserve --binary target/release/radserve@RADSERVE__AUGMENT__NICE=10`: the
 variables after `@` are set for that server only), rounds alternate between them: these machines are
@@ -18,6 +22,7 @@ noisy, compare ratios within one run.
 """
 
 import argparse
+import multiprocessing
 import statistics
 import sys
 import threading
@@ -49,7 +54,41 @@ def drain(client, session_id, stop, counted):
     stream.close()
 
 
-def measure(binary, server_env, steps):
+def drain_process(address, session_id, stop, counted):
+    """`drain` in a process of its own (multiprocessing, spawned: no grpc state crosses a fork)."""
+    client = radserve.Client(address)
+    shared = [0]
+    thread = threading.Thread(target=drain, args=(client, session_id, stop, shared), daemon=True)
+    thread.start()
+    while not stop.is_set():
+        counted.value = shared[0]
+        time.sleep(0.05)
+    thread.join(timeout=30)
+    counted.value = shared[0]
+
+
+class Drain:
+    """The draining learner, in a thread of this process or in a process of its own."""
+
+    def __init__(self, client, address, session_id, in_process):
+        if in_process:
+            self.stop, self._counted = threading.Event(), [0]
+            self._worker = threading.Thread(target=drain, args=(client, session_id, self.stop, self._counted))
+        else:
+            context = multiprocessing.get_context("spawn")
+            self.stop, self._counted = context.Event(), context.Value("q", 0)
+            self._worker = context.Process(target=drain_process, args=(address, session_id, self.stop, self._counted))
+        self._worker.start()
+
+    def batches(self):
+        return self._counted[0] if isinstance(self._counted, list) else self._counted.value
+
+    def finish(self):
+        self.stop.set()
+        self._worker.join()
+
+
+def measure(binary, server_env, steps, in_process):
     rows = {}
     env = {"RADSERVE__SIM__VENV": sys.prefix, **server_env}
     with radserve.LocalServer(workers=2, binary=binary, env=env) as server:
@@ -63,15 +102,12 @@ def measure(binary, server_env, steps):
                                     ("other session (CartPole)", state, state_actions)]:
             count = steps // 4 if envs is pixels else steps
             quiet = latencies(envs, count, actions)
-            stop, counted = threading.Event(), [0]
-            thread = threading.Thread(target=drain, args=(client, pixels.session_id, stop, counted))
-            thread.start()
-            time.sleep(1.0)
-            started_batches, started = counted[0], time.perf_counter()
+            draining = Drain(client, server.address, pixels.session_id, in_process)
+            time.sleep(1.0 if in_process else 3.0)  # a spawned process imports numpy and grpc first
+            started_batches, started = draining.batches(), time.perf_counter()
             busy = latencies(envs, count, actions)
-            batches_per_s = (counted[0] - started_batches) / (time.perf_counter() - started)
-            stop.set()
-            thread.join()
+            batches_per_s = (draining.batches() - started_batches) / (time.perf_counter() - started)
+            draining.finish()
             rows[case] = (quiet, busy, batches_per_s)
         pixels.close()
         state.close()
@@ -88,6 +124,8 @@ def main():
                         help="PATH or PATH@NAME=VALUE[,NAME=VALUE]: a server to measure, with these variables set")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--drain-in-process", action="store_true",
+                        help="drain from a thread of the acting process (its GIL is then shared)")
     args = parser.parse_args()
     variants = []
     for text in args.binary or ["target/release/radserve"]:
@@ -97,7 +135,7 @@ def main():
     for round_index in range(args.rounds):
         for binary, env in variants:
             label = " ".join([binary] + [f"{name}={value}" for name, value in env.items()])
-            for case, row in measure(binary, env, args.steps).items():
+            for case, row in measure(binary, env, args.steps, args.drain_in_process).items():
                 results.setdefault((label, case), []).append(row)
             print(f"round {round_index + 1}/{args.rounds} {label} done", file=sys.stderr, flush=True)
 
