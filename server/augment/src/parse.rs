@@ -203,7 +203,7 @@ fn canonical_name(raw: &str) -> Result<&'static str> {
     }
     let closest = NAMES
         .iter()
-        .map(|(canonical, _)| (edit_distance(&lowered, canonical), *canonical))
+        .map(|(canonical, _)| (strsim::levenshtein(&lowered, canonical), *canonical))
         .min()
         .filter(|(distance, _)| *distance <= 2);
     Err(AugmentError::UnknownAugmentation {
@@ -211,20 +211,6 @@ fn canonical_name(raw: &str) -> Result<&'static str> {
         suggestion: closest.map(|(_, name)| format!(" (did you mean {name:?}?)")).unwrap_or_default(),
         expected: NAMES.iter().map(|(canonical, _)| *canonical).collect::<Vec<_>>().join(", "),
     })
-}
-
-fn edit_distance(a: &str, b: &str) -> usize {
-    let b: Vec<char> = b.chars().collect();
-    let mut previous: Vec<usize> = (0..=b.len()).collect();
-    for (i, ca) in a.chars().enumerate() {
-        let mut current = vec![i + 1; b.len() + 1];
-        for (j, cb) in b.iter().enumerate() {
-            let substitution = previous[j] + usize::from(ca != *cb);
-            current[j + 1] = substitution.min(previous[j + 1] + 1).min(current[j] + 1);
-        }
-        previous = current;
-    }
-    previous[b.len()]
 }
 
 #[cfg(test)]

@@ -288,7 +288,7 @@ fn closest(wanted: &str, known: impl Iterator<Item = String>) -> Vec<String> {
             {
                 1
             } else {
-                edit_distance(&wanted_lower, &candidate_lower)
+                strsim::levenshtein(&wanted_lower, &candidate_lower)
             };
             let limit = 3.max(wanted.len() / 3);
             (distance <= limit).then_some((distance, candidate))
@@ -296,20 +296,6 @@ fn closest(wanted: &str, known: impl Iterator<Item = String>) -> Vec<String> {
         .collect();
     scored.sort();
     scored.into_iter().take(3).map(|(_, id)| id).collect()
-}
-
-fn edit_distance(left: &str, right: &str) -> usize {
-    let right: Vec<char> = right.chars().collect();
-    let mut previous: Vec<usize> = (0..=right.len()).collect();
-    for (i, left_char) in left.chars().enumerate() {
-        let mut current = vec![i + 1; right.len() + 1];
-        for (j, right_char) in right.iter().enumerate() {
-            let substitution = previous[j] + usize::from(left_char != *right_char);
-            current[j + 1] = substitution.min(previous[j + 1] + 1).min(current[j] + 1);
-        }
-        previous = current;
-    }
-    previous[right.len()]
 }
 
 #[cfg(test)]
