@@ -1,5 +1,5 @@
-//! A session: a vector of environments of one id, spread over worker processes, whose observations are
-//! frame-stacked here in the server (frames travel from workers once).
+//! A session: a vector of environments of one id, in groups hosted by the simulators, whose
+//! observations are frame-stacked here in the server (frames travel from the simulators once).
 //!
 //! Autoreset is "same-step" (EnvPool, gymnasium's `AutoresetMode.SAME_STEP`): the step that ends an
 //! episode returns the first observation of the next one, and the last observation of the ended
