@@ -50,6 +50,21 @@ pub async fn start_server_with(limits: Limits, adjust: impl FnOnce(&mut ServerSe
     TestServer { address, manager, stop, task }
 }
 
+/// The same server over the fake simulators (`radserve_core::fake`): the transport and the core
+/// end to end, with faults injected, and no worker process.
+pub async fn start_fake_server(limits: Limits, processes: usize) -> (TestServer, Arc<radserve_core::fake::FakeSimulators>) {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = format!("http://{}", listener.local_addr().unwrap());
+    let simulators = radserve_core::fake::FakeSimulators::new(processes);
+    let manager = Arc::new(SessionManager::new(simulators.clone(), limits));
+    let options = radserve::ServeOptions { augment_threads: 1, ..radserve::ServeOptions::default() };
+    let (stop, stopped) = oneshot::channel::<()>();
+    let task = tokio::spawn(radserve::serve(listener, manager.clone(), options, async {
+        let _ = stopped.await;
+    }));
+    (TestServer { address, manager, stop, task }, simulators)
+}
+
 pub async fn connect(address: &str) -> Channel {
     Channel::from_shared(address.to_string()).unwrap().connect().await.unwrap()
 }

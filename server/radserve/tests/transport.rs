@@ -1,0 +1,106 @@
+//! The gRPC transport over the fake simulators: every kind of core failure reaches the client with
+//! its documented code, faults in a simulator end episodes as the proto says, and batches stream from
+//! a fake session's replay. No worker process, no Python: these run in well under a second.
+
+mod common;
+
+use common::{connect, start_fake_server};
+use radserve_core::fake::{self, FAKE_ENV};
+use radserve_core::Limits;
+use radserve_service::proto::{self, rad_serve_client::RadServeClient};
+use tokio_stream::StreamExt;
+use tonic::Code;
+
+fn int64_tensor(values: &[i64]) -> proto::Tensor {
+    proto::Tensor {
+        dtype: proto::DType::DtypeInt64 as i32,
+        shape: vec![values.len() as i64],
+        data: values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>().into(),
+    }
+}
+
+fn create(num_envs: u32, capacity: u64) -> proto::CreateSessionRequest {
+    proto::CreateSessionRequest {
+        env_id: FAKE_ENV.into(),
+        num_envs,
+        seed: 4,
+        replay: (capacity > 0).then_some(proto::ReplayOptions { capacity, ..Default::default() }),
+        ..Default::default()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn core_failures_reach_the_client_with_their_codes() {
+    let (server, simulators) = start_fake_server(Limits { max_sessions: 2, ..Limits::default() }, 2).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let session = client.create_session(create(4, 0)).await.unwrap().into_inner();
+    let id = session.session_id.clone();
+    let step = |values: &[i64]| proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(values)) };
+
+    let code = |result: Result<tonic::Response<proto::StepResponse>, tonic::Status>| result.unwrap_err().code();
+    assert_eq!(code(client.step(step(&[0; 4])).await), Code::FailedPrecondition, "step before reset");
+    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None }).await.unwrap();
+    assert_eq!(code(client.step(step(&[0, 0, 0, 3])).await), Code::InvalidArgument, "action out of range");
+    let unknown = proto::StepRequest { session_id: "s0-nothing".into(), actions: Some(int64_tensor(&[0; 4])) };
+    assert_eq!(code(client.step(unknown).await), Code::NotFound);
+
+    // A lost group ends its episodes, with the reason, inside a successful step.
+    simulators.lose_group_of(3);
+    let stepped = client.step(step(&[0; 4])).await.unwrap().into_inner();
+    let ended: Vec<(u32, bool, String)> =
+        stepped.episodes.iter().map(|end| (end.env_index, end.truncated, end.error.clone())).collect();
+    assert_eq!(ended, vec![(2, true, "fake worker died".into()), (3, true, "fake worker died".into())]);
+    assert_eq!(stepped.final_obs.unwrap().shape, vec![2, 1, 2, 2]);
+
+    // A simulator that fails the call: INTERNAL, and the session asks for a reset.
+    simulators.fail_next_step("garbage from the simulator");
+    let failed = client.step(step(&[0; 4])).await.unwrap_err();
+    assert_eq!(failed.code(), Code::Internal);
+    assert!(failed.message().contains("garbage from the simulator"), "{}", failed.message());
+    assert_eq!(code(client.step(step(&[0; 4])).await), Code::FailedPrecondition);
+
+    simulators.refuse_next_create("no such option");
+    let refused = client.create_session(create(1, 0)).await.unwrap_err();
+    assert_eq!(refused.code(), Code::InvalidArgument);
+    assert!(refused.message().contains("could not create gym/Fake-v0: no such option"), "{}", refused.message());
+
+    let no_buffer = proto::SampleBatchesRequest { session_id: id.clone(), batch_size: 2, ..Default::default() };
+    assert_eq!(client.sample_batches(no_buffer).await.unwrap_err().code(), Code::FailedPrecondition);
+    client.create_session(create(1, 0)).await.unwrap();
+    assert_eq!(client.create_session(create(1, 0)).await.unwrap_err().code(), Code::ResourceExhausted);
+
+    let _ = server.stop.send(());
+    server.task.await.unwrap().unwrap();
+    assert_eq!(simulators.groups_alive(), 0, "shutdown closed every group");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn batches_stream_from_a_fake_sessions_replay() {
+    let (server, _simulators) = start_fake_server(Limits::default(), 1).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let session = client.create_session(create(2, 100)).await.unwrap().into_inner();
+    let id = session.session_id.clone();
+    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None }).await.unwrap();
+    for _ in 0..10 {
+        let request = proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(&[1, 2])) };
+        client.step(request).await.unwrap();
+    }
+    let request = proto::SampleBatchesRequest { session_id: id.clone(), batch_size: 8, max_batches: Some(3), ..Default::default() };
+    let mut chunks = client.sample_batches(request).await.unwrap().into_inner();
+    let mut batches = std::collections::BTreeMap::<u64, Vec<proto::BatchChunk>>::new();
+    while let Some(chunk) = chunks.next().await {
+        let chunk = chunk.unwrap();
+        batches.entry(chunk.batch_index).or_default().push(chunk);
+    }
+    assert_eq!(batches.len(), 3);
+    for chunks in batches.values() {
+        let obs = chunks.iter().find(|chunk| chunk.field == "obs").expect("obs");
+        assert_eq!(obs.shape, vec![8, 1, 2, 2]);
+        assert!(obs.data.chunks(fake::FRAME_BYTES).all(|frame| frame[3] == fake::MARK), "every frame is a fake frame");
+        let rewards = chunks.iter().find(|chunk| chunk.field == "reward").expect("reward");
+        let rewards: Vec<f32> = rewards.data.chunks(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
+        assert!(rewards.iter().all(|&reward| reward == 2.0 || reward == 3.0), "action + 1: {rewards:?}");
+    }
+    let _ = server.stop.send(());
+    server.task.await.unwrap().unwrap();
+}
