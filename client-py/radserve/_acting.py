@@ -22,7 +22,11 @@ _HINT = ("shared-memory acting needs the client on the server's host, in its pid
 class SharedActing:
     """Arrays over the channel's memory, and the socket that says when they may be read."""
 
-    def __init__(self, channel: "pb.SharedActingChannel", num_envs: int, obs_space, action_dtype, action_shape):
+    def __init__(self, channel: "pb.SharedActingChannel", num_envs: int, obs_space, action_dtype, action_shape,
+                 explain_loss=None):
+        # When the channel ends under a call (the server closes it with its session), this says why:
+        # the error the server gives for the session over gRPC, or None.
+        self._explain_loss = explain_loss
         self._memory = map_server_memory(channel.path, channel.size, _MAGIC, channel.token, "acting memory", _HINT)
         self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
@@ -52,7 +56,7 @@ class SharedActing:
         try:
             self._socket.sendall(_REQUEST.pack(kind, seed is not None, seed or 0))
         except OSError as error:
-            raise UnavailableError(f"the server's acting channel is gone: {error}") from None
+            raise self._lost(f"the server's acting channel is gone: {error}") from None
 
     def receive(self) -> "dict[int, str]":
         """Waits for the answer to the request sent; returns the simulator errors of ended episodes
@@ -75,11 +79,17 @@ class SharedActing:
             try:
                 more = self._socket.recv(size - len(data))
             except OSError as error:
-                raise UnavailableError(f"the server's acting channel failed: {error}") from None
+                raise self._lost(f"the server's acting channel failed: {error}") from None
             if not more:
-                raise UnavailableError("the server closed the acting channel (it stopped, or the session was closed)")
+                raise self._lost("the server closed the acting channel (it stopped, or the session was closed)")
             data += more
         return data
+
+    def _lost(self, message: str) -> Exception:
+        """The error for a channel that ended: the session's own (closed: NotFoundError), else
+        UnavailableError with `message`."""
+        reason = self._explain_loss() if self._explain_loss is not None else None
+        return reason if reason is not None else UnavailableError(message)
 
     def close(self) -> None:
         """Ends the channel; the server frees it when it sees the socket close."""

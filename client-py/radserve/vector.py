@@ -11,7 +11,7 @@ from gymnasium.vector.utils import batch_space
 from . import _convert
 from ._acting import SharedActing
 from ._proto import radserve_pb2 as pb
-from .errors import InvalidArgumentError, SharedMemoryError, from_rpc_error
+from .errors import InvalidArgumentError, RadServeError, SharedMemoryError, from_rpc_error
 
 DELIVERIES = ("grpc", "shared_memory", "auto")
 
@@ -57,7 +57,8 @@ class RemoteVectorEnv(VectorEnv):
             action_shape = () if info.action_space.shape == () else info.action_space.shape
             try:
                 self._shared = SharedActing(
-                    channel, self.num_envs, self.single_observation_space, self._action_dtype, action_shape
+                    channel, self.num_envs, self.single_observation_space, self._action_dtype, action_shape,
+                    explain_loss=self._session_error,
                 )
             except SharedMemoryError:
                 if delivery == "shared_memory":
@@ -67,6 +68,14 @@ class RemoteVectorEnv(VectorEnv):
             self._requests = queue.Queue()
             self._responses = client._stub.Act(iter(self._requests.get, None))
         self.closed = False
+
+    def _session_error(self) -> "Exception | None":
+        """What the server says of this session now (NotFoundError once it is closed), or None."""
+        try:
+            self._client._call("DescribeSession", pb.DescribeSessionRequest(session_id=self.session_id))
+        except RadServeError as error:
+            return error
+        return None
 
     def _act(self, request: "pb.ActRequest", kind: str):
         if self._requests is None:

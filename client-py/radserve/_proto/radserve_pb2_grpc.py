@@ -153,7 +153,8 @@ class RadServeServicer:
         """Same-host acting through shared memory: the reply names a memory region (actions in, step results
         out) and a Unix socket that carries only a small doorbell message per reset or step, so no
         observation and no protobuf travels per step. Protocol in SharedActingChannel. The channel lives
-        as long as the socket connection; one per session at a time.
+        as long as the socket connection and its session (closing the session closes the connection);
+        one per session at a time.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use radserve_replay::{BufferKind, ObservationFormat, ProducerPermit, ReplayBuffer, ReplayLayout};
 
 use serde::{Deserialize, Serialize};
-use tokio::sync::{Mutex, OnceCell};
+use tokio::sync::{watch, Mutex, OnceCell};
 use tracing::info;
 
 use crate::bounds;
@@ -139,6 +139,14 @@ pub struct Lease {
     /// Milliseconds after the manager's start.
     last_used_ms: AtomicU64,
     holds: AtomicUsize,
+    /// Turns true when the session is closed, for what holds the lease (streams, acting channels).
+    closed: watch::Sender<bool>,
+}
+
+impl Lease {
+    fn new(now_ms: u64) -> Lease {
+        Lease { last_used_ms: AtomicU64::new(now_ms), holds: AtomicUsize::new(0), closed: watch::Sender::new(false) }
+    }
 }
 
 /// A stream's hold on its session's lease: the session is not reaped while one exists.
@@ -146,6 +154,16 @@ pub struct Lease {
 pub struct LeaseHold {
     lease: Arc<Lease>,
     clock: Instant,
+}
+
+impl LeaseHold {
+    /// Resolves once the session is closed (by its client, its lease or shutdown): what holds it
+    /// should end and free what it has.
+    pub async fn session_closed(&self) {
+        let mut closed = self.lease.closed.subscribe();
+        // An error means the lease is gone, which only happens once the session is.
+        let _ = closed.wait_for(|closed| *closed).await;
+    }
 }
 
 impl Drop for LeaseHold {
@@ -346,7 +364,7 @@ impl SessionManager {
             if registry.closing {
                 true
             } else {
-                let lease = Lease { last_used_ms: AtomicU64::new(elapsed_ms(self.clock)), holds: AtomicUsize::new(0) };
+                let lease = Lease::new(elapsed_ms(self.clock));
                 let entry = Entry {
                     session: shared.clone(),
                     memory,
@@ -674,6 +692,7 @@ impl SessionManager {
 
     /// Closes a session already taken out of the registry; its memory returns with the entry.
     async fn close_entry(&self, session_id: &str, entry: Entry, reason: &str) {
+        entry.lease.closed.send_replace(true);
         let mut session = entry.session.lock().await;
         session.close().await;
         self.release(session.num_envs(), 1);

@@ -36,6 +36,10 @@ const HEADER_BYTES: usize = 64;
 const ARRAY_ALIGN: usize = 64;
 /// How long a client has to connect and present the token after ShareActing answered.
 pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long one connection has to present the token once connected.
+const TOKEN_TIMEOUT: Duration = Duration::from_secs(2);
+/// Connections that have not presented the token yet, at most, per channel.
+const MAX_PENDING: usize = 32;
 /// A request on the socket: kind, has-seed flag, 6 zero bytes, seed.
 const REQUEST_BYTES: usize = 16;
 
@@ -114,8 +118,8 @@ pub struct ActingChannel {
     token: [u8; 16],
     listener: UnixListener,
     _claim: ChannelClaim,
-    /// An open channel keeps its session's lease alive.
-    _lease: LeaseHold,
+    /// An open channel keeps its session's lease alive, and ends when the session is closed.
+    lease: LeaseHold,
     _memory: radserve_core::budget::Reservation,
 }
 
@@ -142,11 +146,13 @@ pub async fn open(
         ChannelClaim { open: open.clone(), session_id: session_id.to_string() }
     };
     let memory_reservation = manager
-        .reserve_memory(layout.len as u64, &format!("a shared-memory acting channel of {} bytes", layout.len))
-        ?;
+        .reserve_memory(layout.len as u64, &format!("a shared-memory acting channel of {} bytes", layout.len))?;
     let (memory, Header { token, .. }) = MemFile::create_with_header(c"radserve-acting", layout.len, ACTING_MAGIC)
         .map_err(|error| radserve_core::error::resource_error("creating the acting memory", &error))?;
-    let name = format!("radserve-acting-{}-{}", std::process::id(), hex(&token[..8]));
+    // A name that tells nothing about the server or the token (the abstract namespace is listed in
+    // /proc/net/unix for anyone on the host).
+    let name_bytes = radserve_shm::random_token().map_err(|error| ServiceError::Internal(format!("naming the acting socket: {error}")))?;
+    let name = format!("radserve-acting-{}", hex(&name_bytes));
     let listener =
         bind_abstract(&name).map_err(|error| ServiceError::Internal(format!("binding the acting socket: {error}")))?;
     let description = proto::SharedActingChannel {
@@ -165,7 +171,7 @@ pub async fn open(
     };
     let lease = manager.hold(session_id)?;
     let channel =
-        ActingChannel { manager, layout, memory, token, listener, _claim: claim, _lease: lease, _memory: memory_reservation };
+        ActingChannel { manager, layout, memory, token, listener, _claim: claim, lease, _memory: memory_reservation };
     Ok((description, channel))
 }
 
@@ -182,14 +188,23 @@ fn hex(bytes: &[u8]) -> String {
 
 impl ActingChannel {
     /// Waits for the client (the first connection that presents the token within `CONNECT_TIMEOUT`),
-    /// then answers its requests until it disconnects.
+    /// then answers its requests until it disconnects or the session is closed; then its memory,
+    /// socket and connection are freed.
     pub async fn serve(mut self, session_id: String) {
-        let Some(mut stream) = self.accept().await else {
+        let accepted = tokio::select! {
+            stream = self.accept() => stream,
+            () = self.lease.session_closed() => None,
+        };
+        let Some(mut stream) = accepted else {
             debug!(session = %session_id, "no client took the acting channel");
             return;
         };
         let mut request = [0u8; REQUEST_BYTES];
-        while stream.read_exact(&mut request).await.is_ok() {
+        loop {
+            tokio::select! {
+                read = stream.read_exact(&mut request) => if read.is_err() { break },
+                () = self.lease.session_closed() => break,
+            }
             let (code, body) = match self.handle(&session_id, &request).await {
                 Ok(errors) => (Code::Ok, errors),
                 Err(error) => {
@@ -208,16 +223,36 @@ impl ActingChannel {
         debug!(session = %session_id, "acting channel closed");
     }
 
+    /// The first connection that presents the token. Connections are read concurrently, so one that
+    /// connects first and stays silent does not hold up the rightful client; each has
+    /// `TOKEN_TIMEOUT` to present it, and at most `MAX_PENDING` wait at once (more are dropped).
     async fn accept(&self) -> Option<UnixStream> {
         let deadline = Instant::now() + CONNECT_TIMEOUT;
+        let mut pending = tokio::task::JoinSet::new();
         loop {
-            let (mut stream, _) = timeout_at(deadline, self.listener.accept()).await.ok()?.ok()?;
-            let mut token = [0u8; 16];
-            // A connection that does not present the token is dropped; the rightful client may follow.
-            if let Ok(Ok(_)) = timeout_at(deadline, stream.read_exact(&mut token)).await {
-                if token == self.token {
-                    return Some(stream);
+            tokio::select! {
+                accepted = self.listener.accept() => {
+                    let Ok((stream, _)) = accepted else { continue };
+                    if pending.len() >= MAX_PENDING {
+                        continue; // dropped: a flood of silent connections
+                    }
+                    let expected = self.token;
+                    pending.spawn(async move {
+                        let mut stream = stream;
+                        let mut token = [0u8; 16];
+                        let limit = Instant::now() + TOKEN_TIMEOUT;
+                        match timeout_at(limit, stream.read_exact(&mut token)).await {
+                            Ok(Ok(_)) if token == expected => Some(stream),
+                            _ => None,
+                        }
+                    });
                 }
+                Some(presented) = pending.join_next(), if !pending.is_empty() => {
+                    if let Ok(Some(stream)) = presented {
+                        return Some(stream); // the rest of `pending` is dropped, and their connections
+                    }
+                }
+                () = tokio::time::sleep_until(deadline) => return None,
             }
         }
     }
