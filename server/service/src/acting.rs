@@ -232,7 +232,11 @@ impl ActingChannel {
         loop {
             tokio::select! {
                 accepted = self.listener.accept() => {
-                    let Ok((stream, _)) = accepted else { continue };
+                    let Ok((stream, _)) = accepted else {
+                        // Out of descriptors, say: try again shortly instead of spinning.
+                        tokio::time::sleep(Duration::from_millis(10)).await;
+                        continue;
+                    };
                     if pending.len() >= MAX_PENDING {
                         continue; // dropped: a flood of silent connections
                     }
