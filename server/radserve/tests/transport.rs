@@ -104,3 +104,42 @@ async fn batches_stream_from_a_fake_sessions_replay() {
     let _ = server.stop.send(());
     server.task.await.unwrap().unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_ends_when_its_session_is_closed() {
+    let (server, _simulators) = start_fake_server(Limits::default(), 1).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let session = client.create_session(create(2, 100)).await.unwrap().into_inner();
+    let id = session.session_id.clone();
+    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None }).await.unwrap();
+    for _ in 0..5 {
+        client.step(proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(&[0, 0])) }).await.unwrap();
+    }
+    let request = proto::SampleBatchesRequest { session_id: id.clone(), batch_size: 4, ..Default::default() };
+    let mut chunks = client.sample_batches(request).await.unwrap().into_inner();
+    chunks.next().await.unwrap().unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id: id }).await.unwrap();
+    // The stream runs on until the close reaches it, then ends with the session's status: it must
+    // not keep the closed session's buffer alive.
+    let ended = tokio::time::timeout(std::time::Duration::from_secs(10), async {
+        loop {
+            match chunks.next().await {
+                Some(Ok(_)) => continue,
+                Some(Err(status)) => return Some(status),
+                None => return None,
+            }
+        }
+    })
+    .await
+    .expect("the stream outlived its session")
+    .expect("the stream ends with a status");
+    assert_eq!(ended.code(), Code::NotFound);
+    assert!(ended.message().contains("it was closed"), "{}", ended.message());
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+    while server.manager.memory().0 > 0 && std::time::Instant::now() < deadline {
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert_eq!(server.manager.memory().0, 0, "the stream's and the session's memory came back");
+    let _ = server.stop.send(());
+    server.task.await.unwrap().unwrap();
+}

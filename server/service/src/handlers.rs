@@ -2,7 +2,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use radserve_core::{SessionExtras, SessionManager};
+use radserve_core::{CoreError, SessionExtras, SessionManager};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
@@ -99,7 +99,12 @@ fn check_deadline(deadline: Option<Instant>, what: &str) -> ServiceResult<()> {
 /// Ends a stream with the shutdown status; a client that does not read within a second misses it
 /// (its stream then just ends: nothing it would read is lost).
 async fn end_with_shutdown<T>(sender: &mpsc::Sender<Result<T, Status>>) {
-    let _ = tokio::time::timeout(Duration::from_secs(1), sender.send(Err(ServiceError::StreamEnded.into()))).await;
+    end_with(sender, ServiceError::StreamEnded).await;
+}
+
+/// Ends a stream with `error`'s status, unless its client does not read within a second.
+async fn end_with<T>(sender: &mpsc::Sender<Result<T, Status>>, error: ServiceError) {
+    let _ = tokio::time::timeout(Duration::from_secs(1), sender.send(Err(error.into()))).await;
 }
 
 /// Sends `item` unless the server stops or the client leaves first; false when it was not sent.
@@ -329,55 +334,65 @@ impl RadServeService {
         let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            // The open stream keeps the session's lease alive and its memory reserved.
-            let _holds = holds;
-            let mut in_flight = InFlight::new(recycler);
-            loop {
-                in_flight.recycle();
-                // A client that leaves while the producer waits for data must still free it.
-                let batch = tokio::select! {
-                    batch = ready.recv() => batch,
-                    () = sender.closed() => {
-                        debug!(session = %session_id, "sample stream cancelled while waiting");
-                        return;
-                    }
-                    () = stopped(stopping.clone()) => {
-                        end_with_shutdown(&sender).await;
-                        return;
-                    }
-                };
-                let batch = match batch {
-                    None => break,
-                    Some(Ok(batch)) => batch,
-                    Some(Err(error)) => {
-                        let _ = sender.send(Err(ServiceError::from(error).into())).await;
-                        break;
-                    }
-                };
-                let (chunks, observation_buffers) = convert::batch_to_chunks(batch, &action_space, chunk_bytes);
-                in_flight.track(observation_buffers);
-                if repeat_first_batch {
-                    drop(ready);
-                    // The same chunks over and over (cloning Bytes, not data): the transport alone.
-                    for index in 0..max_batches.unwrap_or(u64::MAX) {
-                        for chunk in &chunks {
-                            let chunk = proto::BatchChunk { batch_index: index, ..chunk.clone() };
-                            if !send_or_stop(&sender, chunk, &stopping).await {
-                                return;
+            let (lease, _memory) = holds;
+            let stream = async {
+                let mut in_flight = InFlight::new(recycler);
+                loop {
+                    in_flight.recycle();
+                    // A client that leaves while the producer waits for data must still free it.
+                    let batch = tokio::select! {
+                        batch = ready.recv() => batch,
+                        () = sender.closed() => {
+                            debug!(session = %session_id, "sample stream cancelled while waiting");
+                            return;
+                        }
+                        () = stopped(stopping.clone()) => {
+                            end_with_shutdown(&sender).await;
+                            return;
+                        }
+                    };
+                    let batch = match batch {
+                        None => break,
+                        Some(Ok(batch)) => batch,
+                        Some(Err(error)) => {
+                            let _ = sender.send(Err(ServiceError::from(error).into())).await;
+                            break;
+                        }
+                    };
+                    let (chunks, observation_buffers) = convert::batch_to_chunks(batch, &action_space, chunk_bytes);
+                    in_flight.track(observation_buffers);
+                    if repeat_first_batch {
+                        drop(ready);
+                        // The same chunks over and over (cloning Bytes, not data): the transport alone.
+                        for index in 0..max_batches.unwrap_or(u64::MAX) {
+                            for chunk in &chunks {
+                                let chunk = proto::BatchChunk { batch_index: index, ..chunk.clone() };
+                                if !send_or_stop(&sender, chunk, &stopping).await {
+                                    return;
+                                }
                             }
                         }
-                    }
-                    return;
-                }
-                for chunk in chunks {
-                    // Not sent: the client left or the server stops; dropping `ready` stops the producer.
-                    if !send_or_stop(&sender, chunk, &stopping).await {
-                        debug!(session = %session_id, "sample stream ended before its batch was sent");
                         return;
                     }
+                    for chunk in chunks {
+                        // Not sent: the client left or the server stops; dropping `ready` stops the producer.
+                        if !send_or_stop(&sender, chunk, &stopping).await {
+                            debug!(session = %session_id, "sample stream ended before its batch was sent");
+                            return;
+                        }
+                    }
+                }
+                debug!(session = %session_id, "sample stream ended");
+            };
+            // A stream ends with its session: it would otherwise keep the session's buffer alive after
+            // the session's memory was returned to the budget.
+            tokio::select! {
+                () = stream => {}
+                () = lease.session_closed() => {
+                    debug!(session = %session_id, "sample stream ended: its session was closed");
+                    end_with(&sender, ServiceError::from(CoreError::UnknownSession(session_id.clone()))).await;
                 }
             }
-            debug!(session = %session_id, "sample stream ended");
         });
         Ok(Box::pin(ReceiverStream::new(receiver)))
     }
@@ -439,59 +454,70 @@ impl RadServeService {
         let session_id = start.session_id;
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            let _holds = holds;
-            // Slots of batches sent and not yet released; releasing one hands it back to the producer.
-            let mut held = HeldSlots::default();
-            loop {
-                tokio::select! {
-                    batch = ready.recv() => {
-                        let batch = match batch {
-                            None => break,
-                            Some(Ok(batch)) => batch,
-                            Some(Err(error)) => {
-                                let _ = sender.send(Err(ServiceError::from(error).into())).await;
-                                break;
+            let (lease, _memory) = holds;
+            let stream = async {
+                // Slots of batches sent and not yet released; releasing one hands it back to the producer.
+                let mut held = HeldSlots::default();
+                loop {
+                    tokio::select! {
+                        batch = ready.recv() => {
+                            let batch = match batch {
+                                None => break,
+                                Some(Ok(batch)) => batch,
+                                Some(Err(error)) => {
+                                    let _ = sender.send(Err(ServiceError::from(error).into())).await;
+                                    break;
+                                }
+                            };
+                            let index = batch.index;
+                            let (message, slot) = convert::shared_batch_to_proto(batch, &action_space);
+                            held.hold(index, slot);
+                            let response = proto::SharedSampleResponse { response: Some(Outbound::Batch(message)) };
+                            if !send_or_stop(&sender, response, &stopping).await {
+                                debug!(session = %session_id, "shared sample stream cancelled");
+                                return;
                             }
-                        };
-                        let index = batch.index;
-                        let (message, slot) = convert::shared_batch_to_proto(batch, &action_space);
-                        held.hold(index, slot);
-                        let response = proto::SharedSampleResponse { response: Some(Outbound::Batch(message)) };
-                        if !send_or_stop(&sender, response, &stopping).await {
+                        }
+                        message = inbound.message() => {
+                            let released = match message {
+                                Ok(Some(proto::SharedSampleRequest { request: Some(Inbound::Release(index)) })) => {
+                                    held.release(index).map_err(ServiceError::from)
+                                }
+                                Ok(Some(_)) => Err(ServiceError::BadRequest(
+                                    "after the first SharedSampleRequest, requests may only release batches".into(),
+                                )),
+                                // The client closed its side or left: dropping `ready` stops the producer.
+                                Ok(None) | Err(_) => {
+                                    debug!(session = %session_id, "shared sample stream closed by the client");
+                                    return;
+                                }
+                            };
+                            if let Err(error) = released {
+                                let _ = sender.send(Err(error.into())).await;
+                                return;
+                            }
+                        }
+                        () = sender.closed() => {
                             debug!(session = %session_id, "shared sample stream cancelled");
                             return;
                         }
-                    }
-                    message = inbound.message() => {
-                        let released = match message {
-                            Ok(Some(proto::SharedSampleRequest { request: Some(Inbound::Release(index)) })) => {
-                                held.release(index).map_err(ServiceError::from)
-                            }
-                            Ok(Some(_)) => Err(ServiceError::BadRequest(
-                                "after the first SharedSampleRequest, requests may only release batches".into(),
-                            )),
-                            // The client closed its side or left: dropping `ready` stops the producer.
-                            Ok(None) | Err(_) => {
-                                debug!(session = %session_id, "shared sample stream closed by the client");
-                                return;
-                            }
-                        };
-                        if let Err(error) = released {
-                            let _ = sender.send(Err(error.into())).await;
+                        () = stopped(stopping.clone()) => {
+                            end_with_shutdown(&sender).await;
                             return;
                         }
                     }
-                    () = sender.closed() => {
-                        debug!(session = %session_id, "shared sample stream cancelled");
-                        return;
-                    }
-                    () = stopped(stopping.clone()) => {
-                        end_with_shutdown(&sender).await;
-                        return;
-                    }
+                }
+                debug!(session = %session_id, "shared sample stream ended");
+            };
+            // A stream ends with its session: it would otherwise keep the session's buffer alive after
+            // the session's memory was returned to the budget.
+            tokio::select! {
+                () = stream => {}
+                () = lease.session_closed() => {
+                    debug!(session = %session_id, "shared sample stream ended: its session was closed");
+                    end_with(&sender, ServiceError::from(CoreError::UnknownSession(session_id.clone()))).await;
                 }
             }
-            debug!(session = %session_id, "shared sample stream ended");
         });
         Ok(Box::pin(ReceiverStream::new(receiver)))
     }
