@@ -172,6 +172,7 @@ async fn run(command: Command) -> anyhow::Result<()> {
             // The one line on stdout: launchers (the Python client's, the tests') read the port here.
             println!("radserve listening on {bound}");
             let (manager, workers) = radserve::session_manager(settings);
+            let pool = workers.clone();
             let (first_signal, signalled) = tokio::sync::oneshot::channel::<()>();
             tokio::spawn(async move {
                 shutdown_signal().await;
@@ -182,10 +183,16 @@ async fn run(command: Command) -> anyhow::Result<()> {
                 workers.kill_all();
                 std::process::exit(130);
             });
-            radserve::serve(listener, manager, config.serve_options(), async {
+            let served = radserve::serve(listener, manager, config.serve_options(), async {
                 let _ = signalled.await;
             })
-            .await
+            .await;
+            // Exit with no worker left: each is ended and reaped before the process goes (one stuck in
+            // a call is not waited for: killed).
+            if tokio::time::timeout(std::time::Duration::from_secs(2), pool.stop()).await.is_err() {
+                pool.kill_all();
+            }
+            served
         }
         Command::Envs { prefix, config } => {
             let mut config = Config::load(config.as_deref())?;

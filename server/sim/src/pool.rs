@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::process::{Child, ChildStdin, ChildStdout, Command};
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::{mpsc, oneshot, watch};
 use tracing::{info, warn};
 
 use crate::protocol::{self, Request, Response};
@@ -230,20 +230,43 @@ pub struct WorkerPool {
     workers: Vec<WorkerHandle>,
     launcher: WorkerLauncher,
     transient: TransientPids,
+    /// Tells the actors to end their processes and return (`stop`).
+    stopping: watch::Sender<bool>,
+    actors: std::sync::Mutex<Vec<tokio::task::JoinHandle<()>>>,
 }
 
 impl WorkerPool {
     /// Starts `count` workers (at least one) in the background; requests wait for their start.
     pub fn start(launcher: WorkerLauncher, count: usize) -> WorkerPool {
+        let stopping = watch::Sender::new(false);
+        let mut actors = Vec::new();
         let workers = (0..count.max(1))
             .map(|index| {
                 let (jobs, receiver) = mpsc::channel(256);
                 let state = Arc::new(WorkerState::default());
-                tokio::spawn(run_actor(index, launcher.clone(), receiver, state.clone()));
+                actors.push(tokio::spawn(run_actor(index, launcher.clone(), receiver, state.clone(), stopping.subscribe())));
                 WorkerHandle { index, jobs, state }
             })
             .collect();
-        WorkerPool { workers, launcher, transient: TransientPids::default() }
+        WorkerPool { workers, launcher, transient: TransientPids::default(), stopping, actors: std::sync::Mutex::new(actors) }
+    }
+
+    /// Ends every worker process and waits until each has exited (and is reaped), so that the
+    /// server exits with no worker left. Requests still queued are answered UNAVAILABLE.
+    pub async fn stop(&self) {
+        self.stopping.send_replace(true);
+        // A transient worker (the catalog's, a few seconds after start-up) is killed where it
+        // stands: nothing it computes is needed any more.
+        let transient = self.transient_pids();
+        transient.iter().copied().for_each(kill);
+        let actors = std::mem::take(&mut *self.actors.lock().expect("actor list lock"));
+        for actor in actors {
+            let _ = actor.await;
+        }
+        let deadline = std::time::Instant::now() + Duration::from_secs(1);
+        while transient.iter().any(|&pid| alive(pid)) && std::time::Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -265,14 +288,13 @@ impl WorkerPool {
 
     /// Kills every worker process now (SIGKILL), for an exit that cannot wait for them.
     pub fn kill_all(&self) {
-        let transient: Vec<u32> = self.transient.lock().expect("transient pid lock").iter().copied().collect();
-        for pid in self.workers.iter().map(WorkerHandle::pid).chain(transient) {
-            if pid > 0 {
-                // SAFETY: kill only reads its integer arguments; the pid is this pool's child (a
-                // process that already exited and was reaped makes it fail with ESRCH).
-                unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
-            }
+        for pid in self.workers.iter().map(WorkerHandle::pid).chain(self.transient_pids()) {
+            kill(pid);
         }
+    }
+
+    fn transient_pids(&self) -> Vec<u32> {
+        self.transient.lock().expect("transient pid lock").iter().copied().collect()
     }
 
     /// The `count` workers hosting the fewest environments, least loaded first.
@@ -302,13 +324,42 @@ impl WorkerPool {
     }
 }
 
-async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Receiver<Job>, state: Arc<WorkerState>) {
+/// SIGKILL to a worker of this pool (0: none started).
+fn kill(pid: u32) {
+    if pid > 0 {
+        // SAFETY: kill only reads its integer arguments; the pid is this pool's child (a process
+        // that already exited and was reaped makes it fail with ESRCH).
+        unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+    }
+}
+
+/// Whether process `pid` still runs (an exited one is gone or a zombie until reaped).
+fn alive(pid: u32) -> bool {
+    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else { return false };
+    let state = stat.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().next());
+    !matches!(state, None | Some("Z" | "X"))
+}
+
+async fn run_actor(
+    index: usize,
+    launcher: WorkerLauncher,
+    mut jobs: mpsc::Receiver<Job>,
+    state: Arc<WorkerState>,
+    mut stopping: watch::Receiver<bool>,
+) {
     // The requests that built each hosted group, sent again to a replacement process.
     let mut rebuilds: BTreeMap<u64, Vec<Request>> = BTreeMap::new();
     let mut process = start(index, &launcher, &state, &rebuilds).await.ok();
     // Why the current process replaced the previous one, for sessions that learn of it later.
     let mut last_restart = String::new();
-    while let Some(job) = jobs.recv().await {
+    loop {
+        let job = tokio::select! {
+            job = jobs.recv() => match job {
+                Some(job) => job,
+                None => break,
+            },
+            _ = stopping.wait_for(|stop| *stop) => break,
+        };
         let generation = state.restarts.load(Ordering::Acquire);
         if job.generation.is_some_and(|expected| expected != generation) {
             let fault = format!(
@@ -357,6 +408,10 @@ async fn run_actor(index: usize, launcher: WorkerLauncher, mut jobs: mpsc::Recei
                 let _ = job.reply.send(Err(WorkerFault::Crashed(fault)));
             }
         }
+    }
+    if let Some(process) = process {
+        let status = process.reap().await;
+        info!(worker = index, %status, "worker stopped");
     }
 }
 
