@@ -3,6 +3,9 @@ same as gymnasium's own env given the same seed and actions."""
 
 import gymnasium
 import numpy as np
+import pytest
+
+import radserve
 
 
 def test_a_seeded_reset_is_continued_by_the_autoresets_after_it(client):
@@ -25,3 +28,19 @@ def test_a_seeded_reset_is_continued_by_the_autoresets_after_it(client):
     finally:
         envs.close()
         reference.close()
+
+
+def test_seeds_as_gymnasium_passes_them(client):
+    envs = client.make_vec("gym/CartPole-v1", num_envs=3, seed=0)
+    try:
+        by_int, _ = envs.reset(seed=5)
+        by_list, _ = envs.reset(seed=[5, 6, 7])
+        by_numpy, _ = envs.reset(seed=np.int64(5))
+        np.testing.assert_array_equal(by_int, by_list)
+        np.testing.assert_array_equal(by_int, by_numpy)
+        envs.reset(seed=[None, None, None])
+        for bad in (-1, [1, 7, 2], [5, 6], 2.5, "5", True):
+            with pytest.raises(radserve.InvalidArgumentError):
+                envs.reset(seed=bad)
+    finally:
+        envs.close()

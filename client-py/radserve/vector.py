@@ -87,18 +87,43 @@ class RemoteVectorEnv(VectorEnv):
         except grpc.RpcError as error:
             raise from_rpc_error(error) from None
 
-    def reset(self, *, seed: "int | None" = None, options: "dict[str, Any] | None" = None):
-        """Resets every environment; with `seed`, environment i is re-seeded with `seed + i`."""
+    def reset(self, *, seed: "int | list[int | None] | None" = None, options: "dict[str, Any] | None" = None):
+        """Resets every environment; with `seed`, environment i is re-seeded with `seed + i`.
+
+        As in gymnasium, `seed` may also be a list of one seed per env; radserve seeds env i with
+        s + i, so the list must be [s, s + 1, ..., s + n - 1] (or all None: no reseeding)."""
         self._check_idle("reset")
+        seed = self._session_seed(seed)
         if self._shared is not None:
-            if seed is not None and not 0 <= seed < 1 << 64:
-                raise InvalidArgumentError(f"seed must be a non-negative 64-bit integer, got {seed}")
             self._shared.send(b"R", seed)
             self._shared.receive()
             return self._shared.obs.copy(), {}
         request = pb.ResetRequest(session_id=self.session_id, seed=seed)
         response = self._act(pb.ActRequest(reset=request), "reset")
         return _convert.to_numpy(response.obs), {}
+
+    def _session_seed(self, seed) -> "int | None":
+        """The session seed that `seed` (an int, None, or one per env) stands for, checked."""
+        if seed is None:
+            return None
+        if isinstance(seed, (list, tuple, np.ndarray)):
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise InvalidArgumentError(f"reset got {len(seeds)} seeds for {self.num_envs} envs")
+            if all(entry is None for entry in seeds):
+                return None
+            first = seeds[0]
+            if not all(isinstance(entry, (int, np.integer)) for entry in seeds) \
+                    or any(int(entry) != int(first) + i for i, entry in enumerate(seeds)):
+                raise InvalidArgumentError(
+                    f"radserve seeds env i with seed + i: a list of seeds must be [s, s + 1, ..., s + "
+                    f"{self.num_envs - 1}] (or all None), got {seeds}")
+            seed = first
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+            raise InvalidArgumentError(f"seed must be an int, a list of ints or None, got {seed!r}")
+        if not 0 <= int(seed) < 1 << 64:
+            raise InvalidArgumentError(f"seed must be a non-negative integer, got {seed}")
+        return int(seed)
 
     def step(self, actions):
         self._check_idle("step")
