@@ -159,10 +159,14 @@ pub struct LeaseHold {
 impl LeaseHold {
     /// Resolves once the session is closed (by its client, its lease or shutdown): what holds it
     /// should end and free what it has.
-    pub async fn session_closed(&self) {
+    /// The future owns its subscription: a long-lived holder makes it once and polls it again and
+    /// again (an acting channel, between requests).
+    pub fn session_closed(&self) -> impl std::future::Future<Output = ()> + Send + 'static {
         let mut closed = self.lease.closed.subscribe();
-        // An error means the lease is gone, which only happens once the session is.
-        let _ = closed.wait_for(|closed| *closed).await;
+        async move {
+            // An error means the lease is gone, which only happens once the session is.
+            let _ = closed.wait_for(|closed| *closed).await;
+        }
     }
 }
 

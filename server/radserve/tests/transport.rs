@@ -29,6 +29,16 @@ fn create(num_envs: u32, capacity: u64) -> proto::CreateSessionRequest {
     }
 }
 
+/// A fake session of 2 envs with a replay buffer, reset and stepped `steps` times with `actions`.
+async fn session_with_transitions(client: &mut RadServeClient<tonic::transport::Channel>, steps: usize, actions: [i64; 2]) -> String {
+    let id = client.create_session(create(2, 100)).await.unwrap().into_inner().session_id;
+    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None }).await.unwrap();
+    for _ in 0..steps {
+        client.step(proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(&actions)) }).await.unwrap();
+    }
+    id
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn core_failures_reach_the_client_with_their_codes() {
     let (server, simulators) = start_fake_server(Limits { max_sessions: 2, ..Limits::default() }, 2).await;
@@ -78,13 +88,7 @@ async fn core_failures_reach_the_client_with_their_codes() {
 async fn batches_stream_from_a_fake_sessions_replay() {
     let (server, _simulators) = start_fake_server(Limits::default(), 1).await;
     let mut client = RadServeClient::new(connect(&server.address).await);
-    let session = client.create_session(create(2, 100)).await.unwrap().into_inner();
-    let id = session.session_id.clone();
-    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None }).await.unwrap();
-    for _ in 0..10 {
-        let request = proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(&[1, 2])) };
-        client.step(request).await.unwrap();
-    }
+    let id = session_with_transitions(&mut client, 10, [1, 2]).await;
     let request = proto::SampleBatchesRequest { session_id: id.clone(), batch_size: 8, max_batches: Some(3), ..Default::default() };
     let mut chunks = client.sample_batches(request).await.unwrap().into_inner();
     let mut batches = std::collections::BTreeMap::<u64, Vec<proto::BatchChunk>>::new();
@@ -109,12 +113,7 @@ async fn batches_stream_from_a_fake_sessions_replay() {
 async fn a_stream_ends_when_its_session_is_closed() {
     let (server, _simulators) = start_fake_server(Limits::default(), 1).await;
     let mut client = RadServeClient::new(connect(&server.address).await);
-    let session = client.create_session(create(2, 100)).await.unwrap().into_inner();
-    let id = session.session_id.clone();
-    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None }).await.unwrap();
-    for _ in 0..5 {
-        client.step(proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(&[0, 0])) }).await.unwrap();
-    }
+    let id = session_with_transitions(&mut client, 5, [0, 0]).await;
     let request = proto::SampleBatchesRequest { session_id: id.clone(), batch_size: 4, ..Default::default() };
     let mut chunks = client.sample_batches(request).await.unwrap().into_inner();
     chunks.next().await.unwrap().unwrap();

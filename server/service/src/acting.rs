@@ -191,9 +191,11 @@ impl ActingChannel {
     /// then answers its requests until it disconnects or the session is closed; then its memory,
     /// socket and connection are freed.
     pub async fn serve(mut self, session_id: String) {
+        let closed = self.lease.session_closed();
+        tokio::pin!(closed);
         let accepted = tokio::select! {
             stream = self.accept() => stream,
-            () = self.lease.session_closed() => None,
+            () = &mut closed => None,
         };
         let Some(mut stream) = accepted else {
             debug!(session = %session_id, "no client took the acting channel");
@@ -203,7 +205,7 @@ impl ActingChannel {
         loop {
             tokio::select! {
                 read = stream.read_exact(&mut request) => if read.is_err() { break },
-                () = self.lease.session_closed() => break,
+                () = &mut closed => break,
             }
             let (code, body) = match self.handle(&session_id, &request).await {
                 Ok(errors) => (Code::Ok, errors),

@@ -9,7 +9,7 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 use tracing::debug;
 
-use radserve_replay::{HeldSlots, InFlight, Output, Producer, SharedRing};
+use radserve_replay::{Batch, HeldSlots, InFlight, Output, Producer, SharedRing};
 
 use crate::acting::{self, OpenChannels};
 use crate::convert::{self, observation_tensor};
@@ -100,6 +100,37 @@ fn check_deadline(deadline: Option<Instant>, what: &str) -> ServiceResult<()> {
 /// (its stream then just ends: nothing it would read is lost).
 async fn end_with_shutdown<T>(sender: &mpsc::Sender<Result<T, Status>>) {
     end_with(sender, ServiceError::StreamEnded).await;
+}
+
+/// A batch the producer made, or None when the stream is over: the producer finished, or failed
+/// (the client then gets its error's status).
+async fn batch_or_end<T>(batch: Option<radserve_replay::Result<Batch>>, sender: &mpsc::Sender<Result<T, Status>>) -> Option<Batch> {
+    match batch? {
+        Ok(batch) => Some(batch),
+        Err(error) => {
+            let _ = sender.send(Err(ServiceError::from(error).into())).await;
+            None
+        }
+    }
+}
+
+/// Runs a sample stream until it ends or its session is closed, then lets go of what it holds (the
+/// session's lease and the stream's memory). A stream ends with its session: it would otherwise
+/// keep the session's buffer alive after the session's memory was returned to the budget.
+async fn until_session_closed<T>(
+    stream: impl std::future::Future<Output = ()>,
+    holds: StreamHolds,
+    sender: &mpsc::Sender<Result<T, Status>>,
+    session_id: &str,
+) {
+    let (lease, _memory) = holds;
+    tokio::select! {
+        () = stream => {}
+        () = lease.session_closed() => {
+            debug!(session = %session_id, "sample stream ended: its session was closed");
+            end_with(sender, ServiceError::from(CoreError::UnknownSession(session_id.to_string()))).await;
+        }
+    }
 }
 
 /// Ends a stream with `error`'s status, unless its client does not read within a second.
@@ -311,8 +342,11 @@ impl RadServe for RadServeService {
 struct StreamStart {
     producer: Producer,
     action_space: radserve_core::Space,
-    holds: (radserve_core::LeaseHold, radserve_core::budget::Reservation),
+    holds: StreamHolds,
 }
+
+/// What a running stream holds: its session's lease and the memory its batches take.
+type StreamHolds = (radserve_core::LeaseHold, radserve_core::budget::Reservation);
 
 impl RadServeService {
     /// Everything a sample stream needs is checked here, before it starts.
@@ -334,7 +368,6 @@ impl RadServeService {
         let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            let (lease, _memory) = holds;
             let stream = async {
                 let mut in_flight = InFlight::new(recycler);
                 loop {
@@ -351,14 +384,7 @@ impl RadServeService {
                             return;
                         }
                     };
-                    let batch = match batch {
-                        None => break,
-                        Some(Ok(batch)) => batch,
-                        Some(Err(error)) => {
-                            let _ = sender.send(Err(ServiceError::from(error).into())).await;
-                            break;
-                        }
-                    };
+                    let Some(batch) = batch_or_end(batch, &sender).await else { break };
                     let (chunks, observation_buffers) = convert::batch_to_chunks(batch, &action_space, chunk_bytes);
                     in_flight.track(observation_buffers);
                     if repeat_first_batch {
@@ -384,15 +410,7 @@ impl RadServeService {
                 }
                 debug!(session = %session_id, "sample stream ended");
             };
-            // A stream ends with its session: it would otherwise keep the session's buffer alive after
-            // the session's memory was returned to the budget.
-            tokio::select! {
-                () = stream => {}
-                () = lease.session_closed() => {
-                    debug!(session = %session_id, "sample stream ended: its session was closed");
-                    end_with(&sender, ServiceError::from(CoreError::UnknownSession(session_id.clone()))).await;
-                }
-            }
+            until_session_closed(stream, holds, &sender, &session_id).await;
         });
         Ok(Box::pin(ReceiverStream::new(receiver)))
     }
@@ -454,21 +472,13 @@ impl RadServeService {
         let session_id = start.session_id;
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            let (lease, _memory) = holds;
             let stream = async {
                 // Slots of batches sent and not yet released; releasing one hands it back to the producer.
                 let mut held = HeldSlots::default();
                 loop {
                     tokio::select! {
                         batch = ready.recv() => {
-                            let batch = match batch {
-                                None => break,
-                                Some(Ok(batch)) => batch,
-                                Some(Err(error)) => {
-                                    let _ = sender.send(Err(ServiceError::from(error).into())).await;
-                                    break;
-                                }
-                            };
+                            let Some(batch) = batch_or_end(batch, &sender).await else { break };
                             let index = batch.index;
                             let (message, slot) = convert::shared_batch_to_proto(batch, &action_space);
                             held.hold(index, slot);
@@ -509,15 +519,7 @@ impl RadServeService {
                 }
                 debug!(session = %session_id, "shared sample stream ended");
             };
-            // A stream ends with its session: it would otherwise keep the session's buffer alive after
-            // the session's memory was returned to the budget.
-            tokio::select! {
-                () = stream => {}
-                () = lease.session_closed() => {
-                    debug!(session = %session_id, "shared sample stream ended: its session was closed");
-                    end_with(&sender, ServiceError::from(CoreError::UnknownSession(session_id.clone()))).await;
-                }
-            }
+            until_session_closed(stream, holds, &sender, &session_id).await;
         });
         Ok(Box::pin(ReceiverStream::new(receiver)))
     }
