@@ -1,6 +1,8 @@
 """Replay buffers and augmented minibatch streams, end to end: act with random actions through the
 real server, then check every sampled transition against what the acting client saw."""
 
+import itertools
+import os
 import re
 import time
 
@@ -394,10 +396,10 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
     # A learner that cannot map the memory (another host, another user) gets a clear error, and
     # "auto" falls back to the byte stream.
     def unreachable(region):
-        raise radserve.SharedMemoryError(f"cannot open the server's batch memory {region.path}: no such file")
+        raise radserve.SharedMemoryError(f"cannot receive the server's batch memory over {region.socket!r}")
 
     monkeypatch.setattr(radserve.batches, "_map_region", unreachable)
-    with pytest.raises(radserve.SharedMemoryError, match="cannot open"):
+    with pytest.raises(radserve.SharedMemoryError, match="cannot receive"):
         client.sample_batches(envs.session_id, 8, delivery="shared_memory")
     with client.sample_batches(envs.session_id, 8, delivery="auto", max_batches=1) as stream:
         assert isinstance(stream, radserve.BatchStream)
@@ -405,20 +407,44 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
     wait_for_streams(client, envs.session_id, 0)
 
 
+_HANDOVERS = itertools.count()
+
+
+def _hand_over(fd: int) -> str:
+    """A socket that hands `fd` to the first client that sends 16 bytes, as the server does."""
+    import socket
+    import threading
+
+    name = f"radserve-test-{os.getpid()}-{next(_HANDOVERS)}"
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind("\0" + name)
+    listener.listen(1)
+
+    def serve():
+        connection, _ = listener.accept()
+        connection.recv(16, socket.MSG_WAITALL)
+        socket.send_fds(connection, [b"\x01"], [fd])
+        connection.close()
+        listener.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    return name
+
+
 def test_shared_memory_token_is_checked():
-    """Memory that is not the stream's (a descriptor of another process) is refused, not read."""
+    """Memory that is not the stream's (a descriptor of something else) is refused, not read."""
     import mmap
-    import os
 
     fd = os.memfd_create("not-radserve")
     os.ftruncate(fd, 8192)
     try:
-        region = radserve.batches.pb.SharedMemoryRegion(path=f"/proc/{os.getpid()}/fd/{fd}", size=8192,
-                                                        token=b"\x01" * 16, slots=1, slot_bytes=4096)
+        region = radserve.batches.pb.SharedMemoryRegion(socket=_hand_over(fd), size=8192, token=b"\x01" * 16,
+                                                        slots=1, slot_bytes=4096)
         with pytest.raises(radserve.SharedMemoryError, match="not the batch memory the server described"):
             radserve.batches._map_region(region)
         with mmap.mmap(fd, 8192) as memory:
             memory[:32] = b"radserve-batches" + b"\x01" * 16
+        region.socket = _hand_over(fd)
         assert radserve.batches._map_region(region)[:16] == b"radserve-batches"
     finally:
         os.close(fd)

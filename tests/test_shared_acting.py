@@ -2,10 +2,13 @@
 errors, and a server that keeps serving whatever a client does with the channel. The env contract
 itself also runs through shared memory (test_conformance.py, the *SharedMemory classes)."""
 
+import mmap
 import os
 import signal
 import socket
 import struct
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -138,12 +141,17 @@ def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client
         stranger = _connect(channel, b"x" * 16)
         assert stranger.recv(1) == b""
         sock = _connect(channel, channel.token)
+        # The server hands over the memory itself: one byte and its descriptor, nothing by name.
+        handed, fds, _, _ = socket.recv_fds(sock, 1, 1)
+        assert handed == b"\x01" and len(fds) == 1
+        memory = mmap.mmap(fds[0], channel.size)
+        os.close(fds[0])
+        assert memory[:16] == b"radserve-acting\0" and memory[16:32] == channel.token
         assert _ask(sock, REQUEST.pack(b"X", 0, 0))[0] == INVALID_ARGUMENT
         code, message = _ask(sock, REQUEST.pack(b"R", 7, 0))
         assert code == INVALID_ARGUMENT and "0 or 1" in message
         assert _ask(sock, REQUEST.pack(b"R", 0, 0)) == (0, "")
         # The memory holds the reset's observations, as the gRPC reset would return them.
-        memory = _acting.map_server_memory(channel.path, channel.size, b"radserve-acting\0", channel.token, "m", "")
         obs = np.ndarray((2, 4), np.float32, buffer=memory, offset=channel.obs_offset).copy()
         assert np.all(np.abs(obs) <= 0.05)  # CartPole starts near the origin
         actions = np.ndarray((2,), np.int64, buffer=memory, offset=channel.actions_offset)
@@ -184,7 +192,7 @@ def test_auto_falls_back_to_grpc_where_memory_cannot_be_mapped(client, monkeypat
     def unmappable(*args, **kwargs):
         raise radserve.SharedMemoryError("cannot open the server's acting memory (simulated)")
 
-    monkeypatch.setattr(_acting, "map_server_memory", unmappable)
+    monkeypatch.setattr(_acting, "receive_server_memory", unmappable)
     envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="auto")
     try:
         assert envs.delivery == "grpc"
@@ -200,3 +208,68 @@ def test_auto_falls_back_to_grpc_where_memory_cannot_be_mapped(client, monkeypat
     envs.close()
     with pytest.raises(ValueError, match="delivery"):
         client.make_vec("gym/CartPole-v1", num_envs=1, delivery="carrier pigeon")
+
+
+# A process of the server's own user, without the capabilities root has (CAP_SYS_PTRACE opens any
+# /proc/<pid>/fd): lists and opens every descriptor of the given processes, prints how many it mapped.
+_PROC_PROBE = """
+import mmap, os, sys
+mapped = 0
+for pid in sys.argv[1:]:
+    try:
+        names = os.listdir(f"/proc/{pid}/fd")
+    except PermissionError:
+        continue
+    for name in names:
+        path = f"/proc/{pid}/fd/{name}"
+        try:
+            if "memfd:" not in os.readlink(path):
+                continue
+            fd = os.open(path, os.O_RDWR)
+        except OSError:
+            continue
+        mmap.mmap(fd, 0).close()
+        mapped += 1
+print(mapped)
+"""
+
+
+def _without_capabilities(command: "list[str]") -> "list[str]":
+    """`command` as the same user without root's capabilities (as root, CAP_SYS_PTRACE opens every
+    /proc/<pid>/fd, whatever the process did): setpriv execs it, so its pid stays the same."""
+    if os.geteuid() != 0:
+        return command
+    return ["setpriv", "--inh-caps=-all", "--ambient-caps=-all", "--bounding-set=-all", "--", *command]
+
+
+def test_other_processes_of_the_same_user_cannot_map_the_memory_by_proc():
+    """The old way in (`/proc/<server pid>/fd/N`, and the workers' frames the same way) is closed: the
+    server and its workers are non-dumpable, so only the client the memory was handed to maps it."""
+    server = radserve.LocalServer(workers=1)
+    server.args = _without_capabilities(server.args)
+    # A control: a process of the same kind that did not protect itself, holding a memfd.
+    holder = subprocess.Popen(_without_capabilities([sys.executable, "-c", (
+        "import os, time; fd = os.memfd_create('control'); os.ftruncate(fd, 4096); print('ready', flush=True); "
+        "time.sleep(120)")]), stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "ready"
+        with server, radserve.Client(server.address) as client:
+            envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="shared_memory")
+            envs.reset()
+            pids = [server.process.pid, *worker_pids(server.process.pid)]
+            assert len(pids) >= 2
+
+            def probe(*targets) -> int:
+                result = subprocess.run(_without_capabilities([sys.executable, "-c", _PROC_PROBE, *map(str, targets)]),
+                                        capture_output=True, text=True, timeout=60)
+                assert result.returncode == 0, result.stderr
+                return int(result.stdout)
+
+            assert probe(holder.pid) == 1, "the probe maps the memfd of a process that did not protect itself"
+            assert probe(*pids) == 0, "another process mapped radserve's memory through /proc"
+            # The rightful client still acts through the memory it was handed.
+            assert envs.step(np.zeros(1, np.int64))[0].shape == (1, 4)
+            envs.close()
+    finally:
+        holder.kill()
+        holder.wait()

@@ -10,17 +10,21 @@ from .errors import (
     InternalError,
     InvalidArgumentError,
     NotFoundError,
+    PermissionDeniedError,
     RadServeError,
     ResourceExhaustedError,
     SharedMemoryError,
+    UnauthenticatedError,
     UnavailableError,
 )
+from ._security import TlsConfig
 from .server import LocalServer
 from .vector import RemoteVectorEnv
 
 __all__ = [
     "Client", "EnvInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "SharedBatchStream", "RemoteVectorEnv",
-    "LocalServer",
+    "LocalServer", "TlsConfig",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",
+    "UnauthenticatedError", "PermissionDeniedError",
 ]

@@ -8,15 +8,15 @@ import struct
 import numpy as np
 
 from ._proto import radserve_pb2 as pb
-from ._shm import map_server_memory
-from .errors import SharedMemoryError, UnavailableError, from_status
+from ._shm import receive_server_memory
+from .errors import UnavailableError, from_status
 
 _MAGIC = b"radserve-acting\0"
 _REQUEST = struct.Struct("<cB6xQ")
 _ANSWER = struct.Struct("<II")
 _ERROR = struct.Struct("<II")
-_HINT = ("shared-memory acting needs the client on the server's host, in its pid and network namespaces, as "
-         "the same user; use delivery='grpc' otherwise")
+_HINT = ("shared-memory acting needs the client on the server's host, in its network namespace, as a user the "
+         "server allows; use delivery='grpc' otherwise")
 
 
 class SharedActing:
@@ -27,15 +27,9 @@ class SharedActing:
         # When the channel ends under a call (the server closes it with its session), this says why:
         # the error the server gives for the session over gRPC, or None.
         self._explain_loss = explain_loss
-        self._memory = map_server_memory(channel.path, channel.size, _MAGIC, channel.token, "acting memory", _HINT)
-        self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            self._socket.connect("\0" + channel.socket)
-            self._socket.sendall(channel.token)
-        except OSError as error:
-            self.close()
-            raise SharedMemoryError(f"cannot reach the server's acting socket {channel.socket!r}: {error}; {_HINT}") \
-                from None
+        # The same connection carries the memory's descriptor, then the doorbells.
+        self._memory, self._socket = receive_server_memory(
+            channel.socket, channel.token, channel.size, _MAGIC, "acting memory", _HINT)
         n = num_envs
         obs_dtype = np.dtype(obs_space.dtype)
 

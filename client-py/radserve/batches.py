@@ -22,7 +22,7 @@ import numpy as np
 
 from ._convert import _NUMPY_DTYPES
 from ._proto import radserve_pb2 as pb
-from ._shm import map_server_memory
+from ._shm import receive_server_memory
 from .errors import SharedMemoryError, from_rpc_error
 
 FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index", "t")
@@ -175,9 +175,12 @@ _END_OF_REQUESTS = None
 
 def _map_region(region: "pb.SharedMemoryRegion") -> mmap.mmap:
     """Map the server's batch memory and check that it is the memory the server described."""
-    hint = ("shared-memory batches need the learner on the server's host, in its pid namespace, as the "
-            "same user; use delivery='grpc' otherwise")
-    return map_server_memory(region.path, region.size, _SHARED_MAGIC, region.token, "batch memory", hint)
+    hint = ("shared-memory batches need the learner on the server's host, in its network namespace, as a user "
+            "the server allows; use delivery='grpc' otherwise")
+    memory, connection = receive_server_memory(
+        region.socket, region.token, region.size, _SHARED_MAGIC, "batch memory", hint)
+    connection.close()
+    return memory
 
 
 class SharedBatchStream:

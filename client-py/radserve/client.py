@@ -9,6 +9,7 @@ import grpc
 from gymnasium import spaces
 
 from . import _convert
+from ._security import TlsConfig, open_channel
 from ._proto import radserve_pb2 as pb
 from ._proto import radserve_pb2_grpc as pb_grpc
 from .errors import SharedMemoryError, from_rpc_error
@@ -82,6 +83,8 @@ class SessionSummary:
     env_id: str
     num_envs: int
     memory_bytes: int
+    # The principal that created it ("local" on a server without authentication).
+    owner: str
     idle_seconds: float
     open_streams: int
     age_seconds: float
@@ -94,6 +97,7 @@ class SessionSummary:
             env_id=message.env_id,
             num_envs=message.num_envs,
             memory_bytes=message.memory_bytes,
+            owner=message.owner,
             idle_seconds=message.idle_seconds,
             open_streams=message.open_streams,
             age_seconds=message.age_seconds,
@@ -116,11 +120,20 @@ class Client:
 
     >>> client = radserve.Client("127.0.0.1:50051")
     >>> envs = client.make_vec("dmc/cheetah-run", num_envs=8, seed=1)
+
+    A server that requires them gets TLS and a bearer token:
+
+    >>> client = radserve.Client("grpcs://radserve-0.radserve:50051", token=os.environ["RADSERVE_TOKEN"],
+    ...                          tls=radserve.TlsConfig(ca="ca.pem"))
+
+    `token` defaults to the RADSERVE_TOKEN environment variable; `tls` to TLS with the system's CA
+    certificates for a `grpcs://` address and to none otherwise (`True`: TLS with the system's CAs).
     """
 
-    def __init__(self, address: str, *, wait_ready: float = 10.0):
+    def __init__(self, address: str, *, token: "str | None" = None, tls: "TlsConfig | bool | None" = None,
+                 wait_ready: float = 10.0):
         self.address = address
-        self._channel = grpc.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._raw_channel, self._channel = open_channel(address, tls, token, _CHANNEL_OPTIONS)
         self._stub = pb_grpc.RadServeStub(self._channel)
         # Sessions this client created and has not closed: closed when the process exits normally,
         # so that they do not wait on the server for their lease to expire.
@@ -128,9 +141,9 @@ class Client:
         _LIVE_CLIENTS.add(self)
         if wait_ready:
             try:
-                grpc.channel_ready_future(self._channel).result(timeout=wait_ready)
+                grpc.channel_ready_future(self._raw_channel).result(timeout=wait_ready)
             except grpc.FutureTimeoutError:
-                self._channel.close()
+                self._raw_channel.close()
                 from .errors import UnavailableError
 
                 raise UnavailableError(f"no radserve server answered at {address} within {wait_ready} s") from None
@@ -325,7 +338,7 @@ class Client:
 
     def close(self) -> None:
         _LIVE_CLIENTS.discard(self)
-        self._channel.close()
+        self._raw_channel.close()
 
     def __enter__(self) -> "Client":
         return self

@@ -36,10 +36,18 @@ class InternalError(RadServeError):
     """A simulator failed in a way that is not the caller's fault."""
 
 
+class UnauthenticatedError(RadServeError):
+    """The server requires a bearer token and got none it accepts (Client(token=...), RADSERVE_TOKEN)."""
+
+
+class PermissionDeniedError(RadServeError):
+    """The token is known, but its principal may not make this call (a monitor token acting)."""
+
+
 class SharedMemoryError(RadServeError):
     """Shared memory (minibatches or acting) cannot be used here: the server's memory could not be
-    mapped or its socket reached (the client is on another host, in another pid or network
-    namespace, or runs as another user)."""
+    handed over (the client is on another host, in another network namespace, or runs as a user the
+    server does not allow)."""
 
 
 _BY_CODE = {
@@ -49,6 +57,8 @@ _BY_CODE = {
     grpc.StatusCode.RESOURCE_EXHAUSTED: ResourceExhaustedError,
     grpc.StatusCode.UNAVAILABLE: UnavailableError,
     grpc.StatusCode.INTERNAL: InternalError,
+    grpc.StatusCode.UNAUTHENTICATED: UnauthenticatedError,
+    grpc.StatusCode.PERMISSION_DENIED: PermissionDeniedError,
 }
 
 

@@ -232,7 +232,7 @@ class ListSessionsRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class SessionSummary(_message.Message):
-    __slots__ = ("session_id", "env_id", "num_envs", "memory_bytes", "idle_seconds", "open_streams", "age_seconds")
+    __slots__ = ("session_id", "env_id", "num_envs", "memory_bytes", "idle_seconds", "open_streams", "age_seconds", "owner")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     ENV_ID_FIELD_NUMBER: _ClassVar[int]
     NUM_ENVS_FIELD_NUMBER: _ClassVar[int]
@@ -240,6 +240,7 @@ class SessionSummary(_message.Message):
     IDLE_SECONDS_FIELD_NUMBER: _ClassVar[int]
     OPEN_STREAMS_FIELD_NUMBER: _ClassVar[int]
     AGE_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    OWNER_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     env_id: str
     num_envs: int
@@ -247,7 +248,8 @@ class SessionSummary(_message.Message):
     idle_seconds: float
     open_streams: int
     age_seconds: float
-    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., idle_seconds: _Optional[float] = ..., open_streams: _Optional[int] = ..., age_seconds: _Optional[float] = ...) -> None: ...
+    owner: str
+    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., idle_seconds: _Optional[float] = ..., open_streams: _Optional[int] = ..., age_seconds: _Optional[float] = ..., owner: _Optional[str] = ...) -> None: ...
 
 class ListSessionsResponse(_message.Message):
     __slots__ = ("sessions", "idle_timeout_seconds")
@@ -334,8 +336,7 @@ class ShareActingRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class SharedActingChannel(_message.Message):
-    __slots__ = ("path", "size", "token", "socket", "actions_offset", "obs_offset", "final_obs_offset", "reward_offset", "terminated_offset", "truncated_offset", "episode_return_offset", "episode_length_offset")
-    PATH_FIELD_NUMBER: _ClassVar[int]
+    __slots__ = ("size", "token", "socket", "actions_offset", "obs_offset", "final_obs_offset", "reward_offset", "terminated_offset", "truncated_offset", "episode_return_offset", "episode_length_offset")
     SIZE_FIELD_NUMBER: _ClassVar[int]
     TOKEN_FIELD_NUMBER: _ClassVar[int]
     SOCKET_FIELD_NUMBER: _ClassVar[int]
@@ -347,7 +348,6 @@ class SharedActingChannel(_message.Message):
     TRUNCATED_OFFSET_FIELD_NUMBER: _ClassVar[int]
     EPISODE_RETURN_OFFSET_FIELD_NUMBER: _ClassVar[int]
     EPISODE_LENGTH_OFFSET_FIELD_NUMBER: _ClassVar[int]
-    path: str
     size: int
     token: bytes
     socket: str
@@ -359,7 +359,7 @@ class SharedActingChannel(_message.Message):
     truncated_offset: int
     episode_return_offset: int
     episode_length_offset: int
-    def __init__(self, path: _Optional[str] = ..., size: _Optional[int] = ..., token: _Optional[bytes] = ..., socket: _Optional[str] = ..., actions_offset: _Optional[int] = ..., obs_offset: _Optional[int] = ..., final_obs_offset: _Optional[int] = ..., reward_offset: _Optional[int] = ..., terminated_offset: _Optional[int] = ..., truncated_offset: _Optional[int] = ..., episode_return_offset: _Optional[int] = ..., episode_length_offset: _Optional[int] = ...) -> None: ...
+    def __init__(self, size: _Optional[int] = ..., token: _Optional[bytes] = ..., socket: _Optional[str] = ..., actions_offset: _Optional[int] = ..., obs_offset: _Optional[int] = ..., final_obs_offset: _Optional[int] = ..., reward_offset: _Optional[int] = ..., terminated_offset: _Optional[int] = ..., truncated_offset: _Optional[int] = ..., episode_return_offset: _Optional[int] = ..., episode_length_offset: _Optional[int] = ...) -> None: ...
 
 class AugmentationStage(_message.Message):
     __slots__ = ("name", "args")
@@ -457,18 +457,18 @@ class SharedSampleResponse(_message.Message):
     def __init__(self, region: _Optional[_Union[SharedMemoryRegion, _Mapping]] = ..., batch: _Optional[_Union[SharedBatch, _Mapping]] = ...) -> None: ...
 
 class SharedMemoryRegion(_message.Message):
-    __slots__ = ("path", "size", "token", "slots", "slot_bytes")
-    PATH_FIELD_NUMBER: _ClassVar[int]
+    __slots__ = ("size", "token", "slots", "slot_bytes", "socket")
     SIZE_FIELD_NUMBER: _ClassVar[int]
     TOKEN_FIELD_NUMBER: _ClassVar[int]
     SLOTS_FIELD_NUMBER: _ClassVar[int]
     SLOT_BYTES_FIELD_NUMBER: _ClassVar[int]
-    path: str
+    SOCKET_FIELD_NUMBER: _ClassVar[int]
     size: int
     token: bytes
     slots: int
     slot_bytes: int
-    def __init__(self, path: _Optional[str] = ..., size: _Optional[int] = ..., token: _Optional[bytes] = ..., slots: _Optional[int] = ..., slot_bytes: _Optional[int] = ...) -> None: ...
+    socket: str
+    def __init__(self, size: _Optional[int] = ..., token: _Optional[bytes] = ..., slots: _Optional[int] = ..., slot_bytes: _Optional[int] = ..., socket: _Optional[str] = ...) -> None: ...
 
 class SharedTensor(_message.Message):
     __slots__ = ("dtype", "shape", "offset")

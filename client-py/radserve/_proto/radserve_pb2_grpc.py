@@ -121,7 +121,8 @@ class RadServeServicer:
         raise NotImplementedError('Method not implemented!')
 
     def ListSessions(self, request, context):
-        """Every open session with what it holds and how long it has been idle, for operators. A session
+        """Every open session the caller may see (its own; every session for an admin or a monitor) with
+        its owner, what it holds and how long it has been idle, for operators. A session
         that no call and no open stream has used for `limits.session_idle_timeout_s` is closed by the
         server (its lease expired), with a log line that says so.
         """

@@ -68,13 +68,17 @@ fn read_limit(path: &Path) -> Option<u64> {
 pub struct MemoryBudget {
     limit: u64,
     used: AtomicU64,
+    /// Whose budget this is, for messages: None for the server's, a principal's name for its quota.
+    owner: Option<Arc<str>>,
 }
 
-/// Bytes held against the budget until dropped.
+/// Bytes held against the budget until dropped (and against a principal's quota too, when the
+/// reservation was made for one).
 #[derive(Debug)]
 pub struct Reservation {
     budget: Arc<MemoryBudget>,
     bytes: u64,
+    quota: Option<Box<Reservation>>,
 }
 
 impl Reservation {
@@ -91,7 +95,12 @@ impl Drop for Reservation {
 
 impl MemoryBudget {
     pub fn new(limit: u64) -> Arc<MemoryBudget> {
-        Arc::new(MemoryBudget { limit, used: AtomicU64::new(0) })
+        Arc::new(MemoryBudget { limit, used: AtomicU64::new(0), owner: None })
+    }
+
+    /// A principal's memory quota (`memory_bytes` in its entry of the tokens file).
+    pub fn quota(limit: u64, principal: Arc<str>) -> Arc<MemoryBudget> {
+        Arc::new(MemoryBudget { limit, used: AtomicU64::new(0), owner: Some(principal) })
     }
 
     pub fn limit(&self) -> u64 {
@@ -108,16 +117,37 @@ impl MemoryBudget {
         let limit = self.limit;
         self.used
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |used| used.checked_add(bytes).filter(|&total| total <= limit))
-            .map(|_| Reservation { budget: self.clone(), bytes })
-            .map_err(|used| {
-                CoreError::OutOfMemory(format!(
+            .map(|_| Reservation { budget: self.clone(), bytes, quota: None })
+            .map_err(|used| match &self.owner {
+                None => CoreError::OutOfMemory(format!(
                     "{what} needs {} of memory; {} of this server's memory budget of {} is reserved already \
                      (limits.memory_bytes)",
                     human(bytes),
                     human(used),
                     human(limit)
-                ))
+                )),
+                Some(principal) => CoreError::OverLimit(format!(
+                    "{what} needs {} of memory; {} of principal '{principal}'s memory quota of {} is reserved \
+                     already (memory_bytes in its tokens file entry)",
+                    human(bytes),
+                    human(used),
+                    human(limit)
+                )),
             })
+    }
+
+    /// Reserve `bytes` against `quota` (a principal's, if it has one) and this budget, both or
+    /// neither.
+    pub fn try_reserve_within(
+        self: &Arc<Self>,
+        quota: Option<&Arc<MemoryBudget>>,
+        bytes: u64,
+        what: &str,
+    ) -> Result<Reservation, CoreError> {
+        let quota = quota.map(|quota| quota.try_reserve(bytes, what)).transpose()?;
+        let mut reservation = self.try_reserve(bytes, what)?;
+        reservation.quota = quota.map(Box::new);
+        Ok(reservation)
     }
 }
 

@@ -15,6 +15,7 @@ pub mod error;
 #[cfg(any(test, feature = "testing"))]
 pub mod fake;
 pub mod manager;
+pub mod principal;
 pub mod session;
 pub mod simulators;
 pub mod space;
@@ -26,6 +27,7 @@ pub use error::CoreError;
 pub use manager::{
     BufferRequest, CatalogEntry, LeaseHold, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
 };
+pub use principal::{Principal, PrincipalLimits, Role};
 pub use session::{AutoresetMode, EpisodeEnd, StepOutcome};
 pub use simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
 pub use space::{DType, Space};

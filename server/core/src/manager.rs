@@ -16,6 +16,7 @@ use crate::bounds;
 use crate::budget::{self, MemoryBudget, Reservation};
 use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
 use crate::error::CoreError;
+use crate::principal::{log_id, Principal};
 use crate::session::{check_seed, AutoresetMode, Session, SessionConfig, SessionStats};
 use crate::simulators::Simulators;
 use crate::space::{DType, Space};
@@ -185,6 +186,8 @@ fn elapsed_ms(clock: Instant) -> u64 {
 #[derive(Clone, Debug, PartialEq)]
 pub struct SessionSummary {
     pub session_id: String,
+    /// The principal that created it.
+    pub owner: String,
     pub env_id: String,
     pub num_envs: usize,
     pub memory_bytes: u64,
@@ -195,6 +198,8 @@ pub struct SessionSummary {
 
 struct Entry {
     session: SharedSession,
+    /// The principal that created it: only it and admins may use it.
+    owner: Arc<str>,
     /// The session's share of the memory budget, returned when the entry goes.
     memory: Vec<Reservation>,
     /// What Describe answers, without waiting for the session's lock (a step may hold it for as
@@ -226,7 +231,18 @@ struct Registry {
     reserved_envs: usize,
     reserved_sessions: usize,
     reserved_replay_bytes: u64,
+    /// The same counts per principal, and each principal's memory quota.
+    principals: HashMap<Arc<str>, Usage>,
     closing: bool,
+}
+
+/// One principal's share of the server.
+#[derive(Default)]
+struct Usage {
+    sessions: usize,
+    envs: usize,
+    /// Its memory quota, made when it first reserves memory (None: it has none).
+    quota: Option<Arc<MemoryBudget>>,
 }
 
 impl SessionManager {
@@ -296,6 +312,7 @@ impl SessionManager {
 
     pub async fn create_session(
         &self,
+        caller: &Principal,
         env_id: &str,
         num_envs: usize,
         seed: u64,
@@ -325,16 +342,19 @@ impl SessionManager {
 
         // Before anything is built: the envs' own memory at their family's measured cost.
         let per_env = budget::env_cost_bytes(&env, &options);
-        let envs_memory = self.budget.try_reserve(
+        let quota = self.quota(caller);
+        let envs_memory = self.budget.try_reserve_within(
+            quota.as_ref(),
             per_env.saturating_mul(num_envs as u64),
             &format!("{num_envs} envs of {} (~{} each)", env.full(), budget::human(per_env)),
         )?;
-        self.reserve(num_envs)?;
+        self.reserve(caller, num_envs)?;
+        let owner = caller.shared_name();
         let config = SessionConfig { env, num_envs, seed, options, frame_stack };
         let mut session = match Session::create(self.simulators.as_ref(), config).await {
             Ok(session) => session,
             Err(error) => {
-                self.release(num_envs, 1);
+                self.release(&owner, num_envs, 1);
                 return Err(error);
             }
         };
@@ -344,9 +364,13 @@ impl SessionManager {
         };
         let prepared = prepared.and_then(|()| check_observation_bytes(&session));
         let prepared = prepared.and_then(|()| {
-            let frames = self.budget.try_reserve(frame_buffer_bytes(&session), &format!("the frame buffers of {num_envs} envs"))?;
+            let frames = self.budget.try_reserve_within(
+                quota.as_ref(),
+                frame_buffer_bytes(&session),
+                &format!("the frame buffers of {num_envs} envs"),
+            )?;
             let replay = match extras.buffer {
-                Some(buffer) => Some(self.attach_replay(&mut session, buffer)?),
+                Some(buffer) => Some(self.attach_replay(&mut session, buffer, quota.as_ref())?),
                 None => None,
             };
             Ok([Some(envs_memory), Some(frames), replay].into_iter().flatten().collect::<Vec<_>>())
@@ -355,7 +379,7 @@ impl SessionManager {
             Ok(memory) => memory,
             Err(error) => {
                 session.close().await;
-                self.release(num_envs, 1);
+                self.release(&owner, num_envs, 1);
                 return Err(error);
             }
         };
@@ -371,6 +395,7 @@ impl SessionManager {
                 let lease = Lease::new(elapsed_ms(self.clock));
                 let entry = Entry {
                     session: shared.clone(),
+                    owner: owner.clone(),
                     memory,
                     info: info.clone(),
                     stats,
@@ -385,18 +410,41 @@ impl SessionManager {
         if rejected {
             let mut session = shared.lock().await;
             session.close().await;
-            self.release(num_envs, 1);
+            self.release(&owner, num_envs, 1);
             self.release_replay(&session);
             return Err(CoreError::ShuttingDown);
         }
-        info!(session = %session_id, env = %info.env_id, envs = num_envs, seed, "session created");
+        info!(session = log_id(&session_id), owner = %owner, env = %info.env_id, envs = num_envs, seed, "session created");
         Ok(info)
     }
 
-    fn reserve(&self, num_envs: usize) -> Result<(), CoreError> {
+    /// The memory quota of `caller`, if it has one (made on first use, then shared by its sessions).
+    fn quota(&self, caller: &Principal) -> Option<Arc<MemoryBudget>> {
+        let limit = caller.limits().memory_bytes?;
+        let mut registry = self.sessions.lock().expect("registry lock");
+        let usage = registry.principals.entry(caller.shared_name()).or_default();
+        Some(usage.quota.get_or_insert_with(|| MemoryBudget::quota(limit, caller.shared_name())).clone())
+    }
+
+    fn reserve(&self, caller: &Principal, num_envs: usize) -> Result<(), CoreError> {
         let mut registry = self.sessions.lock().expect("registry lock");
         if registry.closing {
             return Err(CoreError::ShuttingDown);
+        }
+        let name = caller.shared_name();
+        let (sessions, envs) = registry.principals.get(&name).map_or((0, 0), |usage| (usage.sessions, usage.envs));
+        if let Some(max) = caller.limits().max_sessions.filter(|&max| sessions >= max) {
+            return Err(CoreError::OverLimit(format!(
+                "principal '{name}' already has {sessions} sessions open, its limit of {max} (max_sessions in its \
+                 tokens file entry); close one first"
+            )));
+        }
+        if let Some(max) = caller.limits().max_envs.filter(|&max| envs + num_envs > max) {
+            return Err(CoreError::OverLimit(format!(
+                "{num_envs} more environments would give principal '{name}' {}, above its limit of {max} (max_envs \
+                 in its tokens file entry)",
+                envs + num_envs
+            )));
         }
         if registry.reserved_sessions >= self.limits.max_sessions {
             return Err(CoreError::OverLimit(format!(
@@ -413,6 +461,9 @@ impl SessionManager {
         }
         registry.reserved_envs += num_envs;
         registry.reserved_sessions += 1;
+        let usage = registry.principals.entry(name).or_default();
+        usage.envs += num_envs;
+        usage.sessions += 1;
         Ok(())
     }
 
@@ -441,13 +492,13 @@ impl SessionManager {
 
     /// Reserve memory for `what` against the server's budget (a stream's batches, an acting
     /// channel); held until the reservation is dropped.
-    pub fn reserve_memory(&self, bytes: u64, what: &str) -> Result<Reservation, CoreError> {
-        self.budget.try_reserve(bytes, what)
+    pub fn reserve_memory(&self, caller: &Principal, bytes: u64, what: &str) -> Result<Reservation, CoreError> {
+        self.budget.try_reserve_within(self.quota(caller).as_ref(), bytes, what)
     }
 
     /// Reserve the batches a sample stream holds at once, `bytes` for (`prefetch` + 2) batches: within
     /// the per-stream limit and the memory budget, for as long as the reservation lives.
-    pub fn reserve_stream(&self, bytes: u64, prefetch: usize) -> Result<Reservation, CoreError> {
+    pub fn reserve_stream(&self, caller: &Principal, bytes: u64, prefetch: usize) -> Result<Reservation, CoreError> {
         let limit = self.limits.stream_memory_bytes;
         if bytes > limit {
             return Err(CoreError::OverLimit(format!(
@@ -455,7 +506,11 @@ impl SessionManager {
                  this server's limit of {limit} (limits.stream_memory_bytes): lower prefetch or batch_size"
             )));
         }
-        self.budget.try_reserve(bytes, &format!("a sample stream of (prefetch {prefetch} + 2) batches"))
+        self.budget.try_reserve_within(
+            self.quota(caller).as_ref(),
+            bytes,
+            &format!("a sample stream of (prefetch {prefetch} + 2) batches"),
+        )
     }
 
     /// The server's memory budget: (bytes reserved now, limit).
@@ -464,7 +519,12 @@ impl SessionManager {
     }
 
     /// Give `session` a replay (or rollout) buffer if the server's budget allows it.
-    fn attach_replay(&self, session: &mut Session, buffer: BufferRequest) -> Result<Reservation, CoreError> {
+    fn attach_replay(
+        &self,
+        session: &mut Session,
+        buffer: BufferRequest,
+        quota: Option<&Arc<MemoryBudget>>,
+    ) -> Result<Reservation, CoreError> {
         let frame = &session.frame_spec.observation;
         if !matches!(frame.dtype(), DType::Uint8 | DType::Float32) {
             return Err(CoreError::InvalidSession(format!(
@@ -504,7 +564,7 @@ impl SessionManager {
             registry.reserved_replay_bytes += bytes;
         }
         let what = format!("a replay buffer of {capacity} transitions");
-        let reservation = match self.budget.try_reserve(bytes, &what) {
+        let reservation = match self.budget.try_reserve_within(quota, bytes, &what) {
             Ok(reservation) => reservation,
             Err(error) => {
                 self.sessions.lock().expect("registry lock").reserved_replay_bytes -= bytes;
@@ -531,8 +591,8 @@ impl SessionManager {
     }
 
     /// The replay buffer of a session, with what a sampler needs to know about it.
-    pub async fn replay_source(&self, session_id: &str) -> Result<ReplaySource, CoreError> {
-        let session = self.get(session_id)?;
+    pub async fn replay_source(&self, caller: &Principal, session_id: &str) -> Result<ReplaySource, CoreError> {
+        let session = self.get(caller, session_id)?;
         let session = session.lock().await;
         let Some(buffer) = session.replay() else {
             return Err(CoreError::NoReplayBuffer(session_id.to_string()));
@@ -556,10 +616,14 @@ impl SessionManager {
         Ok(ReplaySource { buffer: buffer.clone(), format, action_space: session.frame_spec.action.clone(), permit })
     }
 
-    fn release(&self, num_envs: usize, sessions: usize) {
+    fn release(&self, owner: &Arc<str>, num_envs: usize, sessions: usize) {
         let mut registry = self.sessions.lock().expect("registry lock");
         registry.reserved_envs -= num_envs;
         registry.reserved_sessions -= sessions;
+        if let Some(usage) = registry.principals.get_mut(owner) {
+            usage.envs -= num_envs;
+            usage.sessions -= sessions;
+        }
     }
 
     fn new_session_id(&self) -> String {
@@ -570,14 +634,23 @@ impl SessionManager {
     }
 
     /// The session, its lease renewed: every call on a session goes through here.
-    pub fn get(&self, session_id: &str) -> Result<SharedSession, CoreError> {
+    pub fn get(&self, caller: &Principal, session_id: &str) -> Result<SharedSession, CoreError> {
         let registry = self.sessions.lock().expect("registry lock");
-        Ok(self.touch(&registry, session_id)?.session.clone())
+        Ok(self.touch(&registry, caller, session_id)?.session.clone())
     }
 
-    /// The entry of `session_id`, its lease renewed.
-    fn touch<'a>(&self, registry: &'a Registry, session_id: &str) -> Result<&'a Entry, CoreError> {
-        let entry = registry.sessions.get(session_id).ok_or_else(|| CoreError::UnknownSession(session_id.to_string()))?;
+    /// The entry of `session_id` if `caller` may use it, its lease renewed. A session of another
+    /// principal is unknown to the caller: the answer does not confirm that it exists.
+    fn touch<'a>(&self, registry: &'a Registry, caller: &Principal, session_id: &str) -> Result<&'a Entry, CoreError> {
+        self.touch_if(registry, session_id, |owner| caller.may_use(owner))
+    }
+
+    fn touch_if<'a>(&self, registry: &'a Registry, session_id: &str, allowed: impl Fn(&str) -> bool) -> Result<&'a Entry, CoreError> {
+        let entry = registry
+            .sessions
+            .get(session_id)
+            .filter(|entry| allowed(&entry.owner))
+            .ok_or_else(|| CoreError::UnknownSession(session_id.to_string()))?;
         entry.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
         Ok(entry)
     }
@@ -591,21 +664,23 @@ impl SessionManager {
     }
 
     /// Keep the session's lease alive for as long as the returned hold lives (a stream on it).
-    pub fn hold(&self, session_id: &str) -> Result<LeaseHold, CoreError> {
+    pub fn hold(&self, caller: &Principal, session_id: &str) -> Result<LeaseHold, CoreError> {
         let registry = self.sessions.lock().expect("registry lock");
-        let entry = self.touch(&registry, session_id)?;
+        let entry = self.touch(&registry, caller, session_id)?;
         entry.lease.holds.fetch_add(1, Ordering::AcqRel);
         Ok(LeaseHold { lease: entry.lease.clone(), clock: self.clock })
     }
 
-    /// Every open session, oldest first.
-    pub fn list_sessions(&self) -> Vec<SessionSummary> {
+    /// Every open session `caller` may see (an admin or a monitor: all of them), oldest first.
+    pub fn list_sessions(&self, caller: &Principal) -> Vec<SessionSummary> {
         let registry = self.sessions.lock().expect("registry lock");
         let mut sessions: Vec<SessionSummary> = registry
             .sessions
             .iter()
+            .filter(|(_, entry)| caller.may_see(&entry.owner))
             .map(|(id, entry)| SessionSummary {
                 session_id: id.clone(),
+                owner: entry.owner.to_string(),
                 env_id: entry.info.env_id.clone(),
                 num_envs: entry.info.num_envs,
                 memory_bytes: entry.memory.iter().map(Reservation::bytes).sum(),
@@ -668,10 +743,10 @@ impl SessionManager {
     }
 
     /// Never waits for the session's lock: a step in progress (or a stuck worker) does not delay it.
-    pub async fn describe(&self, session_id: &str) -> Result<SessionInfo, CoreError> {
+    pub async fn describe(&self, caller: &Principal, session_id: &str) -> Result<SessionInfo, CoreError> {
         let (mut info, stats, replay) = {
             let registry = self.sessions.lock().expect("registry lock");
-            let entry = self.touch(&registry, session_id)?;
+            let entry = self.touch_if(&registry, session_id, |owner| caller.may_see(owner))?;
             (entry.info.clone(), entry.stats.clone(), entry.replay.clone())
         };
         info.seed = stats.seed.load(Ordering::Relaxed);
@@ -681,16 +756,21 @@ impl SessionManager {
         Ok(info)
     }
 
-    pub async fn close_session(&self, session_id: &str) -> Result<(), CoreError> {
-        self.close_session_because(session_id, "the client closed it").await
-    }
-
-    async fn close_session_because(&self, session_id: &str, reason: &str) -> Result<(), CoreError> {
+    /// Closes a session of `caller` (an admin: any session).
+    pub async fn close_session(&self, caller: &Principal, session_id: &str) -> Result<(), CoreError> {
         let entry = {
             let mut registry = self.sessions.lock().expect("registry lock");
-            registry.sessions.remove(session_id).ok_or_else(|| CoreError::UnknownSession(session_id.to_string()))?
+            match registry.sessions.get(session_id) {
+                Some(entry) if caller.may_use(&entry.owner) => registry.sessions.remove(session_id).expect("present"),
+                _ => return Err(CoreError::UnknownSession(session_id.to_string())),
+            }
         };
-        self.close_entry(session_id, entry, reason).await;
+        let reason = if *entry.owner == *caller.name() {
+            "its owner closed it".to_string()
+        } else {
+            format!("admin '{}' closed it", caller.name())
+        };
+        self.close_entry(session_id, entry, &reason).await;
         Ok(())
     }
 
@@ -699,9 +779,9 @@ impl SessionManager {
         entry.lease.closed.send_replace(true);
         let mut session = entry.session.lock().await;
         session.close().await;
-        self.release(session.num_envs(), 1);
+        self.release(&entry.owner, session.num_envs(), 1);
         self.release_replay(&session);
-        info!(session = %session_id, env = %entry.info.env_id, reason, "session closed");
+        info!(session = log_id(session_id), owner = %entry.owner, env = %entry.info.env_id, reason, "session closed");
     }
 
     /// From now on, CreateSession is refused with UNAVAILABLE (the server is shutting down); open
@@ -712,13 +792,13 @@ impl SessionManager {
 
     /// Refuses new sessions and closes every open one.
     pub async fn shutdown(&self) {
-        let ids: Vec<String> = {
+        let entries: Vec<(String, Entry)> = {
             let mut registry = self.sessions.lock().expect("registry lock");
             registry.closing = true;
-            registry.sessions.keys().cloned().collect()
+            registry.sessions.drain().collect()
         };
-        for id in ids {
-            let _ = self.close_session(&id).await;
+        for (id, entry) in entries {
+            self.close_entry(&id, entry, "the server is shutting down").await;
         }
     }
 }

@@ -11,6 +11,7 @@ use radserve_replay::TransitionRef;
 use crate::error::CoreError;
 use crate::fake::{self, FakeSimulators, FAKE_ENV, FRAME_BYTES};
 use crate::manager::{BufferRequest, Limits, SessionExtras, SessionManager};
+use crate::principal::{Principal, PrincipalLimits, Role};
 use crate::session::StepOutcome;
 use crate::space::DType;
 
@@ -21,13 +22,17 @@ fn limits() -> Limits {
     Limits { memory_bytes: BUDGET, session_idle_timeout_s: 0, ..Limits::default() }
 }
 
+fn local() -> Principal {
+    Principal::local()
+}
+
 fn manager(processes: usize, limits: Limits) -> (Arc<FakeSimulators>, SessionManager) {
     let simulators = FakeSimulators::new(processes);
     (simulators.clone(), SessionManager::new(simulators, limits))
 }
 
 async fn create(manager: &SessionManager, num_envs: usize, seed: u64, frame_stack: i64, extras: SessionExtras) -> String {
-    let info = manager.create_session(FAKE_ENV, num_envs, seed, &fake::fake_options(frame_stack), &extras).await.unwrap();
+    let info = manager.create_session(&local(), FAKE_ENV, num_envs, seed, &fake::fake_options(frame_stack), &extras).await.unwrap();
     info.session_id
 }
 
@@ -36,13 +41,13 @@ fn actions(values: &[i64]) -> Vec<u8> {
 }
 
 async fn step(manager: &SessionManager, id: &str, values: &[i64]) -> Result<StepOutcome, CoreError> {
-    let session = manager.get(id).unwrap();
+    let session = manager.get(&local(), id).unwrap();
     let mut session = session.lock().await;
     session.step(DType::Int64, &[values.len()], &actions(values)).await
 }
 
 async fn reset(manager: &SessionManager, id: &str, seed: Option<u64>) -> Vec<u8> {
-    manager.get(id).unwrap().lock().await.reset(seed).await.unwrap()
+    manager.get(&local(), id).unwrap().lock().await.reset(seed).await.unwrap()
 }
 
 /// An episode that ended: its final stack, return and length.
@@ -128,7 +133,7 @@ async fn stacks_and_same_step_autoreset_follow_the_episodes_of_each_env() {
         assert!(outcome.episodes.iter().all(|end| end.error.is_none()));
     }
     assert!(kinds.0 > 0 && kinds.1 > 0, "both kinds of episode end were seen: {kinds:?}");
-    let info = manager.describe(&id).await.unwrap();
+    let info = manager.describe(&local(), &id).await.unwrap();
     assert_eq!(info.total_env_steps, 25 * num_envs as u64);
 }
 
@@ -142,7 +147,7 @@ async fn replay_records_every_transition_with_both_kinds_of_episode_end() {
     for step_index in 0..30 {
         step(&manager, &id, &[(step_index % 3) as i64; 3]).await.unwrap();
     }
-    let session = manager.get(&id).unwrap();
+    let session = manager.get(&local(), &id).unwrap();
     let session = session.lock().await;
     let replay = session.replay().unwrap().clone();
     let mut replay = replay.write().unwrap();
@@ -202,7 +207,7 @@ async fn a_lost_group_ends_its_episodes_and_restarts_from_its_seeds() {
 
     let next = step(&manager, &id, &[0, 0, 0, 0]).await.unwrap();
     assert_eq!(next.obs[3 * stack..], [fake::frame(22, 0, 0), fake::frame(22, 0, 1)].concat(), "the session steps on");
-    assert_eq!(manager.describe(&id).await.unwrap().episodes_completed, 3, "two lost, env 0's ended at step 4");
+    assert_eq!(manager.describe(&local(), &id).await.unwrap().episodes_completed, 3, "two lost, env 0's ended at step 4");
 }
 
 #[tokio::test]
@@ -232,7 +237,7 @@ async fn a_failed_step_asks_for_a_reset_and_bad_actions_reach_no_simulator() {
     let steps = simulators.steps();
     let out_of_range = step(&manager, &id, &[0, 3]).await.unwrap_err().to_string();
     assert!(out_of_range.contains("action 3 of env 1 is outside [0, 3)"), "{out_of_range}");
-    let session = manager.get(&id).unwrap();
+    let session = manager.get(&local(), &id).unwrap();
     let wrong_dtype = session.lock().await.step(DType::Float32, &[2], &[0; 8]).await.unwrap_err().to_string();
     assert!(wrong_dtype.contains("actions must be int64 of shape [2]"), "{wrong_dtype}");
     assert_eq!(simulators.steps(), steps, "refused actions are never sent");
@@ -253,36 +258,36 @@ async fn limits_refuse_before_anything_is_built_and_closing_returns_everything()
     let baseline = manager.memory().0;
     let no_extras = SessionExtras::default;
 
-    let too_many = manager.create_session(FAKE_ENV, 9, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    let too_many = manager.create_session(&local(), FAKE_ENV, 9, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
     assert!(matches!(&too_many, CoreError::OverLimit(m) if m.contains("limit of 8 environments per session")), "{too_many}");
-    let zero = manager.create_session(FAKE_ENV, 0, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    let zero = manager.create_session(&local(), FAKE_ENV, 0, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
     assert!(matches!(zero, CoreError::InvalidSession(_)));
-    let unknown = manager.create_session("gym/Fak-v0", 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    let unknown = manager.create_session(&local(), "gym/Fak-v0", 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
     assert!(matches!(&unknown, CoreError::UnknownEnv { suggestions, .. } if suggestions == &["gym/Fake-v0"]), "{unknown}");
     simulators.refuse_next_create("no such option in the simulator");
-    let refused = manager.create_session(FAKE_ENV, 2, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    let refused = manager.create_session(&local(), FAKE_ENV, 2, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
     assert!(matches!(&refused, CoreError::CreateFailed { env_id, .. } if env_id == FAKE_ENV), "{refused}");
     assert_eq!(simulators.groups_alive(), 0);
     assert_eq!(manager.memory().0, baseline, "a refused request reserves nothing");
 
     let first = create(&manager, 8, 0, 1, no_extras()).await;
     let second = create(&manager, 3, 0, 1, no_extras()).await;
-    let over_total = manager.create_session(FAKE_ENV, 2, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    let over_total = manager.create_session(&local(), FAKE_ENV, 2, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
     assert!(matches!(&over_total, CoreError::OverLimit(m) if m.contains("above its limit of 12")), "{over_total}");
     create(&manager, 1, 0, 1, no_extras()).await;
-    let over_sessions = manager.create_session(FAKE_ENV, 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
+    let over_sessions = manager.create_session(&local(), FAKE_ENV, 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
     assert!(matches!(&over_sessions, CoreError::OverLimit(m) if m.contains("already hosts 3 sessions")), "{over_sessions}");
     assert_eq!(simulators.groups_alive(), 2 + 2 + 1);
     for error in [&too_many, &zero, &unknown, &refused, &over_total, &over_sessions] {
         assert!(!error.to_string().contains("  "), "a message continued across lines keeps its indentation: {error}");
     }
     for id in [&first, &second] {
-        manager.close_session(id).await.unwrap();
+        manager.close_session(&local(), id).await.unwrap();
     }
     manager.shutdown().await;
     assert_eq!(simulators.groups_alive(), 0, "every group was closed");
     assert_eq!(manager.memory().0, baseline, "every reservation came back");
-    assert!(matches!(manager.get(&first), Err(CoreError::UnknownSession(_))));
+    assert!(matches!(manager.get(&local(), &first), Err(CoreError::UnknownSession(_))));
 }
 
 #[tokio::test]
@@ -290,20 +295,20 @@ async fn the_memory_budget_refuses_what_would_not_fit() {
     let (simulators, manager) = manager(1, limits());
     let extras = |capacity| SessionExtras { buffer: Some(BufferRequest::Replay { capacity }), observation_view: None };
     // 16 fake envs at 2 MiB each take half of the 64 MiB budget.
-    let first = manager.create_session(FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(100_000)).await.unwrap();
-    let envs_refused = manager.create_session(FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(10)).await.unwrap_err();
+    let first = manager.create_session(&local(), FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(100_000)).await.unwrap();
+    let envs_refused = manager.create_session(&local(), FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(10)).await.unwrap_err();
     assert!(
         matches!(&envs_refused, CoreError::OutOfMemory(m) if m.contains("16 envs of gym/Fake-v0") && m.contains("limits.memory_bytes")),
         "{envs_refused}"
     );
     // These envs fit; their replay buffer, known only once they are built, does not.
-    let replay_refused = manager.create_session(FAKE_ENV, 8, 0, &fake::fake_options(1), &extras(1_000_000)).await.unwrap_err();
+    let replay_refused = manager.create_session(&local(), FAKE_ENV, 8, 0, &fake::fake_options(1), &extras(1_000_000)).await.unwrap_err();
     assert!(
         matches!(&replay_refused, CoreError::OutOfMemory(m) if m.contains("a replay buffer of 1000000 transitions")),
         "{replay_refused}"
     );
     assert_eq!(simulators.groups_alive(), 1, "what was built for the refused session was closed");
-    manager.close_session(&first.session_id).await.unwrap();
+    manager.close_session(&local(), &first.session_id).await.unwrap();
     assert_eq!(manager.memory().0, 0);
 }
 
@@ -312,12 +317,60 @@ async fn idle_sessions_are_reaped_and_held_ones_are_not() {
     let (simulators, manager) = manager(1, Limits { session_idle_timeout_s: 1, ..limits() });
     let idle = create(&manager, 1, 0, 1, SessionExtras::default()).await;
     let held = create(&manager, 1, 0, 1, SessionExtras::default()).await;
-    let hold = manager.hold(&held).unwrap();
+    let hold = manager.hold(&local(), &held).unwrap();
     tokio::time::sleep(std::time::Duration::from_millis(1100)).await;
     assert_eq!(manager.reap_idle().await, vec![idle.clone()]);
-    assert!(matches!(manager.describe(&idle).await, Err(CoreError::UnknownSession(_))));
+    assert!(matches!(manager.describe(&local(), &idle).await, Err(CoreError::UnknownSession(_))));
     assert_eq!(simulators.groups_alive(), 1);
     drop(hold);
     assert!(manager.reap_idle().await.is_empty(), "releasing the hold renews the lease");
-    manager.close_session(&held).await.unwrap();
+    manager.close_session(&local(), &held).await.unwrap();
+}
+
+#[tokio::test]
+async fn sessions_belong_to_their_creator_and_quotas_hold_per_principal() {
+    let (_, manager) = manager(2, limits());
+    let quota = PrincipalLimits { max_sessions: Some(2), max_envs: Some(3), memory_bytes: Some(12 << 20) };
+    let alice = Principal::new("alice", Role::User, quota);
+    let bob = Principal::new("bob", Role::User, PrincipalLimits::default());
+    let ops = Principal::new("ops", Role::Admin, PrincipalLimits::default());
+    let options = fake::fake_options(1);
+    let no_extras = SessionExtras::default;
+    let mine = manager.create_session(&alice, FAKE_ENV, 2, 0, &options, &no_extras()).await.unwrap().session_id;
+
+    // Another principal cannot tell the session from one never created.
+    let never = "s999-0000000000000000";
+    for id in [mine.as_str(), never] {
+        let unknown = |result: Result<(), CoreError>| assert!(matches!(result, Err(CoreError::UnknownSession(_))), "{id}");
+        unknown(manager.get(&bob, id).map(drop));
+        unknown(manager.hold(&bob, id).map(drop));
+        unknown(manager.describe(&bob, id).await.map(drop));
+        unknown(manager.replay_source(&bob, id).await.map(drop));
+        unknown(manager.close_session(&bob, id).await);
+    }
+    assert!(manager.list_sessions(&bob).is_empty());
+    let dashboard = Principal::new("dashboard", Role::Monitor, PrincipalLimits::default());
+    assert_eq!(manager.list_sessions(&dashboard).len(), 1);
+    assert_eq!(manager.describe(&dashboard, &mine).await.unwrap().session_id, mine);
+    assert!(matches!(manager.get(&dashboard, &mine), Err(CoreError::UnknownSession(_))), "a monitor only looks");
+    let listed = manager.list_sessions(&ops);
+    assert_eq!((listed.len(), listed[0].owner.as_str()), (1, "alice"));
+    manager.get(&alice, &mine).unwrap().lock().await.reset(None).await.unwrap();
+
+    // Alice's limits: envs, then memory, then sessions; bob is not held back by them.
+    let over_envs = manager.create_session(&alice, FAKE_ENV, 2, 0, &options, &no_extras()).await.unwrap_err();
+    assert!(over_envs.to_string().contains("principal 'alice'") && over_envs.to_string().contains("max_envs"), "{over_envs}");
+    let over_memory = manager.reserve_memory(&alice, 20 << 20, "a channel").unwrap_err();
+    assert!(matches!(over_memory, CoreError::OverLimit(_)) && over_memory.to_string().contains("quota"), "{over_memory}");
+    manager.create_session(&alice, FAKE_ENV, 1, 0, &options, &no_extras()).await.unwrap();
+    let over_sessions = manager.create_session(&alice, FAKE_ENV, 1, 0, &options, &no_extras()).await.unwrap_err();
+    assert!(over_sessions.to_string().contains("max_sessions"), "{over_sessions}");
+    manager.create_session(&bob, FAKE_ENV, 4, 0, &options, &no_extras()).await.unwrap();
+
+    // An admin closes alice's session, which frees her quota.
+    manager.close_session(&ops, &mine).await.unwrap();
+    assert!(matches!(manager.get(&alice, &mine), Err(CoreError::UnknownSession(_))));
+    manager.create_session(&alice, FAKE_ENV, 2, 0, &options, &no_extras()).await.unwrap();
+    manager.shutdown().await;
+    assert_eq!(manager.memory().0, 0, "every reservation, quota included, came back");
 }

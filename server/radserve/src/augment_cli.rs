@@ -71,7 +71,7 @@ fn preview_pipelines(side: usize) -> Vec<String> {
 async fn render_frame(manager: &SessionManager, env: &str, seed: u64) -> anyhow::Result<(Vec<u8>, usize)> {
     let mut overrides = Options::new();
     overrides.insert("frame_stack".into(), OptionValue::Int(1));
-    let info = manager.create_session(env, 1, seed, &overrides, &SessionExtras::default()).await?;
+    let info = manager.create_session(&radserve_core::Principal::local(), env, 1, seed, &overrides, &SessionExtras::default()).await?;
     let Space::Box { dtype: DType::Uint8, shape, .. } = &info.observation_space else {
         bail!("{env} does not observe images ({}); pick a pixel environment", info.observation_space.describe());
     };
@@ -79,9 +79,9 @@ async fn render_frame(manager: &SessionManager, env: &str, seed: u64) -> anyhow:
     if height != width {
         bail!("{env} renders {height}x{width}; the preview needs square frames");
     }
-    let session = manager.get(&info.session_id)?;
+    let session = manager.get(&radserve_core::Principal::local(), &info.session_id)?;
     let frame = session.lock().await.reset(None).await?;
-    manager.close_session(&info.session_id).await?;
+    manager.close_session(&radserve_core::Principal::local(), &info.session_id).await?;
     Ok((frame, width))
 }
 

@@ -9,7 +9,10 @@ use std::time::Duration;
 use anyhow::{bail, Context};
 use figment::providers::{Env, Format, Serialized, Toml};
 use figment::Figment;
-use radserve_core::Limits;
+use std::collections::{HashMap, HashSet};
+
+use radserve_core::{Limits, Principal, PrincipalLimits, Role};
+use radserve_service::auth::{parse_digest, Digest};
 use radserve_sim::GlBackend;
 use serde::{Deserialize, Serialize};
 
@@ -20,6 +23,97 @@ pub struct Config {
     pub sim: SimConfig,
     pub augment: AugmentConfig,
     pub limits: Limits,
+    pub auth: AuthConfig,
+    pub tls: TlsConfig,
+}
+
+/// Who may call (docs/security.md).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AuthConfig {
+    /// A TOML file of principals and their tokens' SHA-256 digests (`radserve token` makes entries).
+    /// Set: every call but health checks needs `authorization: Bearer <token>`. Unset: no
+    /// authentication, which the server accepts only on a loopback address (or with mTLS, or with
+    /// `server.insecure`).
+    pub tokens_file: Option<PathBuf>,
+    /// Let reflection (grpc.reflection v1 and v1alpha) answer callers without a token. The schema
+    /// is public (the proto ships with the client); off by default all the same.
+    pub open_reflection: bool,
+}
+
+/// TLS on the gRPC port (rustls). Both files set: TLS; `client_ca_file` too: clients must present a
+/// certificate signed by that CA (mTLS).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TlsConfig {
+    /// PEM: the server's certificate chain.
+    pub cert_file: Option<PathBuf>,
+    /// PEM: its private key.
+    pub key_file: Option<PathBuf>,
+    /// PEM: the CA that signs client certificates.
+    pub client_ca_file: Option<PathBuf>,
+}
+
+/// One principal of the tokens file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PrincipalEntry {
+    pub name: String,
+    #[serde(default)]
+    pub role: Role,
+    /// Hex SHA-256 digests of the principal's tokens (several while rotating one).
+    pub token_sha256: Vec<String>,
+    /// Its limits on top of the server's (unset: only the server's apply).
+    pub max_sessions: Option<usize>,
+    pub max_envs: Option<usize>,
+    pub memory_bytes: Option<u64>,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TokensFile {
+    #[serde(default)]
+    pub principal: Vec<PrincipalEntry>,
+}
+
+impl TokensFile {
+    pub fn load(path: &Path) -> anyhow::Result<TokensFile> {
+        if !path.exists() {
+            bail!("auth.tokens_file {} does not exist", path.display());
+        }
+        Figment::from(Toml::file(path))
+            .extract()
+            .with_context(|| format!("auth.tokens_file {} is not a valid tokens file (docs/security.md)", path.display()))
+    }
+
+    /// Principals by digest; every name and digest appears once, every digest is 64 hex digits.
+    pub fn principals(&self) -> anyhow::Result<HashMap<Digest, Principal>> {
+        let mut principals = HashMap::new();
+        let mut names = HashSet::new();
+        for entry in &self.principal {
+            if entry.name.is_empty() || entry.name.len() > 64 || !entry.name.chars().all(|c| c.is_ascii_graphic()) {
+                bail!("principal names are 1 to 64 printable ASCII characters without spaces, got {:?}", entry.name);
+            }
+            if !names.insert(entry.name.clone()) {
+                bail!("principal '{}' appears twice in the tokens file; list all its tokens in one token_sha256", entry.name);
+            }
+            if entry.token_sha256.is_empty() {
+                bail!("principal '{}' has no token_sha256", entry.name);
+            }
+            let limits =
+                PrincipalLimits { max_sessions: entry.max_sessions, max_envs: entry.max_envs, memory_bytes: entry.memory_bytes };
+            let principal = Principal::new(&entry.name, entry.role, limits);
+            for text in &entry.token_sha256 {
+                let digest = parse_digest(text).with_context(|| {
+                    format!("principal '{}': token_sha256 entries are 64 hex digits (`radserve token` prints them)", entry.name)
+                })?;
+                if principals.insert(digest, principal.clone()).is_some() {
+                    bail!("a token digest appears twice in the tokens file (principal '{}')", entry.name);
+                }
+            }
+        }
+        Ok(principals)
+    }
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -51,6 +145,12 @@ pub struct ServerConfig {
     /// Seconds between the server's HTTP/2 pings on each connection, and how long an answer may take.
     pub keepalive_interval_s: f64,
     pub keepalive_timeout_s: f64,
+    /// Serve a non-loopback address with neither tokens nor client certificates: anyone who can
+    /// reach the port can do anything. Off: such a start-up is refused.
+    pub insecure: bool,
+    /// Local users (uids) besides the server's own that may receive shared memory (same-host
+    /// acting and batches); checked on the socket with SO_PEERCRED.
+    pub shared_memory_uids: Vec<u32>,
 }
 
 impl Default for ServerConfig {
@@ -63,6 +163,8 @@ impl Default for ServerConfig {
             idle_connection_timeout_s: 120.0,
             keepalive_interval_s: 30.0,
             keepalive_timeout_s: 20.0,
+            insecure: false,
+            shared_memory_uids: Vec::new(),
         }
     }
 }
@@ -164,6 +266,47 @@ impl Config {
         Ok(())
     }
 
+    /// The authentication policy and TLS files, read and checked; refuses an open server on a
+    /// reachable address.
+    pub fn security(&self) -> anyhow::Result<crate::Security> {
+        let tls = &self.tls;
+        let read = |path: &PathBuf, what: &str| {
+            std::fs::read(path).with_context(|| format!("reading {what} {}", path.display()))
+        };
+        let tls_files = match (&tls.cert_file, &tls.key_file) {
+            (Some(cert), Some(key)) => Some(crate::TlsFiles {
+                cert_pem: read(cert, "tls.cert_file")?,
+                key_pem: read(key, "tls.key_file")?,
+                client_ca_pem: tls.client_ca_file.as_ref().map(|ca| read(ca, "tls.client_ca_file")).transpose()?,
+            }),
+            (None, None) if tls.client_ca_file.is_some() => {
+                bail!("tls.client_ca_file needs tls.cert_file and tls.key_file: client certificates are checked in a TLS handshake")
+            }
+            (None, None) => None,
+            _ => bail!("tls.cert_file and tls.key_file are set together"),
+        };
+        let auth = match &self.auth.tokens_file {
+            Some(path) => {
+                let principals = TokensFile::load(path)?.principals()?;
+                if principals.is_empty() {
+                    bail!("auth.tokens_file {} lists no principal: nobody could call this server", path.display());
+                }
+                radserve_service::auth::AuthPolicy::tokens(principals, self.auth.open_reflection)
+            }
+            None => radserve_service::auth::AuthPolicy::off(),
+        };
+        let address: SocketAddr = self.server.address.parse().context("server.address")?;
+        let mtls = tls_files.as_ref().is_some_and(|files| files.client_ca_pem.is_some());
+        if !address.ip().is_loopback() && !auth.is_on() && !mtls && !self.server.insecure {
+            bail!(
+                "refusing to serve {address} without authentication: anyone who can reach it could use and close every \
+                 session. Set auth.tokens_file (and TLS), or tls.client_ca_file (mTLS), or bind 127.0.0.1; \
+                 `--insecure` (server.insecure) serves it open all the same (docs/security.md)"
+            );
+        }
+        Ok(crate::Security { auth, tls: tls_files, loopback: address.ip().is_loopback() })
+    }
+
     pub fn serve_options(&self) -> crate::ServeOptions {
         crate::ServeOptions {
             augment_threads: self.augment.threads,
@@ -174,6 +317,8 @@ impl Config {
             idle_connection_timeout: Duration::from_secs_f64(self.server.idle_connection_timeout_s),
             keepalive_interval: Duration::from_secs_f64(self.server.keepalive_interval_s),
             keepalive_timeout: Duration::from_secs_f64(self.server.keepalive_timeout_s),
+            security: crate::Security::default(),
+            shared_memory_uids: self.server.shared_memory_uids.clone(),
         }
     }
 

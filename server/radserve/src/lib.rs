@@ -62,6 +62,51 @@ pub struct ServeOptions {
     /// answer within `keepalive_timeout`.
     pub keepalive_interval: Duration,
     pub keepalive_timeout: Duration,
+    /// Authentication and TLS.
+    pub security: Security,
+    /// Users besides the server's own that may receive shared memory (acting, batches).
+    pub shared_memory_uids: Vec<u32>,
+}
+
+/// Who may call, and over what (`[auth]`, `[tls]`; docs/security.md).
+#[derive(Clone, Debug)]
+pub struct Security {
+    pub auth: radserve_service::auth::AuthPolicy,
+    pub tls: Option<TlsFiles>,
+    /// Whether the server listens on a loopback address only.
+    pub loopback: bool,
+}
+
+impl Default for Security {
+    fn default() -> Self {
+        Security { auth: radserve_service::auth::AuthPolicy::off(), tls: None, loopback: true }
+    }
+}
+
+/// PEM contents of the TLS files.
+#[derive(Clone)]
+pub struct TlsFiles {
+    pub cert_pem: Vec<u8>,
+    pub key_pem: Vec<u8>,
+    /// Set: clients must present a certificate this CA signed (mTLS).
+    pub client_ca_pem: Option<Vec<u8>>,
+}
+
+impl std::fmt::Debug for TlsFiles {
+    fn fmt(&self, formatter: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        formatter.debug_struct("TlsFiles").field("mtls", &self.client_ca_pem.is_some()).finish_non_exhaustive()
+    }
+}
+
+impl TlsFiles {
+    fn server_config(&self) -> tonic::transport::ServerTlsConfig {
+        let identity = tonic::transport::Identity::from_pem(&self.cert_pem, &self.key_pem);
+        let config = tonic::transport::ServerTlsConfig::new().identity(identity);
+        match &self.client_ca_pem {
+            Some(ca) => config.client_ca_root(tonic::transport::Certificate::from_pem(ca)),
+            None => config,
+        }
+    }
 }
 
 impl Default for ServeOptions {
@@ -75,6 +120,8 @@ impl Default for ServeOptions {
             idle_connection_timeout: Duration::from_secs(120),
             keepalive_interval: Duration::from_secs(30),
             keepalive_timeout: Duration::from_secs(20),
+            security: Security::default(),
+            shared_memory_uids: Vec::new(),
         }
     }
 }
@@ -120,7 +167,8 @@ pub async fn serve(
             .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
     };
     let (reflection_v1, reflection_v1alpha) = (reflection().build_v1()?, reflection().build_v1alpha()?);
-    let (service, streams) = RadServeService::new(manager.clone(), augment_pool);
+    let peers = radserve_service::handoff::PeerPolicy::new(&options.shared_memory_uids);
+    let (service, streams) = RadServeService::new(manager.clone(), augment_pool, peers);
     let service = RadServeServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -170,9 +218,27 @@ pub async fn serve(
         listener,
         incoming::ConnectionLimits { max_connections, idle_timeout: options.idle_connection_timeout },
     );
-    let server = tonic::transport::Server::builder()
+    let security = &options.security;
+    if security.auth.is_on() && security.tls.is_none() && !security.loopback {
+        warn!("bearer tokens travel in clear text: this server is reachable beyond loopback without TLS (set tls.cert_file and tls.key_file)");
+    }
+    info!(
+        authentication = if security.auth.is_on() { "tokens" } else { "off" },
+        tls = match &security.tls {
+            None => "off",
+            Some(TlsFiles { client_ca_pem: None, .. }) => "on",
+            Some(TlsFiles { client_ca_pem: Some(_), .. }) => "mutual",
+        },
+        "security"
+    );
+    let mut builder = tonic::transport::Server::builder()
         .http2_keepalive_interval(Some(options.keepalive_interval))
-        .http2_keepalive_timeout(Some(options.keepalive_timeout))
+        .http2_keepalive_timeout(Some(options.keepalive_timeout));
+    if let Some(tls) = &security.tls {
+        builder = builder.tls_config(tls.server_config())?;
+    }
+    let server = builder
+        .layer(radserve_service::auth::AuthLayer::new(security.auth.clone()))
         .add_service(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)

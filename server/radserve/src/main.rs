@@ -31,6 +31,20 @@ enum Command {
         /// A TOML configuration file.
         #[arg(long)]
         config: Option<PathBuf>,
+        /// Serve a non-loopback address without authentication (server.insecure): anyone who can
+        /// reach the port can use every session.
+        #[arg(long)]
+        insecure: bool,
+    },
+    /// Print a new bearer token, and the tokens-file entry (its SHA-256 digest) that admits it.
+    Token {
+        /// The principal the token belongs to.
+        #[arg(long)]
+        name: String,
+        /// user (creates and uses its own sessions), monitor (lists and describes every session),
+        /// or admin (everything, on every session).
+        #[arg(long, default_value = "user")]
+        role: String,
     },
     /// List every environment id with its observation and action spaces.
     Envs {
@@ -154,7 +168,7 @@ fn settings(config: &Config) -> anyhow::Result<ServerSettings> {
 
 async fn run(command: Command) -> anyhow::Result<()> {
     match command {
-        Command::Serve { address, workers, config } => {
+        Command::Serve { address, workers, config, insecure } => {
             let mut config = Config::load(config.as_deref())?;
             if let Some(address) = address {
                 config.server.address = address;
@@ -162,7 +176,15 @@ async fn run(command: Command) -> anyhow::Result<()> {
             if let Some(workers) = workers {
                 config.sim.workers = workers;
             }
+            config.server.insecure |= insecure;
             config.validate()?;
+            let security = config.security()?;
+            // The memory files this server holds (frames, batches, acting arrays) reach only the
+            // processes it hands them to: /proc/<pid>/fd is closed to everyone else.
+            radserve_shm::make_undumpable().context("making the server non-dumpable")?;
+            if config.server.insecure && !security.loopback && !security.auth.is_on() {
+                tracing::warn!(address = %config.server.address, "serving WITHOUT authentication on a non-loopback address (--insecure): anyone who can reach it can use every session");
+            }
             let settings = settings(&config)?;
             let listener = TcpListener::bind(&config.server.address)
                 .await
@@ -183,7 +205,8 @@ async fn run(command: Command) -> anyhow::Result<()> {
                 workers.kill_all();
                 std::process::exit(130);
             });
-            let served = radserve::serve(listener, manager, config.serve_options(), async {
+            let options = radserve::ServeOptions { security, ..config.serve_options() };
+            let served = radserve::serve(listener, manager, options, async {
                 let _ = signalled.await;
             })
             .await;
@@ -208,6 +231,20 @@ async fn run(command: Command) -> anyhow::Result<()> {
                     Err(error) => println!("{:<36} unavailable: {error}", entry.id.full()),
                 }
             }
+            Ok(())
+        }
+        Command::Token { name, role } => {
+            let role = match role.as_str() {
+                "user" => "user",
+                "monitor" => "monitor",
+                "admin" => "admin",
+                other => anyhow::bail!("--role is user, monitor or admin, got {other:?}"),
+            };
+            let (token, digest) = radserve_service::auth::new_token().context("drawing random bytes for the token")?;
+            // The token on stdout alone (for `TOKEN=$(radserve token ...)`), the entry on stderr.
+            println!("{token}");
+            eprintln!("# Give the token to {name}; add this entry to the server's auth.tokens_file:");
+            eprintln!("[[principal]]\nname = \"{name}\"\nrole = \"{role}\"\ntoken_sha256 = [\"{digest}\"]");
             Ok(())
         }
         Command::AugmentBench { batch, repeats, threads, filter, json } => {

@@ -22,6 +22,15 @@ async fn connect_socket(name: &str) -> UnixStream {
     UnixStream::from_std(stream).unwrap()
 }
 
+/// Presents the token and takes the memory's descriptor (one byte; read without its descriptor, which
+/// the kernel then closes).
+async fn present(stream: &mut UnixStream, token: &[u8]) {
+    stream.write_all(token).await.unwrap();
+    let mut handed = [0u8; 1];
+    stream.read_exact(&mut handed).await.unwrap();
+    assert_eq!(handed[0], 1);
+}
+
 /// Sends a reset ('R', no seed) and returns the answer's status code.
 async fn reset(stream: &mut UnixStream) -> u32 {
     let mut request = [0u8; 16];
@@ -58,7 +67,7 @@ async fn a_silent_connection_does_not_hold_up_the_client() {
     let _squatters = [connect_socket(&channel.socket).await, connect_socket(&channel.socket).await];
     let started = Instant::now();
     let mut rightful = connect_socket(&channel.socket).await;
-    rightful.write_all(&channel.token).await.unwrap();
+    present(&mut rightful, &channel.token).await;
     assert_eq!(reset(&mut rightful).await, 0);
     // Read one after the other, the squatters would have held the client for the whole connect
     // timeout (10 s); read concurrently, not at all.
@@ -75,7 +84,7 @@ async fn closing_a_session_frees_its_acting_channel() {
         async move {
             let (session_id, channel) = session_with_channel(&mut client).await;
             let mut stream = connect_socket(&channel.socket).await;
-            stream.write_all(&channel.token).await.unwrap();
+            present(&mut stream, &channel.token).await;
             assert_eq!(reset(&mut stream).await, 0);
             client.close_session(proto::CloseSessionRequest { session_id }).await.unwrap();
             // The server ends the channel: the client reads the end of the stream.

@@ -94,11 +94,11 @@ async fn serves_health_reflection_and_answers_bad_input() {
     assert_eq!(third.code(), Code::ResourceExhausted);
     client.close_session(proto::CloseSessionRequest { session_id: second.into_inner().session_id }).await.unwrap();
 
-    let info = server.manager.describe(&session_id).await.unwrap();
+    let info = server.manager.describe(&radserve_core::Principal::local(), &session_id).await.unwrap();
     assert_eq!(info.total_env_steps, 2);
 
     server.stop.send(()).unwrap();
     server.task.await.unwrap().unwrap();
     // Shutting down closed every session.
-    assert!(server.manager.describe(&session_id).await.is_err());
+    assert!(server.manager.describe(&radserve_core::Principal::local(), &session_id).await.is_err());
 }

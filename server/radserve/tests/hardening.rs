@@ -61,7 +61,7 @@ async fn replay_sizes_that_overflow_are_refused_and_the_server_lives() {
     assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
     still_serves(&mut client).await;
     // Nothing was reserved by the refused requests: the whole budget is still free.
-    let info = server.manager.describe(&session_with_replay(&mut client).await).await.unwrap();
+    let info = server.manager.describe(&radserve_core::Principal::local(), &session_with_replay(&mut client).await).await.unwrap();
     assert_eq!(info.replay.unwrap().size, 20);
 }
 
@@ -148,7 +148,7 @@ async fn concurrent_streams_cannot_pass_the_per_session_limit() {
     drop(accepted);
     let deadline = Instant::now() + Duration::from_secs(10);
     loop {
-        let active = server.manager.describe(&session_id).await.unwrap().replay.unwrap().active_streams;
+        let active = server.manager.describe(&radserve_core::Principal::local(), &session_id).await.unwrap().replay.unwrap().active_streams;
         if active == 0 {
             break;
         }

@@ -2,8 +2,8 @@
 //! augments straight into a slot, the learner maps the same memory and reads the batch where it
 //! lies, so no observation byte goes through a socket.
 //!
-//! The memory is a [`MemFile`], as for the workers' frames and acting: the learner opens it through
-//! its `/proc` path and checks the header's token. A slot belongs
+//! The memory is a [`MemFile`], as for the workers' frames and acting: the learner receives its
+//! descriptor over a Unix socket (the service's hand-off) and checks the header's token. A slot belongs
 //! to exactly one holder at a time: the free list, the producer filling it, or the transport until
 //! the learner releases it. [`Slot`] is that ownership; dropping it puts the slot back.
 
@@ -62,9 +62,9 @@ impl SharedRing {
         }))
     }
 
-    /// The path another process of the same user opens to map this memory.
-    pub fn path(&self) -> String {
-        self.memory.proc_path()
+    /// The memory's descriptor, to hand to the learner.
+    pub fn fd(&self) -> std::os::fd::BorrowedFd<'_> {
+        self.memory.fd()
     }
 
     /// Bytes of the memory: the header page and every slot.
@@ -168,7 +168,7 @@ mod tests {
         let (obs, next_obs) = slot.regions_mut(1000);
         obs.fill(7);
         next_obs.fill(9);
-        let peer = MemFile::open(&ring.path()).unwrap();
+        let peer = MemFile::from_fd(ring.fd().try_clone_to_owned().unwrap()).unwrap();
         let peer = peer.as_slice();
         assert_eq!(peer.len(), ring.size_bytes());
         assert_eq!(&peer[..16], SHARED_MAGIC);

@@ -225,7 +225,7 @@ fn shared_output_writes_the_same_batches_into_slots_and_waits_for_free_ones() {
     std::thread::sleep(std::time::Duration::from_millis(100));
     assert!(ready.try_recv().is_err(), "both slots are held: the third batch must wait for one");
     // The learner's view: memory the producer no longer writes into for these batches.
-    let peer = radserve_shm::MemFile::open(&ring.path()).unwrap();
+    let peer = radserve_shm::MemFile::from_fd(ring.fd().try_clone_to_owned().unwrap()).unwrap();
     let peer = peer.as_slice();
     let slot_bytes = |batch: &radserve_replay::Batch, next: bool| {
         let slot = batch.slot.as_ref().expect("shared batches carry their slot");

@@ -8,25 +8,23 @@
 //! down in the proto (`SharedActingChannel`). This is a transport beside the gRPC handlers: it calls
 //! the same `Session::reset`/`Session::step` and answers with the same statuses (`ServiceError`).
 //!
-//! The memory is a memfd opened by the client through `/proc/<server pid>/fd/<fd>` (as the workers'
-//! frames and the shared-memory minibatches are); the socket is in the abstract namespace, so nothing
-//! is left on disk. The channel ends when the connection does, or when no client connected in time.
+//! The memory is a memfd whose descriptor the client receives on the channel's socket once it
+//! presented the token (`crate::handoff`: peer credentials, token, SCM_RIGHTS); the socket is in the
+//! abstract namespace, so nothing is left on disk. The channel ends when the connection does, when
+//! its session is closed, or when no client connected in time.
 
 use std::collections::HashSet;
-use std::io;
-use std::os::linux::net::SocketAddrExt;
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
 
 use radserve_shm::{Header, MemFile};
-use radserve_core::{LeaseHold, SessionManager};
+use radserve_core::principal::log_id;
+use radserve_core::{LeaseHold, Principal, SessionManager};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{UnixListener, UnixStream};
-use tokio::time::{timeout_at, Instant};
 use tonic::{Code, Status};
 use tracing::debug;
 
 use crate::error::{Result, ServiceError};
+use crate::handoff::{HandoffSocket, PeerPolicy};
 use crate::proto;
 
 /// Bytes 0..16 of the region; the token follows.
@@ -35,11 +33,7 @@ pub const ACTING_MAGIC: &[u8; 16] = b"radserve-acting\0";
 const HEADER_BYTES: usize = 64;
 const ARRAY_ALIGN: usize = 64;
 /// How long a client has to connect and present the token after ShareActing answered.
-pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
-/// How long one connection has to present the token once connected.
-const TOKEN_TIMEOUT: Duration = Duration::from_secs(2);
-/// Connections that have not presented the token yet, at most, per channel.
-const MAX_PENDING: usize = 32;
+pub use crate::handoff::CONNECT_TIMEOUT;
 /// A request on the socket: kind, has-seed flag, 6 zero bytes, seed.
 const REQUEST_BYTES: usize = 16;
 
@@ -113,10 +107,13 @@ impl Drop for ChannelClaim {
 /// A channel waiting for its client; `serve` runs it to its end.
 pub struct ActingChannel {
     manager: Arc<SessionManager>,
+    /// Who opened it: every request on it acts as that principal.
+    caller: Principal,
     layout: ActingLayout,
     memory: MemFile,
     token: [u8; 16],
-    listener: UnixListener,
+    socket: HandoffSocket,
+    peers: PeerPolicy,
     _claim: ChannelClaim,
     /// An open channel keeps its session's lease alive, and ends when the session is closed.
     lease: LeaseHold,
@@ -127,11 +124,13 @@ pub struct ActingChannel {
 /// channel to a task that serves it.
 pub async fn open(
     manager: Arc<SessionManager>,
+    caller: Principal,
     session_id: &str,
     open: &OpenChannels,
+    peers: PeerPolicy,
 ) -> Result<(proto::SharedActingChannel, ActingChannel)> {
     let layout = {
-        let session = manager.get(session_id)?;
+        let session = manager.get(&caller, session_id)?;
         let session = session.lock().await;
         ActingLayout::new(session.num_envs(), session.frame_spec.action.num_bytes(), session.observation_space.num_bytes())
     };
@@ -146,20 +145,14 @@ pub async fn open(
         ChannelClaim { open: open.clone(), session_id: session_id.to_string() }
     };
     let memory_reservation = manager
-        .reserve_memory(layout.len as u64, &format!("a shared-memory acting channel of {} bytes", layout.len))?;
+        .reserve_memory(&caller, layout.len as u64, &format!("a shared-memory acting channel of {} bytes", layout.len))?;
     let (memory, Header { token, .. }) = MemFile::create_with_header(c"radserve-acting", layout.len, ACTING_MAGIC)
         .map_err(|error| radserve_core::error::resource_error("creating the acting memory", &error))?;
-    // A name that tells nothing about the server or the token (the abstract namespace is listed in
-    // /proc/net/unix for anyone on the host).
-    let name_bytes = radserve_shm::random_token().map_err(|error| ServiceError::Internal(format!("naming the acting socket: {error}")))?;
-    let name = format!("radserve-acting-{}", hex(&name_bytes));
-    let listener =
-        bind_abstract(&name).map_err(|error| ServiceError::Internal(format!("binding the acting socket: {error}")))?;
+    let socket = HandoffSocket::bind().map_err(|error| ServiceError::Internal(format!("binding the acting socket: {error}")))?;
     let description = proto::SharedActingChannel {
-        path: memory.proc_path(),
         size: memory.len() as u64,
         token: token.to_vec(),
-        socket: name,
+        socket: socket.name().to_string(),
         actions_offset: layout.actions as u64,
         obs_offset: layout.obs as u64,
         final_obs_offset: layout.final_obs as u64,
@@ -169,36 +162,25 @@ pub async fn open(
         episode_return_offset: layout.episode_return as u64,
         episode_length_offset: layout.episode_length as u64,
     };
-    let lease = manager.hold(session_id)?;
+    let lease = manager.hold(&caller, session_id)?;
     let channel =
-        ActingChannel { manager, layout, memory, token, listener, _claim: claim, lease, _memory: memory_reservation };
+        ActingChannel { manager, caller, layout, memory, token, socket, peers, _claim: claim, lease, _memory: memory_reservation };
     Ok((description, channel))
 }
 
-fn bind_abstract(name: &str) -> io::Result<UnixListener> {
-    let address = std::os::unix::net::SocketAddr::from_abstract_name(name.as_bytes())?;
-    let listener = std::os::unix::net::UnixListener::bind_addr(&address)?;
-    listener.set_nonblocking(true)?;
-    UnixListener::from_std(listener)
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|byte| format!("{byte:02x}")).collect()
-}
-
 impl ActingChannel {
-    /// Waits for the client (the first connection that presents the token within `CONNECT_TIMEOUT`),
-    /// then answers its requests until it disconnects or the session is closed; then its memory,
-    /// socket and connection are freed.
+    /// Waits for the client (the first connection of an allowed user that presents the token
+    /// within `CONNECT_TIMEOUT`), hands it the memory, then answers its requests until it
+    /// disconnects or the session is closed; then its memory, socket and connection are freed.
     pub async fn serve(mut self, session_id: String) {
         let closed = self.lease.session_closed();
         tokio::pin!(closed);
         let accepted = tokio::select! {
-            stream = self.accept() => stream,
+            stream = self.socket.hand_over(self.token, self.memory.fd(), &self.peers) => stream,
             () = &mut closed => None,
         };
         let Some(mut stream) = accepted else {
-            debug!(session = %session_id, "no client took the acting channel");
+            debug!(session = log_id(&session_id), "no client took the acting channel");
             return;
         };
         let mut request = [0u8; REQUEST_BYTES];
@@ -222,45 +204,7 @@ impl ActingChannel {
                 break;
             }
         }
-        debug!(session = %session_id, "acting channel closed");
-    }
-
-    /// The first connection that presents the token. Connections are read concurrently, so one that
-    /// connects first and stays silent does not hold up the rightful client; each has
-    /// `TOKEN_TIMEOUT` to present it, and at most `MAX_PENDING` wait at once (more are dropped).
-    async fn accept(&self) -> Option<UnixStream> {
-        let deadline = Instant::now() + CONNECT_TIMEOUT;
-        let mut pending = tokio::task::JoinSet::new();
-        loop {
-            tokio::select! {
-                accepted = self.listener.accept() => {
-                    let Ok((stream, _)) = accepted else {
-                        // Out of descriptors, say: try again shortly instead of spinning.
-                        tokio::time::sleep(Duration::from_millis(10)).await;
-                        continue;
-                    };
-                    if pending.len() >= MAX_PENDING {
-                        continue; // dropped: a flood of silent connections
-                    }
-                    let expected = self.token;
-                    pending.spawn(async move {
-                        let mut stream = stream;
-                        let mut token = [0u8; 16];
-                        let limit = Instant::now() + TOKEN_TIMEOUT;
-                        match timeout_at(limit, stream.read_exact(&mut token)).await {
-                            Ok(Ok(_)) if token == expected => Some(stream),
-                            _ => None,
-                        }
-                    });
-                }
-                Some(presented) = pending.join_next(), if !pending.is_empty() => {
-                    if let Ok(Some(stream)) = presented {
-                        return Some(stream); // the rest of `pending` is dropped, and their connections
-                    }
-                }
-                () = tokio::time::sleep_until(deadline) => return None,
-            }
-        }
+        debug!(session = log_id(&session_id), "acting channel closed");
     }
 
     /// One request: Ok holds the simulator errors of ended episodes, encoded for the answer.
@@ -273,7 +217,7 @@ impl ActingChannel {
             }
         };
         let layout = self.layout;
-        let session = self.manager.get(session_id)?;
+        let session = self.manager.get(&self.caller, session_id)?;
         let mut session = session.lock().await;
         let memory = self.memory.as_mut_slice();
         match request[0] {

@@ -133,6 +133,7 @@ pub fn session_summary_to_proto(summary: &SessionSummary) -> proto::SessionSumma
         idle_seconds: summary.idle.as_secs_f64(),
         open_streams: summary.open_streams as u32,
         age_seconds: summary.age.as_secs_f64(),
+        owner: summary.owner.clone(),
     }
 }
 

@@ -25,6 +25,12 @@ pub enum ServiceError {
     /// The server began to shut down: the stream ends (its session is closed at exit).
     #[error("the server is shutting down; this stream ended (its session is closed at exit)")]
     StreamEnded,
+    /// The request carries no credentials the server accepts (no token, an unknown token).
+    #[error("{0}")]
+    Unauthenticated(String),
+    /// The caller is known but may not do this (an admin-only call, a method its token lacks).
+    #[error("{0}")]
+    PermissionDenied(String),
     /// The server failed in a way that is not the request's fault.
     #[error("{0}")]
     Internal(String),
@@ -61,6 +67,8 @@ impl From<ServiceError> for Status {
             ServiceError::AlreadyOpen(_) => Code::FailedPrecondition,
             ServiceError::TooLate(_) => Code::DeadlineExceeded,
             ServiceError::StreamEnded => Code::Unavailable,
+            ServiceError::Unauthenticated(_) => Code::Unauthenticated,
+            ServiceError::PermissionDenied(_) => Code::PermissionDenied,
             ServiceError::Internal(_) => Code::Internal,
             ServiceError::Transport(status) => status.code(),
         };

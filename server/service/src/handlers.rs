@@ -2,7 +2,8 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use radserve_core::{CoreError, SessionExtras, SessionManager};
+use radserve_core::principal::log_id;
+use radserve_core::{CoreError, Principal, SessionExtras, SessionManager};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
@@ -12,6 +13,7 @@ use tracing::debug;
 use radserve_replay::{Batch, HeldSlots, InFlight, Output, Producer, SharedRing};
 
 use crate::acting::{self, OpenChannels};
+use crate::handoff::{HandoffSocket, PeerPolicy};
 use crate::convert::{self, observation_tensor};
 use crate::error::{Result as ServiceResult, ServiceError};
 use crate::proto::{self, act_request, act_response, rad_serve_server::RadServe};
@@ -37,6 +39,8 @@ pub struct RadServeService {
     augment_pool: Arc<rayon::ThreadPool>,
     /// Sessions with a shared-memory acting channel open.
     acting_channels: OpenChannels,
+    /// Who may receive shared memory on this host.
+    peers: PeerPolicy,
     /// Becomes true when the server starts shutting down: every open stream then ends.
     stopping: watch::Receiver<bool>,
 }
@@ -67,6 +71,23 @@ async fn run_to_end<T: Send + 'static>(
 
 /// When the client stops waiting, from its `grpc-timeout` header (gRPC over HTTP/2: an ASCII
 /// integer of at most 8 digits and a unit, H M S m u n), measured from now.
+/// A task that ends when this is dropped.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// Who made the request: the authentication layer puts the principal in every request it lets
+/// through (`crate::auth`), so a request without one never passed it.
+fn caller<T>(request: &Request<T>) -> ServiceResult<Principal> {
+    request.extensions().get::<Principal>().cloned().ok_or_else(|| {
+        ServiceError::Unauthenticated("this request did not pass the server's authentication layer".into())
+    })
+}
+
 pub fn client_deadline<T>(request: &Request<T>) -> Option<Instant> {
     let value = request.metadata().get("grpc-timeout")?.to_str().ok()?;
     let (digits, unit) = value.split_at(value.len().checked_sub(1)?);
@@ -127,7 +148,7 @@ async fn until_session_closed<T>(
     tokio::select! {
         () = stream => {}
         () = lease.session_closed() => {
-            debug!(session = %session_id, "sample stream ended: its session was closed");
+            debug!(session = log_id(session_id), "sample stream ended: its session was closed");
             end_with(sender, ServiceError::from(CoreError::UnknownSession(session_id.to_string()))).await;
         }
     }
@@ -150,9 +171,13 @@ async fn send_or_stop<T>(sender: &mpsc::Sender<Result<T, Status>>, item: T, stop
 }
 
 impl RadServeService {
-    pub fn new(manager: Arc<SessionManager>, augment_pool: Arc<rayon::ThreadPool>) -> (RadServeService, StreamStopper) {
+    pub fn new(
+        manager: Arc<SessionManager>,
+        augment_pool: Arc<rayon::ThreadPool>,
+        peers: PeerPolicy,
+    ) -> (RadServeService, StreamStopper) {
         let (stop, stopping) = watch::channel(false);
-        (RadServeService { manager, augment_pool, acting_channels: OpenChannels::default(), stopping }, StreamStopper(stop))
+        (RadServeService { manager, augment_pool, acting_channels: OpenChannels::default(), peers, stopping }, StreamStopper(stop))
     }
 
     /// Resets and steps run to their end in a task of their own, even when the caller stops waiting
@@ -160,8 +185,8 @@ impl RadServeService {
     /// a step ahead of the session's stacks and replay. What the deadline can still prevent is
     /// checked once the session is free: a request whose client deadline has passed by then is
     /// answered DEADLINE_EXCEEDED without being sent.
-    async fn reset(&self, request: proto::ResetRequest, deadline: Option<Instant>) -> ServiceResult<proto::ResetResponse> {
-        let session = self.manager.get(&request.session_id)?;
+    async fn reset(&self, caller: &Principal, request: proto::ResetRequest, deadline: Option<Instant>) -> ServiceResult<proto::ResetResponse> {
+        let session = self.manager.get(caller, &request.session_id)?;
         run_to_end(async move {
             let mut session = session.lock().await;
             check_deadline(deadline, "Reset")?;
@@ -171,10 +196,10 @@ impl RadServeService {
         .await
     }
 
-    async fn step(&self, request: proto::StepRequest, deadline: Option<Instant>) -> ServiceResult<proto::StepResponse> {
+    async fn step(&self, caller: &Principal, request: proto::StepRequest, deadline: Option<Instant>) -> ServiceResult<proto::StepResponse> {
         let (dtype, shape) = convert::tensor_header(request.actions.as_ref(), "actions")?;
         let actions = request.actions.map(|tensor| tensor.data).unwrap_or_default();
-        let session = self.manager.get(&request.session_id)?;
+        let session = self.manager.get(caller, &request.session_id)?;
         run_to_end(async move {
             let mut session = session.lock().await;
             check_deadline(deadline, "Step")?;
@@ -184,10 +209,10 @@ impl RadServeService {
         .await
     }
 
-    async fn act_once(&self, request: proto::ActRequest) -> ServiceResult<proto::ActResponse> {
+    async fn act_once(&self, caller: &Principal, request: proto::ActRequest) -> ServiceResult<proto::ActResponse> {
         let response = match request.request {
-            Some(act_request::Request::Reset(reset)) => act_response::Response::Reset(self.reset(reset, None).await?),
-            Some(act_request::Request::Step(step)) => act_response::Response::Step(self.step(step, None).await?),
+            Some(act_request::Request::Reset(reset)) => act_response::Response::Reset(self.reset(caller, reset, None).await?),
+            Some(act_request::Request::Step(step)) => act_response::Response::Step(self.step(caller, step, None).await?),
             None => return Err(ServiceError::BadRequest("ActRequest must hold a reset or a step".into())),
         };
         Ok(proto::ActResponse { response: Some(response) })
@@ -216,11 +241,13 @@ impl RadServe for RadServeService {
         &self,
         request: Request<proto::CreateSessionRequest>,
     ) -> Result<Response<proto::SessionInfo>, Status> {
+        let caller = caller(&request)?;
         let request = request.into_inner();
         let options = convert::options_from_proto(&request.options)?;
         let info = self
             .manager
             .create_session(
+                &caller,
                 &request.env_id,
                 request.num_envs as usize,
                 request.seed,
@@ -237,9 +264,9 @@ impl RadServe for RadServeService {
 
     async fn list_sessions(
         &self,
-        _request: Request<proto::ListSessionsRequest>,
+        request: Request<proto::ListSessionsRequest>,
     ) -> Result<Response<proto::ListSessionsResponse>, Status> {
-        let sessions = self.manager.list_sessions().iter().map(convert::session_summary_to_proto).collect();
+        let sessions = self.manager.list_sessions(&caller(&request)?).iter().map(convert::session_summary_to_proto).collect();
         let idle_timeout_seconds = self.manager.idle_timeout().map_or(0.0, |timeout| timeout.as_secs_f64());
         Ok(Response::new(proto::ListSessionsResponse { sessions, idle_timeout_seconds }))
     }
@@ -248,7 +275,8 @@ impl RadServe for RadServeService {
         &self,
         request: Request<proto::DescribeSessionRequest>,
     ) -> Result<Response<proto::SessionInfo>, Status> {
-        let info = self.manager.describe(&request.into_inner().session_id).await.map_err(ServiceError::from)?;
+        let caller = caller(&request)?;
+        let info = self.manager.describe(&caller, &request.into_inner().session_id).await.map_err(ServiceError::from)?;
         Ok(Response::new(convert::session_info_to_proto(&info)))
     }
 
@@ -256,23 +284,25 @@ impl RadServe for RadServeService {
         &self,
         request: Request<proto::CloseSessionRequest>,
     ) -> Result<Response<proto::CloseSessionResponse>, Status> {
-        self.manager.close_session(&request.into_inner().session_id).await.map_err(ServiceError::from)?;
+        let caller = caller(&request)?;
+        self.manager.close_session(&caller, &request.into_inner().session_id).await.map_err(ServiceError::from)?;
         Ok(Response::new(proto::CloseSessionResponse {}))
     }
 
     async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {
-        let deadline = client_deadline(&request);
-        Ok(Response::new(RadServeService::reset(self, request.into_inner(), deadline).await?))
+        let (caller, deadline) = (caller(&request)?, client_deadline(&request));
+        Ok(Response::new(RadServeService::reset(self, &caller, request.into_inner(), deadline).await?))
     }
 
     async fn step(&self, request: Request<proto::StepRequest>) -> Result<Response<proto::StepResponse>, Status> {
-        let deadline = client_deadline(&request);
-        Ok(Response::new(RadServeService::step(self, request.into_inner(), deadline).await?))
+        let (caller, deadline) = (caller(&request)?, client_deadline(&request));
+        Ok(Response::new(RadServeService::step(self, &caller, request.into_inner(), deadline).await?))
     }
 
     type ActStream = ActStream;
 
     async fn act(&self, request: Request<Streaming<proto::ActRequest>>) -> Result<Response<ActStream>, Status> {
+        let caller = caller(&request)?;
         let mut inbound = request.into_inner();
         let (sender, receiver) = mpsc::channel(ACT_STREAM_BUFFER);
         let service = self.clone();
@@ -288,7 +318,7 @@ impl RadServe for RadServeService {
                 };
                 let Some(message) = message else { break };
                 let outcome = match message {
-                    Ok(request) => service.act_once(request).await.map_err(Status::from),
+                    Ok(request) => service.act_once(&caller, request).await.map_err(Status::from),
                     Err(status) => Err(status),
                 };
                 let outcome = match outcome {
@@ -312,8 +342,12 @@ impl RadServe for RadServeService {
         &self,
         request: Request<proto::ShareActingRequest>,
     ) -> Result<Response<proto::SharedActingChannel>, Status> {
+        let caller = caller(&request)?;
         let session_id = request.into_inner().session_id;
-        let (description, channel) = acting::open(self.manager.clone(), &session_id, &self.acting_channels).await.map_err(Status::from)?;
+        let (description, channel) =
+            acting::open(self.manager.clone(), caller, &session_id, &self.acting_channels, self.peers.clone())
+                .await
+                .map_err(Status::from)?;
         tokio::spawn(channel.serve(session_id));
         Ok(Response::new(description))
     }
@@ -324,7 +358,8 @@ impl RadServe for RadServeService {
         &self,
         request: Request<proto::SampleBatchesRequest>,
     ) -> Result<Response<SampleStream>, Status> {
-        Ok(Response::new(self.open_sample_stream(request.into_inner()).await?))
+        let caller = caller(&request)?;
+        Ok(Response::new(self.open_sample_stream(&caller, request.into_inner()).await?))
     }
 
     type SampleBatchesSharedStream = SharedSampleStream;
@@ -333,7 +368,8 @@ impl RadServe for RadServeService {
         &self,
         request: Request<Streaming<proto::SharedSampleRequest>>,
     ) -> Result<Response<SharedSampleStream>, Status> {
-        Ok(Response::new(self.open_shared_sample_stream(request.into_inner()).await?))
+        let caller = caller(&request)?;
+        Ok(Response::new(self.open_shared_sample_stream(&caller, request.into_inner()).await?))
     }
 }
 
@@ -350,17 +386,17 @@ type StreamHolds = (radserve_core::LeaseHold, radserve_core::budget::Reservation
 
 impl RadServeService {
     /// Everything a sample stream needs is checked here, before it starts.
-    async fn start_stream(&self, request: &proto::SampleBatchesRequest) -> ServiceResult<StreamStart> {
+    async fn start_stream(&self, caller: &Principal, request: &proto::SampleBatchesRequest) -> ServiceResult<StreamStart> {
         let spec = convert::sample_spec_from_proto(request)?;
-        let source = self.manager.replay_source(&request.session_id).await?;
-        let lease = self.manager.hold(&request.session_id)?;
+        let source = self.manager.replay_source(caller, &request.session_id).await?;
+        let lease = self.manager.hold(caller, &request.session_id)?;
         let producer = Producer::new(source.buffer, source.format, spec)?.with_permit(source.permit);
-        let memory = self.manager.reserve_stream(producer.stream_memory_bytes(), producer.prefetch())?;
+        let memory = self.manager.reserve_stream(caller, producer.stream_memory_bytes(), producer.prefetch())?;
         Ok(StreamStart { producer, action_space: source.action_space, holds: (lease, memory) })
     }
 
-    async fn open_sample_stream(&self, request: proto::SampleBatchesRequest) -> ServiceResult<SampleStream> {
-        let StreamStart { producer, action_space, holds } = self.start_stream(&request).await?;
+    async fn open_sample_stream(&self, caller: &Principal, request: proto::SampleBatchesRequest) -> ServiceResult<SampleStream> {
+        let StreamStart { producer, action_space, holds } = self.start_stream(caller, &request).await?;
         let chunk_bytes = convert::chunk_bytes(request.chunk_bytes)?;
         let (mut ready, recycler) = producer.start(self.augment_pool.clone(), Output::Heap);
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
@@ -376,7 +412,7 @@ impl RadServeService {
                     let batch = tokio::select! {
                         batch = ready.recv() => batch,
                         () = sender.closed() => {
-                            debug!(session = %session_id, "sample stream cancelled while waiting");
+                            debug!(session = log_id(&session_id), "sample stream cancelled while waiting");
                             return;
                         }
                         () = stopped(stopping.clone()) => {
@@ -403,12 +439,12 @@ impl RadServeService {
                     for chunk in chunks {
                         // Not sent: the client left or the server stops; dropping `ready` stops the producer.
                         if !send_or_stop(&sender, chunk, &stopping).await {
-                            debug!(session = %session_id, "sample stream ended before its batch was sent");
+                            debug!(session = log_id(&session_id), "sample stream ended before its batch was sent");
                             return;
                         }
                     }
                 }
-                debug!(session = %session_id, "sample stream ended");
+                debug!(session = log_id(&session_id), "sample stream ended");
             };
             until_session_closed(stream, holds, &sender, &session_id).await;
         });
@@ -444,11 +480,12 @@ impl RadServeService {
 
     async fn open_shared_sample_stream(
         &self,
+        caller: &Principal,
         mut inbound: Streaming<proto::SharedSampleRequest>,
     ) -> ServiceResult<SharedSampleStream> {
         use proto::{shared_sample_request::Request as Inbound, shared_sample_response::Response as Outbound};
         let start = Self::first_shared_request(&mut inbound).await?;
-        let StreamStart { producer, action_space, holds } = self.start_stream(&start).await?;
+        let StreamStart { producer, action_space, holds } = self.start_stream(caller, &start).await?;
         // A slot per batch waiting in the prefetch queue, one being filled and one the learner
         // reads: the producer never waits on a learner that releases each batch before the next.
         let slots = producer.prefetch() + 2;
@@ -456,12 +493,22 @@ impl RadServeService {
             let what = format!("creating {slots} shared-memory slots of 2 x {} bytes for the batches", producer.observation_bytes());
             radserve_core::error::resource_error(&what, &error)
         })?;
+        let socket = HandoffSocket::bind()
+            .map_err(|error| ServiceError::Internal(format!("binding the batch memory's socket: {error}")))?;
         let region = proto::SharedMemoryRegion {
-            path: ring.path(),
             size: ring.size_bytes() as u64,
             token: ring.token().to_vec(),
             slots: ring.slots() as u32,
             slot_bytes: ring.slot_bytes() as u64,
+            socket: socket.name().to_string(),
+        };
+        // The learner collects the memory's descriptor while the stream runs; ending the stream
+        // ends the offer (and with it the last reference to the ring outside the producer).
+        let offer = {
+            let (ring, peers) = (ring.clone(), self.peers.clone());
+            AbortOnDrop(tokio::spawn(async move {
+                drop(socket.hand_over(ring.token(), ring.fd(), &peers).await);
+            }))
         };
         let (mut ready, _recycler) = producer.start(self.augment_pool.clone(), Output::Shared(ring));
         let (sender, receiver) = mpsc::channel(SHARED_STREAM_BUFFER);
@@ -472,6 +519,7 @@ impl RadServeService {
         let session_id = start.session_id;
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
+            let _offer = offer;
             let stream = async {
                 // Slots of batches sent and not yet released; releasing one hands it back to the producer.
                 let mut held = HeldSlots::default();
@@ -484,7 +532,7 @@ impl RadServeService {
                             held.hold(index, slot);
                             let response = proto::SharedSampleResponse { response: Some(Outbound::Batch(message)) };
                             if !send_or_stop(&sender, response, &stopping).await {
-                                debug!(session = %session_id, "shared sample stream cancelled");
+                                debug!(session = log_id(&session_id), "shared sample stream cancelled");
                                 return;
                             }
                         }
@@ -498,7 +546,7 @@ impl RadServeService {
                                 )),
                                 // The client closed its side or left: dropping `ready` stops the producer.
                                 Ok(None) | Err(_) => {
-                                    debug!(session = %session_id, "shared sample stream closed by the client");
+                                    debug!(session = log_id(&session_id), "shared sample stream closed by the client");
                                     return;
                                 }
                             };
@@ -508,7 +556,7 @@ impl RadServeService {
                             }
                         }
                         () = sender.closed() => {
-                            debug!(session = %session_id, "shared sample stream cancelled");
+                            debug!(session = log_id(&session_id), "shared sample stream cancelled");
                             return;
                         }
                         () = stopped(stopping.clone()) => {
@@ -517,7 +565,7 @@ impl RadServeService {
                         }
                     }
                 }
-                debug!(session = %session_id, "shared sample stream ended");
+                debug!(session = log_id(&session_id), "shared sample stream ended");
             };
             until_session_closed(stream, holds, &sender, &session_id).await;
         });

@@ -6,9 +6,11 @@
 #![warn(clippy::wildcard_enum_match_arm)]
 
 pub mod acting;
+pub mod auth;
 pub mod codec;
 pub mod convert;
 pub mod error;
+pub mod handoff;
 pub mod handlers;
 
 pub mod proto {

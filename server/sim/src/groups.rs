@@ -10,7 +10,7 @@ use radserve_core::{EnvGroup, EnvId, EnvNames, EnvSpec, FrameLayout, Options, Si
 use radserve_shm::MemFile;
 
 use crate::pool::{await_generation, WorkerFault, WorkerHandle, WorkerPool};
-use crate::protocol::{GroupConfig, Request, Response};
+use crate::protocol::{GroupConfig, PassedFd, Request, Response};
 
 /// Group ids are unique in the server (a worker hosts groups of many sessions).
 static NEXT_GROUP: AtomicU64 = AtomicU64::new(1);
@@ -195,7 +195,14 @@ impl Simulators for WorkerPool {
         }
         let mut attached = Vec::new();
         for group in &groups {
-            let request = Request::Attach { group: group.id, shm_path: group.frames.proc_path(), shm_len: group.frames.len() };
+            let memory = match group.frames.fd().try_clone_to_owned() {
+                Ok(fd) => PassedFd::new(fd),
+                Err(err) => {
+                    WorkerPool::close_all(built()).await;
+                    return Err(SimulatorError::allocation("passing the session's shared frames", &err));
+                }
+            };
+            let request = Request::Attach { group: group.id, shm_len: group.frames.len(), memory };
             attached.push(group.worker.submit(request).await);
         }
         for group in &groups {

@@ -3,6 +3,7 @@
 
 use std::collections::{BTreeMap, HashSet};
 use std::io;
+use std::os::fd::{AsFd, AsRawFd};
 use std::path::PathBuf;
 use std::process::Stdio;
 use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
@@ -14,7 +15,7 @@ use tokio::process::{Child, ChildStdin, ChildStdout, Command};
 use tokio::sync::{mpsc, oneshot, watch};
 use tracing::{info, warn};
 
-use crate::protocol::{self, Request, Response};
+use crate::protocol::{self, PassedFd, Request, Response};
 use crate::worker::GlBackend;
 
 /// How to start a worker: the same binary in its `worker` mode.
@@ -52,7 +53,11 @@ const BACKGROUND_NICENESS: libc::c_int = 19;
 
 impl WorkerLauncher {
     pub(crate) async fn spawn(&self) -> io::Result<WorkerProcess> {
-        let mut child = Command::new(&self.program)
+        // Descriptors (the groups' frame memory) go to the worker over a socket pair, its end at fd 3.
+        let (fds, worker_end) = std::os::unix::net::UnixStream::pair()?;
+        let worker_fd = worker_end.as_raw_fd();
+        let mut command = Command::new(&self.program);
+        command
             .arg("worker")
             .arg("--venv")
             .arg(&self.venv)
@@ -61,18 +66,39 @@ impl WorkerLauncher {
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
-            .kill_on_drop(true)
-            .spawn()?;
+            .kill_on_drop(true);
+        // SAFETY: between fork and exec only async-signal-safe calls (dup2, fcntl) on descriptors
+        // this process owns; dup2 clears close-on-exec on fd 3, fcntl does when it is already fd 3.
+        unsafe {
+            command.pre_exec(move || {
+                let result = if worker_fd == WORKER_FD_SOCKET {
+                    libc::fcntl(worker_fd, libc::F_SETFD, 0)
+                } else {
+                    libc::dup2(worker_fd, WORKER_FD_SOCKET)
+                };
+                if result < 0 {
+                    return Err(io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let mut child = command.spawn()?;
+        drop(worker_end);
         let stdin = child.stdin.take().expect("stdin is piped");
         let stdout = child.stdout.take().expect("stdout is piped");
-        Ok(WorkerProcess { child, stdin, stdout, registration: None })
+        Ok(WorkerProcess { child, stdin, stdout, fds, registration: None })
     }
 }
+
+/// The worker's end of its descriptor socket.
+pub const WORKER_FD_SOCKET: libc::c_int = 3;
 
 pub struct WorkerProcess {
     child: Child,
     stdin: ChildStdin,
     stdout: ChildStdout,
+    /// The server's end of the descriptor socket.
+    fds: std::os::unix::net::UnixStream,
     /// A transient worker's entry among the pool's, removed when the process is dropped (killed).
     registration: Option<Registration>,
 }
@@ -103,6 +129,11 @@ impl WorkerProcess {
 
     /// Sends one request and waits for its response. An I/O error means the worker is gone.
     pub async fn call(&mut self, request: &Request) -> io::Result<Response> {
+        if let Request::Attach { memory: PassedFd(Some(fd)), .. } = request {
+            // Before the request, so the worker finds it when it reads the request. One byte into a
+            // socket the worker drains once per Attach: it does not block.
+            radserve_shm::send_fd(&self.fds, fd.as_fd(), 0)?;
+        }
         self.stdin.write_all(&protocol::encode(request)?).await?;
         self.stdin.flush().await?;
         let mut header = [0u8; 4];

@@ -2,12 +2,36 @@
 //! body. Observations do not travel here; workers write them into the group's frame memory.
 
 use std::io::{self, Read, Write};
+use std::os::fd::OwnedFd;
+use std::sync::Arc;
 
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 pub use radserve_core::simulators::{EnvSpec, StepResult};
 use radserve_core::{EnvNames, Family, Options};
+
+/// A descriptor the server sends beside a request (not serialized: it travels as SCM_RIGHTS). Kept
+/// with the request so that a restarted worker gets it again when its groups are rebuilt.
+#[derive(Clone, Debug, Default)]
+pub struct PassedFd(pub Option<Arc<OwnedFd>>);
+
+impl PassedFd {
+    pub fn new(fd: OwnedFd) -> PassedFd {
+        PassedFd(Some(Arc::new(fd)))
+    }
+}
+
+impl PartialEq for PassedFd {
+    /// The same descriptor, or both none (a decoded request never has one).
+    fn eq(&self, other: &PassedFd) -> bool {
+        match (&self.0, &other.0) {
+            (Some(mine), Some(theirs)) => Arc::ptr_eq(mine, theirs),
+            (None, None) => true,
+            (Some(_), None) | (None, Some(_)) => false,
+        }
+    }
+}
 
 /// Largest message either side accepts (actions of a large session are well below this).
 pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
@@ -30,8 +54,14 @@ pub enum Request {
     Specs { entries: Vec<(Family, String, Options)> },
     /// Builds the group's environments; the reply carries their spec, which sizes the shared memory.
     CreateGroup(GroupConfig),
-    /// Maps the shared memory the group writes its frames into (a `MemFile`'s `/proc` path).
-    Attach { group: u64, shm_path: String, shm_len: usize },
+    /// Maps the shared memory the group writes its frames into: its descriptor goes over the
+    /// worker's descriptor socket (fd 3) just before this request, sent from `memory`.
+    Attach {
+        group: u64,
+        shm_len: usize,
+        #[serde(skip)]
+        memory: PassedFd,
+    },
     Reset { group: u64, seeds: Option<Vec<u64>> },
     /// Actions of every environment of the group, raw little-endian bytes of the action dtype.
     Step { group: u64, actions: Vec<u8> },

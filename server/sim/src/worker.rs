@@ -12,6 +12,7 @@ use std::io::{self, BufReader, BufWriter};
 use std::mem::MaybeUninit;
 use std::os::fd::FromRawFd;
 use std::os::unix::ffi::OsStrExt;
+use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 
 use pyo3::exceptions::PyValueError;
@@ -62,6 +63,11 @@ pub struct WorkerArgs {
 /// Runs a worker until the server closes its end of the protocol stream.
 pub fn run_worker(args: &WorkerArgs) -> Result<(), String> {
     let (mut input, mut output) = take_protocol_streams().map_err(|err| format!("protocol streams: {err}"))?;
+    // SAFETY: the server starts every worker with its descriptor socket at this fd (pool.rs), and
+    // nothing else in this process owns it.
+    let fds = unsafe { UnixStream::from_raw_fd(crate::pool::WORKER_FD_SOCKET) };
+    // The frames of the sessions hosted here reach only this process and the server's.
+    radserve_shm::make_undumpable().map_err(|err| format!("making the worker non-dumpable: {err}"))?;
     // MuJoCo may write MUJOCO_LOG.TXT into the working directory; keep it out of the user's.
     let workdir = std::env::temp_dir().join(format!("radserve-worker-{}", std::process::id()));
     if std::fs::create_dir_all(&workdir).is_ok() {
@@ -72,7 +78,7 @@ pub fn run_worker(args: &WorkerArgs) -> Result<(), String> {
     std::env::set_var("TF_CPP_MIN_LOG_LEVEL", "3");
     init_python(&args.venv)?;
     // The interpreter is never finalized: simulators' native threads and GL contexts do not survive it.
-    let result = Python::attach(|py| serve(py, &mut input, &mut output));
+    let result = Python::attach(|py| serve(py, &mut input, &mut output, &fds));
     let _ = std::fs::remove_dir_all(&workdir);
     result
 }
@@ -152,7 +158,7 @@ struct HostedGroup {
     frames: Option<MemFile>,
 }
 
-fn serve(py: Python<'_>, input: &mut BufReader<File>, output: &mut BufWriter<File>) -> Result<(), String> {
+fn serve(py: Python<'_>, input: &mut BufReader<File>, output: &mut BufWriter<File>, fds: &UnixStream) -> Result<(), String> {
     let source = CString::new(ADAPTERS_SOURCE).map_err(|err| err.to_string())?;
     let module = PyModule::from_code(py, &source, c"radserve_worker.py", c"radserve_worker")
         .map_err(|err| format!("loading the environment adapters: {err}"))?;
@@ -164,7 +170,7 @@ fn serve(py: Python<'_>, input: &mut BufReader<File>, output: &mut BufWriter<Fil
             Ok(None) => return Ok(()),
             Err(err) => return Err(format!("reading a request: {err}")),
         };
-        let response = handle(py, &module, &mut groups, request).unwrap_or_else(|err| Response::Failed(err.to_string()));
+        let response = handle(py, &module, &mut groups, fds, request).unwrap_or_else(|err| Response::Failed(err.to_string()));
         protocol::write_blocking(output, &response).map_err(|err| format!("writing a response: {err}"))?;
     }
 }
@@ -173,6 +179,7 @@ fn handle(
     py: Python<'_>,
     module: &Bound<'_, PyModule>,
     groups: &mut HashMap<u64, HostedGroup>,
+    fds: &UnixStream,
     request: Request,
 ) -> PyResult<Response> {
     match request {
@@ -205,10 +212,17 @@ fn handle(
             groups.insert(group, HostedGroup { object: object.unbind(), view: None, frames: None });
             Ok(Response::Created(spec))
         }
-        Request::Attach { group, shm_path, shm_len } => {
+        Request::Attach { group, shm_len, .. } => {
+            // The descriptor was sent just before the request: take it first, whatever follows.
+            let received = radserve_shm::receive_fd(fds);
             let hosted = hosted_group(groups, group)?;
-            let mut frames = MemFile::open(&shm_path)
-                .map_err(|err| PyValueError::new_err(format!("mapping {shm_path}: {err}")))?;
+            let fd = match received {
+                Ok((_, Some(fd))) => fd,
+                Ok((_, None)) => return Err(PyValueError::new_err("the server sent no frame memory with Attach")),
+                Err(err) => return Err(PyValueError::new_err(format!("receiving the frame memory: {err}"))),
+            };
+            let mut frames =
+                MemFile::from_fd(fd).map_err(|err| PyValueError::new_err(format!("mapping the frame memory: {err}")))?;
             if frames.len() < shm_len {
                 return Err(PyValueError::new_err(format!("shared memory holds {} bytes, expected {shm_len}", frames.len())));
             }

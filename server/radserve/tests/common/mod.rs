@@ -12,7 +12,10 @@ use radserve_sim::GlBackend;
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
+use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
+use prost::bytes::{Buf, BufMut};
 use tonic::transport::Channel;
+use tonic::Status;
 
 pub struct TestServer {
     pub address: String,
@@ -53,11 +56,20 @@ pub async fn start_server_with(limits: Limits, adjust: impl FnOnce(&mut ServerSe
 /// The same server over the fake simulators (`radserve_core::fake`): the transport and the core
 /// end to end, with faults injected, and no worker process.
 pub async fn start_fake_server(limits: Limits, processes: usize) -> (TestServer, Arc<radserve_core::fake::FakeSimulators>) {
+    start_fake_server_with(limits, processes, radserve::ServeOptions::default()).await
+}
+
+/// The fake server with serving options of the test's own (authentication, TLS).
+pub async fn start_fake_server_with(
+    limits: Limits,
+    processes: usize,
+    options: radserve::ServeOptions,
+) -> (TestServer, Arc<radserve_core::fake::FakeSimulators>) {
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = format!("http://{}", listener.local_addr().unwrap());
     let simulators = radserve_core::fake::FakeSimulators::new(processes);
     let manager = Arc::new(SessionManager::new(simulators.clone(), limits));
-    let options = radserve::ServeOptions { augment_threads: 1, ..radserve::ServeOptions::default() };
+    let options = radserve::ServeOptions { augment_threads: 1, ..options };
     let (stop, stopped) = oneshot::channel::<()>();
     let task = tokio::spawn(radserve::serve(listener, manager.clone(), options, async {
         let _ = stopped.await;
@@ -85,3 +97,42 @@ pub fn f32_tensor(shape: &[i64], values: &[f32]) -> proto::Tensor {
     }
 }
 
+
+/// Any method's message as raw bytes, sent and received as they are (no protobuf on the client).
+#[derive(Clone, Copy, Default)]
+pub struct RawCodec;
+
+impl Codec for RawCodec {
+    type Encode = Vec<u8>;
+    type Decode = Vec<u8>;
+    type Encoder = RawCodec;
+    type Decoder = RawCodec;
+
+    fn encoder(&mut self) -> Self::Encoder {
+        RawCodec
+    }
+
+    fn decoder(&mut self) -> Self::Decoder {
+        RawCodec
+    }
+}
+
+impl Encoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+
+    fn encode(&mut self, item: Vec<u8>, dst: &mut EncodeBuf<'_>) -> Result<(), Status> {
+        dst.put_slice(&item);
+        Ok(())
+    }
+}
+
+impl Decoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+
+    fn decode(&mut self, src: &mut DecodeBuf<'_>) -> Result<Option<Vec<u8>>, Status> {
+        let bytes = src.copy_to_bytes(src.remaining());
+        Ok(Some(bytes.to_vec()))
+    }
+}
