@@ -7,7 +7,7 @@ TORCH_STAMP := $(VENV)/.installed-torch
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build demo test test-rust test-python test-learners fuzz soak bench bench-sim bench-augment bench-replay bench-learning preview torch lock proto clean
+.PHONY: setup system-libs build demo test test-rust test-python test-learners fuzz soak bench bench-sim bench-augment bench-replay bench-security bench-learning preview torch lock proto clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -77,9 +77,12 @@ $(TORCH_STAMP): requirements-torch.lock $(STAMP)
 	$(PYTHON) -m pip install -q -r requirements-torch.lock
 	touch $(TORCH_STAMP)
 
-## bench: every benchmark table (simulator throughput, augmentation kernels vs PyTorch, replay streams)
-## (the learning checks take hours on two cores: make bench-learning runs them one by one)
-bench: bench-sim bench-augment bench-replay
+## bench: every benchmark table (simulator throughput, augmentation kernels vs PyTorch, replay streams,
+## what tokens and TLS cost) (the learning checks take hours on two cores: make bench-learning runs them)
+bench: bench-sim bench-augment bench-replay bench-security
+
+bench-security: setup
+	$(PYTHON) bench/security_overhead.py --rounds 6 --steps 6000 --batches 120
 
 bench-sim: setup
 	$(PYTHON) bench/sim_throughput.py
