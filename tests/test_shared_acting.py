@@ -273,3 +273,37 @@ def test_other_processes_of_the_same_user_cannot_map_the_memory_by_proc():
     finally:
         holder.kill()
         holder.wait()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to run a process as another user")
+def test_another_user_gets_no_descriptor_even_with_the_token(client):
+    """SO_PEERCRED: a connection from a uid the server does not allow is dropped before it is read,
+    so even the right token (which another user could only have stolen) hands nothing over."""
+    envs = client.make_vec("gym/CartPole-v1", num_envs=1)
+    try:
+        channel = client._stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
+        stranger = "\n".join([
+            "import socket, sys",
+            "s = socket.socket(socket.AF_UNIX)",
+            "s.connect('\\0' + sys.argv[1])",
+            "s.settimeout(10)",
+            "try:",
+            "    s.sendall(bytes.fromhex(sys.argv[2]))",
+            "    data, fds, _, _ = socket.recv_fds(s, 1, 1)",
+            "    print(len(data), len(fds))",
+            "except (BrokenPipeError, ConnectionResetError):",
+            "    print(0, 0)",
+        ])
+        result = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", "--", sys.executable,
+                                 "-c", stranger, channel.socket, channel.token.hex()], capture_output=True, text=True,
+                                timeout=30)
+        assert result.returncode == 0, result.stderr
+        assert result.stdout.split() == ["0", "0"], "another user's connection was closed without data or descriptor"
+        # The rightful client still gets the channel.
+        sock = _connect(channel, channel.token)
+        handed, fds, _, _ = socket.recv_fds(sock, 1, 1)
+        assert handed == b"\x01" and len(fds) == 1
+        os.close(fds[0])
+        sock.close()
+    finally:
+        envs.close()
