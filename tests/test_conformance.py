@@ -90,11 +90,11 @@ class EnvContract:
             else:
                 pytest.fail(f"no episode of {self.env_id} ended within {self.max_steps_to_episode_end} steps")
             np.testing.assert_array_equal(infos["_final_obs"], done)
-            np.testing.assert_array_equal(infos["_episode"], done)
+            np.testing.assert_array_equal(infos["_radserve_episode"], done)
             for i in np.flatnonzero(done):
                 assert infos["final_obs"][i].shape == envs.single_observation_space.shape
-                assert infos["episode"]["l"][i] == lengths[i]
-                assert infos["episode"]["r"][i] == pytest.approx(returns[i])
+                assert infos["radserve_episode"]["l"][i] == lengths[i]
+                assert infos["radserve_episode"]["r"][i] == pytest.approx(returns[i])
             # The session keeps going: the next step continues the new episodes.
             envs.step(self.random_actions(envs, rng))
         finally:

@@ -131,7 +131,7 @@ def test_a_dead_worker_ends_its_episodes_and_is_replaced(server, client, catalog
         # One env lived in the killed worker: its episode ended, reported with the reason.
         assert truncated.sum() == 1
         i = int(np.flatnonzero(truncated)[0])
-        assert "died" in infos["error"][i]
+        assert "died" in infos["radserve_error"][i]
         assert infos["final_obs"][i].shape == (17,)
         after = worker_pids(server.process.pid)
         assert len(after) == 2 and before[0] not in after

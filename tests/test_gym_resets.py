@@ -39,7 +39,10 @@ def test_seeds_as_gymnasium_passes_them(client):
         np.testing.assert_array_equal(by_int, by_list)
         np.testing.assert_array_equal(by_int, by_numpy)
         envs.reset(seed=[None, None, None])
-        for bad in (-1, [1, 7, 2], [5, 6], 2.5, "5", True):
+        # Any seed per env, as gymnasium takes them: env 1 seeded 6 starts as env 1 of the first reset.
+        by_env, _ = envs.reset(seed=[1, 6, 2])
+        np.testing.assert_array_equal(by_env[1], by_int[1])
+        for bad in (-1, [1, None, 2], [5, 6], 2.5, "5", True):
             with pytest.raises(radserve.InvalidArgumentError):
                 envs.reset(seed=bad)
     finally:

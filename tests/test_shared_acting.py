@@ -30,13 +30,13 @@ def assert_same_step(want, have):
         assert a.dtype == b.dtype
     assert want[4].keys() == have[4].keys()
     if want[4]:
-        for key in ("_final_obs", "_episode"):
+        for key in ("_final_obs", "_radserve_episode"):
             np.testing.assert_array_equal(want[4][key], have[4][key])
         for key in ("r", "l"):
-            np.testing.assert_array_equal(want[4]["episode"][key], have[4]["episode"][key])
+            np.testing.assert_array_equal(want[4]["radserve_episode"][key], have[4]["radserve_episode"][key])
         for i in np.flatnonzero(want[4]["_final_obs"]):
             np.testing.assert_array_equal(want[4]["final_obs"][i], have[4]["final_obs"][i])
-            assert want[4]["final_info"][i] == have[4]["final_info"][i]
+        assert want[4]["final_info"] == have[4]["final_info"]
 
 
 @pytest.mark.parametrize(
@@ -108,7 +108,7 @@ def test_a_dead_worker_ends_its_episodes_with_the_reason(server, client, catalog
         _, _, _, truncated, infos = envs.step(np.zeros((2, 6), np.float32))
         assert truncated.sum() == 1
         i = int(np.flatnonzero(truncated)[0])
-        assert "died" in infos["error"][i] and "died" in infos["final_info"][i]["error"]
+        assert "died" in infos["radserve_error"][i] and infos["_final_info"][i]
         assert infos["final_obs"][i].shape == (17,)
         envs.step(np.zeros((2, 6), np.float32))
     finally:

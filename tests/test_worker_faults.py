@@ -75,14 +75,14 @@ def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it
         assert elapsed < CALL_TIMEOUT_S + 15
         assert truncated.sum() == 1 and not terminated.any()
         env = int(np.flatnonzero(truncated)[0])
-        assert f"did not answer within {CALL_TIMEOUT_S:g} s" in infos["error"][env], infos["error"]
+        assert f"did not answer within {CALL_TIMEOUT_S:g} s" in infos["radserve_error"][env], infos["radserve_error"]
         assert stuck not in _pool_workers(strict_server), "the stuck worker was replaced"
         # The idle session had an env on the replaced worker: its next step ends that episode
         # (truncated, with the reason) instead of stepping a fresh, unreset env.
         _, _, terminated, truncated, infos = idle.step(np.zeros(2, dtype=np.int64))
         assert truncated[env] and not terminated[env]
-        assert "was restarted since this session last used it" in infos["error"][env]
-        assert infos["episode"]["l"][env] == 4
+        assert "was restarted since this session last used it" in infos["radserve_error"][env]
+        assert infos["radserve_episode"]["l"][env] == 4
         assert not truncated[1 - env] and not terminated[1 - env]
         # Both sessions keep acting afterwards.
         for _ in range(3):

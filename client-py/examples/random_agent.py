@@ -54,8 +54,8 @@ def run(args: Args, address: str) -> None:
         while bar.n < args.steps:
             actions = rng.uniform(low, high, size=(args.num_envs,) + low.shape).astype(np.float32)
             _, _, _, _, infos = envs.step(actions)
-            if "episode" in infos:
-                returns.extend(infos["episode"]["r"][infos["_episode"]].tolist())
+            if "radserve_episode" in infos:
+                returns.extend(infos["radserve_episode"]["r"][infos["_radserve_episode"]].tolist())
             bar.update(args.num_envs)
             elapsed = time.perf_counter() - start
             bar.set_postfix(sps=f"{bar.n / elapsed:.1f}", episodes=len(returns),

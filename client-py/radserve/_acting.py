@@ -12,7 +12,7 @@ from ._shm import receive_server_memory
 from .errors import UnavailableError, from_status
 
 _MAGIC = b"radserve-acting\0"
-_REQUEST = struct.Struct("<cB6xQ")
+_REQUEST = struct.Struct("<cBB5xQ")
 _ANSWER = struct.Struct("<II")
 _ERROR = struct.Struct("<II")
 _HINT = ("shared-memory acting needs the client on the server's host, in its network namespace, as a user the "
@@ -44,11 +44,21 @@ class SharedActing:
         self.truncated = array(channel.truncated_offset, (n,), np.bool_)
         self.episode_return = array(channel.episode_return_offset, (n,), np.dtype("<f8"))
         self.episode_length = array(channel.episode_length_offset, (n,), np.dtype("<u8"))
+        self.mask = array(channel.mask_offset, (n,), np.bool_)
+        self.env_seeds = array(channel.env_seeds_offset, (n,), np.dtype("<u8"))
 
-    def send(self, kind: bytes, seed: "int | None" = None) -> None:
-        """Asks for a step (b"S", after writing `actions`) or a reset (b"R")."""
+    def send(self, kind: bytes, seed: "int | None" = None, mask=None, env_seeds=None) -> None:
+        """Asks for a step (b"S", after writing `actions`; `mask`: envs not to step) or a reset (b"R";
+        `mask`: only these envs, `env_seeds`: one seed per env)."""
+        flags = 0
+        if mask is not None:
+            self.mask[:] = mask
+            flags |= 1
+        if env_seeds is not None:
+            self.env_seeds[:] = env_seeds
+            flags |= 2
         try:
-            self._socket.sendall(_REQUEST.pack(kind, seed is not None, seed or 0))
+            self._socket.sendall(_REQUEST.pack(kind, seed is not None, flags, seed or 0))
         except OSError as error:
             raise self._lost(f"the server's acting channel is gone: {error}") from None
 
@@ -89,7 +99,7 @@ class SharedActing:
         """Ends the channel; the server frees it when it sees the socket close."""
         self._socket.close()
         for name in ("actions", "obs", "final_obs", "reward", "terminated", "truncated", "episode_return",
-                     "episode_length"):
+                     "episode_length", "mask", "env_seeds"):
             self.__dict__.pop(name, None)
         try:
             self._memory.close()

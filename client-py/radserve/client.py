@@ -179,9 +179,16 @@ class Client:
         replay_capacity: "int | None" = None,
         rollout_steps: "int | None" = None,
         observation_view: str = "",
+        autoreset_mode: "str | Any" = "SameStep",
         **options: Any,
     ):
         """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
+
+        `autoreset_mode` is gymnasium's (`gymnasium.vector.AutoresetMode` or its value): "SameStep"
+        (the default: the ending step returns the next episode's first observation, the last one in
+        `infos["final_obs"]`), "NextStep" (gymnasium's default, which its observation wrappers need:
+        the ending step returns the last observation, the next step the first one) or "Disabled"
+        (ended envs wait for `reset(options={"reset_mask": mask})`).
 
         Environment i is seeded with `seed + i`. `options` override the env's defaults (see
         `list_envs()[...].default_options`), e.g. `pixels=False`, `frame_stack=3`, `num_levels=200`.
@@ -210,7 +217,7 @@ class Client:
         info = SessionInfo.from_proto(self._call("CreateSession", request))
         self._open_sessions.add(info.session_id)
         try:
-            return RemoteVectorEnv(self, info, stream=stream, delivery=delivery)
+            return RemoteVectorEnv(self, info, stream=stream, delivery=delivery, autoreset_mode=autoreset_mode)
         except BaseException:
             self.close_session(info.session_id)  # the session would otherwise outlive the failed env
             raise

@@ -16,7 +16,7 @@ class NotFoundError(RadServeError):
     """Unknown environment id (the message names close matches) or unknown session."""
 
 
-class InvalidArgumentError(RadServeError):
+class InvalidArgumentError(RadServeError, ValueError):
     """The request does not fit: action shape/dtype/bounds, option names or values, seeds."""
 
 

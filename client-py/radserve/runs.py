@@ -202,21 +202,27 @@ def evaluate(envs, policy: Callable[[np.ndarray], np.ndarray], episodes: int) ->
     obs, _ = envs.reset()
     while counted.min() < per_env:
         obs, _, _, _, infos = envs.step(policy(obs))
-        if "episode" not in infos:
-            continue
-        for i in np.flatnonzero(infos["_episode"]):
+        for i, (episode_return, _) in _ended_episodes(infos):
             if counted[i] < per_env:
-                returns[i].append(float(infos["episode"]["r"][i]))
+                returns[i].append(episode_return)
                 counted[i] += 1
     ordered = [r for round_ in range(per_env) for env_returns in returns for r in env_returns[round_:round_ + 1]]
     return ordered[:episodes]
 
 
+def _ended_episodes(infos: dict) -> "list[tuple[int, tuple[float, int]]]":
+    """(env, (return, length)) of every episode that ended in a step's infos: radserve's own
+    figures, or gymnasium's RecordEpisodeStatistics' where an env has only those."""
+    key = "radserve_episode" if "radserve_episode" in infos else "episode"
+    if key not in infos:
+        return []
+    episodes = infos[key]
+    return [(int(i), (float(episodes["r"][i]), int(episodes["l"][i]))) for i in np.flatnonzero(infos["_" + key])]
+
+
 def episode_stats(infos: dict) -> "Iterable[tuple[float, int]]":
     """(return, length) of every episode that ended in a step's infos."""
-    if "episode" not in infos:
-        return []
-    return [(float(infos["episode"]["r"][i]), int(infos["episode"]["l"][i])) for i in np.flatnonzero(infos["_episode"])]
+    return [stats for _, stats in _ended_episodes(infos)]
 
 
 def run_name(env_id: str, algorithm: str, seed: int) -> str:

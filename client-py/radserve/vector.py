@@ -1,7 +1,7 @@
 """A radserve session as a gymnasium VectorEnv."""
 
 import queue
-from typing import Any
+from typing import Any, NamedTuple
 
 import grpc
 import numpy as np
@@ -11,34 +11,70 @@ from gymnasium.vector.utils import batch_space
 from . import _convert
 from ._acting import SharedActing
 from ._proto import radserve_pb2 as pb
-from .errors import InvalidArgumentError, RadServeError, SharedMemoryError, from_rpc_error
+from .errors import FailedPreconditionError, InvalidArgumentError, RadServeError, SharedMemoryError, from_rpc_error
 
 DELIVERIES = ("grpc", "shared_memory", "auto")
+
+
+class _Step(NamedTuple):
+    """A step as the server returns it (same-step autoreset), before this env's mode applies."""
+
+    obs: Any
+    rewards: Any
+    terminated: Any
+    truncated: Any
+    ended: Any  # env indices whose episode ended, in the order of the rows below
+    final_rows: Any
+    returns: Any
+    lengths: Any
+    errors: "dict[int, str]"
+
+
+def _bools(mask) -> "list[bool]":
+    return [] if mask is None else [bool(value) for value in mask]
 
 
 class RemoteVectorEnv(VectorEnv):
     """`num_envs` environments living in a radserve server, stepped together.
 
-    Autoreset is same-step (`metadata["autoreset_mode"] == AutoresetMode.SAME_STEP`): when an
-    episode ends, the returned observation of that env already starts the next episode, and
-    `infos["final_obs"][i]` holds the last observation of the ended one (`infos["_final_obs"]` is
-    the mask). `infos["episode"]` carries the return `r` and length `l` of ended episodes, and
-    `infos["error"]` the simulator's message when it raised or its worker died.
+    Autoreset follows gymnasium's `AutoresetMode` (`metadata["autoreset_mode"]`), chosen at
+    `make_vec(autoreset_mode=...)`, and behaves as gymnasium's SyncVectorEnv does in that mode:
+
+    - SAME_STEP (default): when an episode ends, the returned observation of that env already starts
+      the next episode; `infos["final_obs"][i]` holds the last observation of the ended one
+      (`infos["_final_obs"]` the mask) and `infos["final_info"]` the ended episodes' infos.
+    - NEXT_STEP: the step that ends an episode returns its last observation; the next step ignores
+      that env's action and returns the first observation of its next episode, reward 0, no flags.
+    - DISABLED: an ended env must be reset with `reset(options={"reset_mask": mask})` before it is
+      stepped again.
+
+    `reset(options={"reset_mask": mask})` resets only the marked envs in every mode; `seed` is an
+    int (env i gets seed + i), a list of one seed per env, or None (every env's random stream goes on).
+
+    radserve's own per-episode figures are under names gymnasium's wrappers do not use:
+    `infos["radserve_episode"]` has the return `r` and length `l` of ended episodes (mask
+    `infos["_radserve_episode"]`), and `infos["radserve_error"][i]` the simulator's message when it
+    raised or its worker died (mask `infos["_radserve_error"]`).
 
     Delivery: "grpc" acts through unary calls (or one bidirectional stream with `stream=True`);
     "shared_memory" acts through memory shared with a server on the same host (rpc ShareActing: the
     actions and results never become messages, a 16-byte request per step goes over a Unix socket);
     "auto" uses shared memory when it can be mapped and gRPC otherwise. `delivery` says which is used.
 
-    Over gRPC observations are read-only numpy arrays over the received message bytes (copy them to
-    modify); through shared memory they are this env's own copies.
+    Observations are this env's own writable arrays (gymnasium's `copy=True`), whichever delivery.
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
-
-    def __init__(self, client, info, *, stream: bool = False, delivery: str = "grpc"):
+    def __init__(self, client, info, *, stream: bool = False, delivery: str = "grpc",
+                 autoreset_mode: "AutoresetMode | str" = AutoresetMode.SAME_STEP):
         if delivery not in DELIVERIES:
             raise ValueError(f"delivery must be one of {DELIVERIES}, got {delivery!r}")
+        try:
+            self.autoreset_mode = AutoresetMode(autoreset_mode)
+        except ValueError:
+            raise InvalidArgumentError(
+                f"autoreset_mode must be a gymnasium.vector.AutoresetMode or one of "
+                f"{[mode.value for mode in AutoresetMode]}, got {autoreset_mode!r}") from None
+        self.metadata = {"autoreset_mode": self.autoreset_mode}
         self._client = client
         self.info = info
         self.session_id = info.session_id
@@ -52,6 +88,13 @@ class RemoteVectorEnv(VectorEnv):
         self._responses = None
         self._pending = None  # the step sent by step_async, until step_wait takes its reply
         self._shared: "SharedActing | None" = None
+        # Envs whose episode ended in the last step, already reset on the server (which resets in
+        # the ending step): NEXT_STEP's next step skips them, DISABLED waits for their reset.
+        self._ended = np.zeros(self.num_envs, dtype=bool)
+        # What the server last returned (its current observation of every env), and what this env
+        # last returned (they differ in the rows of ended envs under NEXT_STEP and DISABLED).
+        self._server_obs = None
+        self._last_obs = None
         if delivery != "grpc":
             channel = client._call("ShareActing", pb.ShareActingRequest(session_id=self.session_id))
             action_shape = () if info.action_space.shape == () else info.action_space.shape
@@ -88,50 +131,98 @@ class RemoteVectorEnv(VectorEnv):
             raise from_rpc_error(error) from None
 
     def reset(self, *, seed: "int | list[int | None] | None" = None, options: "dict[str, Any] | None" = None):
-        """Resets every environment; with `seed`, environment i is re-seeded with `seed + i`.
-
-        As in gymnasium, `seed` may also be a list of one seed per env; radserve seeds env i with
-        s + i, so the list must be [s, s + 1, ..., s + n - 1] (or all None: no reseeding)."""
+        """Resets every environment, or those `options["reset_mask"]` marks (a bool array of
+        `num_envs`, as in gymnasium). `seed`: an int (env i is re-seeded with seed + i), a list of
+        one int per env, or None (each env's random stream goes on)."""
         self._check_idle("reset")
-        seed = self._session_seed(seed)
-        if self._shared is not None:
-            self._shared.send(b"R", seed)
-            self._shared.receive()
-            return self._shared.obs.copy(), {}
-        request = pb.ResetRequest(session_id=self.session_id, seed=seed)
-        response = self._act(pb.ActRequest(reset=request), "reset")
-        return _convert.to_numpy(response.obs), {}
+        options = dict(options or {})
+        mask = self._reset_mask(options.pop("reset_mask", None))
+        seed, env_seeds = self._session_seed(seed)
+        requested = np.ones(self.num_envs, dtype=bool) if mask is None else mask
+        # Ended envs were reset by the server in the step that ended them: an unseeded reset takes
+        # that reset instead of a second one, as gymnasium's env resets once.
+        on_server = requested if seed is not None or env_seeds is not None else requested & ~self._ended
+        if on_server.any():
+            server_mask = None if on_server.all() else on_server
+            if self._shared is not None:
+                self._shared.send(b"R", seed, mask=server_mask, env_seeds=env_seeds)
+                self._shared.receive()
+                server_obs = self._shared.obs.copy()
+            else:
+                request = pb.ResetRequest(session_id=self.session_id, seed=seed, mask=_bools(server_mask),
+                                          env_seeds=env_seeds or [])
+                server_obs = _convert.to_numpy(self._act(pb.ActRequest(reset=request), "reset").obs).copy()
+        else:
+            server_obs = self._server_obs
+        if mask is None or self._last_obs is None:
+            obs = server_obs.copy()
+        else:
+            obs = self._last_obs.copy()
+            obs[mask] = server_obs[mask]
+        self._ended[requested] = False
+        self._server_obs, self._last_obs = server_obs, obs
+        return obs.copy(), {}
 
-    def _session_seed(self, seed) -> "int | None":
-        """The session seed that `seed` (an int, None, or one per env) stands for, checked."""
-        if seed is None:
+    def _reset_mask(self, mask) -> "np.ndarray | None":
+        if mask is None:
             return None
+        if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_ or mask.shape != (self.num_envs,):
+            raise InvalidArgumentError(
+                f"options['reset_mask'] must be a numpy bool array of shape ({self.num_envs},), got {mask!r}")
+        if not mask.any():
+            raise InvalidArgumentError("options['reset_mask'] must mark at least one env")
+        return mask
+
+    def _session_seed(self, seed) -> "tuple[int | None, list[int] | None]":
+        """(a session seed, or one seed per env) for `seed` (an int, None, or one per env), checked."""
+        if seed is None:
+            return None, None
         if isinstance(seed, (list, tuple, np.ndarray)):
             seeds = list(seed)
             if len(seeds) != self.num_envs:
                 raise InvalidArgumentError(f"reset got {len(seeds)} seeds for {self.num_envs} envs")
             if all(entry is None for entry in seeds):
-                return None
-            first = seeds[0]
-            if not all(isinstance(entry, (int, np.integer)) for entry in seeds) \
-                    or any(int(entry) != int(first) + i for i, entry in enumerate(seeds)):
+                return None, None
+            if any(entry is None for entry in seeds):
                 raise InvalidArgumentError(
-                    f"radserve seeds env i with seed + i: a list of seeds must be [s, s + 1, ..., s + "
-                    f"{self.num_envs - 1}] (or all None), got {seeds}")
-            seed = first
+                    f"a list of seeds is all ints or all None (to leave one env unseeded, reset the others with "
+                    f"options={{'reset_mask': ...}}), got {seeds}")
+            for entry in seeds:
+                self._check_seed(entry)
+            seeds = [int(entry) for entry in seeds]
+            if all(entry == seeds[0] + i for i, entry in enumerate(seeds)):
+                return seeds[0], None
+            return None, seeds
+        self._check_seed(seed)
+        return int(seed), None
+
+    @staticmethod
+    def _check_seed(seed) -> None:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
             raise InvalidArgumentError(f"seed must be an int, a list of ints or None, got {seed!r}")
         if not 0 <= int(seed) < 1 << 64:
             raise InvalidArgumentError(f"seed must be a non-negative integer, got {seed}")
-        return int(seed)
+
+    def _skip(self) -> "np.ndarray | None":
+        """The envs this step must not step (NEXT_STEP: those that ended in the last step)."""
+        if not self._ended.any():
+            return None
+        if self.autoreset_mode == AutoresetMode.DISABLED:
+            raise FailedPreconditionError(
+                f"autoreset is disabled and envs {np.flatnonzero(self._ended).tolist()} ended: reset them with "
+                f"reset(options={{'reset_mask': mask}}) before stepping")
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            return self._ended.copy()
+        return None
 
     def step(self, actions):
         self._check_idle("step")
+        skip = self._skip()
         if self._shared is not None:
             self._write_actions(actions)
-            self._shared.send(b"S")
-            return self._unpack_shared(self._shared.receive())
-        return self._unpack(self._act(pb.ActRequest(step=self._step_request(actions)), "step"))
+            self._shared.send(b"S", mask=skip)
+            return self._finish(self._unpack_shared(self._shared.receive()))
+        return self._finish(self._unpack(self._act(pb.ActRequest(step=self._step_request(actions, skip)), "step")))
 
     def step_async(self, actions) -> None:
         """Sends a step and returns at once; `step_wait()` returns what `step(actions)` would have.
@@ -141,12 +232,13 @@ class RemoteVectorEnv(VectorEnv):
         the workers nor the learner wait for each other. One step may be outstanding per session.
         Errors (a wrong action shape, an unknown session) are raised by `step_wait()`."""
         self._check_idle("step_async")
+        skip = self._skip()
         if self._shared is not None:
             self._write_actions(actions)
-            self._shared.send(b"S")
+            self._shared.send(b"S", mask=skip)
             self._pending = self._shared
             return
-        request = self._step_request(actions)
+        request = self._step_request(actions, skip)
         if self._requests is None:
             self._pending = self._client._stub.Step.future(request)
         else:
@@ -159,22 +251,22 @@ class RemoteVectorEnv(VectorEnv):
             raise RuntimeError("step_wait() without a step_async() before it")
         pending, self._pending = self._pending, None
         if self._shared is not None:
-            return self._unpack_shared(self._shared.receive())
+            return self._finish(self._unpack_shared(self._shared.receive()))
         try:
             response = pending.result() if self._requests is None else next(pending).step
         except grpc.RpcError as error:
             raise from_rpc_error(error) from None
-        return self._unpack(response)
+        return self._finish(self._unpack(response))
 
     def _check_idle(self, what: str) -> None:
         if self._pending is not None:
             raise RuntimeError(f"{what}() while a step_async() awaits its step_wait()")
 
-    def _step_request(self, actions) -> "pb.StepRequest":
+    def _step_request(self, actions, skip=None) -> "pb.StepRequest":
         actions = np.asarray(actions)
         if actions.dtype != self._action_dtype and np.can_cast(actions.dtype, self._action_dtype, "same_kind"):
             actions = actions.astype(self._action_dtype)
-        return pb.StepRequest(session_id=self.session_id, actions=_convert.to_tensor(actions))
+        return pb.StepRequest(session_id=self.session_id, actions=_convert.to_tensor(actions), skip=_bools(skip))
 
     def _write_actions(self, actions) -> None:
         actions = np.asarray(actions)
@@ -186,65 +278,66 @@ class RemoteVectorEnv(VectorEnv):
             )
         np.copyto(target, actions, casting="same_kind")
 
-    def _unpack_shared(self, errors: "dict[int, str]"):
+    def _unpack_shared(self, errors: "dict[int, str]") -> "_Step":
         shared = self._shared
         terminated, truncated = shared.terminated.copy(), shared.truncated.copy()
         ended = np.flatnonzero(terminated | truncated)
-        infos = {}
-        if len(ended):
-            infos = self._episode_infos(
-                ended, shared.final_obs[ended], shared.episode_return[ended], shared.episode_length[ended], errors
-            )
-        return shared.obs.copy(), shared.reward.copy(), terminated, truncated, infos
+        return _Step(shared.obs.copy(), shared.reward.copy(), terminated, truncated, ended,
+                     shared.final_obs[ended].copy(), shared.episode_return[ended].copy(),
+                     shared.episode_length[ended].copy(), errors)
 
-    def _unpack(self, response: "pb.StepResponse"):
-        obs = _convert.to_numpy(response.obs)
-        rewards = _convert.to_numpy(response.reward)
-        terminated = np.array(response.terminated, dtype=bool)
-        truncated = np.array(response.truncated, dtype=bool)
-        return obs, rewards, terminated, truncated, self._infos(response)
-
-    def _infos(self, response: "pb.StepResponse") -> dict:
-        if not response.episodes:
-            return {}
+    def _unpack(self, response: "pb.StepResponse") -> "_Step":
         episodes = response.episodes
-        return self._episode_infos(
-            [episode.env_index for episode in episodes],
-            _convert.to_numpy(response.final_obs),
-            [episode.episode_return for episode in episodes],
-            [episode.episode_length for episode in episodes],
+        return _Step(
+            # A copy, writable as gymnasium's are (its wrappers write into observations in place).
+            _convert.to_numpy(response.obs).copy(), _convert.to_numpy(response.reward),
+            np.array(response.terminated, dtype=bool), np.array(response.truncated, dtype=bool),
+            np.array([episode.env_index for episode in episodes], dtype=np.int64),
+            _convert.to_numpy(response.final_obs) if episodes else None,
+            [episode.episode_return for episode in episodes], [episode.episode_length for episode in episodes],
             {episode.env_index: episode.error for episode in episodes if episode.error},
         )
 
-    def _episode_infos(self, envs, final_rows, episode_returns, episode_lengths, errors: "dict[int, str]") -> dict:
-        """gymnasium's infos for the episodes that ended: env `envs[k]` ended with `final_rows[k]`."""
+    def _finish(self, step: "_Step"):
+        """The step as this env's autoreset mode returns it, from the server's same-step result."""
+        infos = self._episode_infos(step) if len(step.ended) else {}
+        obs = step.obs
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            if len(step.ended):
+                final_obs = np.full(self.num_envs, None, dtype=object)
+                mask = np.zeros(self.num_envs, dtype=bool)
+                for row, i in enumerate(step.ended):
+                    final_obs[i], mask[i] = step.final_rows[row], True
+                # gymnasium 1.x: final_info holds the ended episodes' infos, batched (the envs'
+                # own infos do not travel; radserve's figures are under radserve_episode).
+                infos.update({"final_obs": final_obs, "_final_obs": mask, "final_info": {}, "_final_info": mask.copy()})
+        else:
+            self._server_obs = obs
+            if len(step.ended):
+                obs = obs.copy()
+                for row, i in enumerate(step.ended):
+                    obs[i] = step.final_rows[row]
+            self._ended = step.terminated | step.truncated
+        self._last_obs = obs
+        return obs, step.rewards, step.terminated, step.truncated, infos
+
+    def _episode_infos(self, step: "_Step") -> dict:
+        """radserve's figures for the episodes that ended, under names no gymnasium wrapper uses."""
         n = self.num_envs
         mask = np.zeros(n, dtype=bool)
-        final_obs = np.full(n, None, dtype=object)
-        final_info = np.full(n, None, dtype=object)
         returns = np.zeros(n, dtype=np.float64)
         lengths = np.zeros(n, dtype=np.int64)
-        for row, i in enumerate(envs):
+        for row, i in enumerate(step.ended):
             mask[i] = True
-            final_obs[i] = final_rows[row]
-            returns[i], lengths[i] = episode_returns[row], episode_lengths[row]
-            final_info[i] = {"episode": {"r": returns[i], "l": lengths[i]}}
-            if i in errors:
-                final_info[i]["error"] = errors[i]
-        infos = {
-            "final_obs": final_obs,
-            "_final_obs": mask,
-            "final_info": final_info,
-            "_final_info": mask.copy(),
-            "episode": {"r": returns, "l": lengths, "_r": mask.copy(), "_l": mask.copy()},
-            "_episode": mask.copy(),
-        }
-        if errors:
+            returns[i], lengths[i] = step.returns[row], step.lengths[row]
+        infos = {"radserve_episode": {"r": returns, "l": lengths, "_r": mask.copy(), "_l": mask.copy()},
+                 "_radserve_episode": mask}
+        if step.errors:
             error_array = np.full(n, None, dtype=object)
-            for i, message in errors.items():
+            for i, message in step.errors.items():
                 error_array[i] = message
-            infos["error"] = error_array
-            infos["_error"] = np.array([e is not None for e in error_array])
+            infos["radserve_error"] = error_array
+            infos["_radserve_error"] = np.array([e is not None for e in error_array])
         return infos
 
     def describe(self):

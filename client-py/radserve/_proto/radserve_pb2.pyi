@@ -260,12 +260,16 @@ class ListSessionsResponse(_message.Message):
     def __init__(self, sessions: _Optional[_Iterable[_Union[SessionSummary, _Mapping]]] = ..., idle_timeout_seconds: _Optional[float] = ...) -> None: ...
 
 class ResetRequest(_message.Message):
-    __slots__ = ("session_id", "seed")
+    __slots__ = ("session_id", "seed", "mask", "env_seeds")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
+    MASK_FIELD_NUMBER: _ClassVar[int]
+    ENV_SEEDS_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     seed: int
-    def __init__(self, session_id: _Optional[str] = ..., seed: _Optional[int] = ...) -> None: ...
+    mask: _containers.RepeatedScalarFieldContainer[bool]
+    env_seeds: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, session_id: _Optional[str] = ..., seed: _Optional[int] = ..., mask: _Optional[_Iterable[bool]] = ..., env_seeds: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class ResetResponse(_message.Message):
     __slots__ = ("obs",)
@@ -274,12 +278,14 @@ class ResetResponse(_message.Message):
     def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
 
 class StepRequest(_message.Message):
-    __slots__ = ("session_id", "actions")
+    __slots__ = ("session_id", "actions", "skip")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    SKIP_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     actions: Tensor
-    def __init__(self, session_id: _Optional[str] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+    skip: _containers.RepeatedScalarFieldContainer[bool]
+    def __init__(self, session_id: _Optional[str] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., skip: _Optional[_Iterable[bool]] = ...) -> None: ...
 
 class EpisodeEnd(_message.Message):
     __slots__ = ("env_index", "episode_return", "episode_length", "terminated", "truncated", "error")
@@ -336,7 +342,7 @@ class ShareActingRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class SharedActingChannel(_message.Message):
-    __slots__ = ("size", "token", "socket", "actions_offset", "obs_offset", "final_obs_offset", "reward_offset", "terminated_offset", "truncated_offset", "episode_return_offset", "episode_length_offset")
+    __slots__ = ("size", "token", "socket", "actions_offset", "obs_offset", "final_obs_offset", "reward_offset", "terminated_offset", "truncated_offset", "episode_return_offset", "episode_length_offset", "mask_offset", "env_seeds_offset")
     SIZE_FIELD_NUMBER: _ClassVar[int]
     TOKEN_FIELD_NUMBER: _ClassVar[int]
     SOCKET_FIELD_NUMBER: _ClassVar[int]
@@ -348,6 +354,8 @@ class SharedActingChannel(_message.Message):
     TRUNCATED_OFFSET_FIELD_NUMBER: _ClassVar[int]
     EPISODE_RETURN_OFFSET_FIELD_NUMBER: _ClassVar[int]
     EPISODE_LENGTH_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    MASK_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    ENV_SEEDS_OFFSET_FIELD_NUMBER: _ClassVar[int]
     size: int
     token: bytes
     socket: str
@@ -359,7 +367,9 @@ class SharedActingChannel(_message.Message):
     truncated_offset: int
     episode_return_offset: int
     episode_length_offset: int
-    def __init__(self, size: _Optional[int] = ..., token: _Optional[bytes] = ..., socket: _Optional[str] = ..., actions_offset: _Optional[int] = ..., obs_offset: _Optional[int] = ..., final_obs_offset: _Optional[int] = ..., reward_offset: _Optional[int] = ..., terminated_offset: _Optional[int] = ..., truncated_offset: _Optional[int] = ..., episode_return_offset: _Optional[int] = ..., episode_length_offset: _Optional[int] = ...) -> None: ...
+    mask_offset: int
+    env_seeds_offset: int
+    def __init__(self, size: _Optional[int] = ..., token: _Optional[bytes] = ..., socket: _Optional[str] = ..., actions_offset: _Optional[int] = ..., obs_offset: _Optional[int] = ..., final_obs_offset: _Optional[int] = ..., reward_offset: _Optional[int] = ..., terminated_offset: _Optional[int] = ..., truncated_offset: _Optional[int] = ..., episode_return_offset: _Optional[int] = ..., episode_length_offset: _Optional[int] = ..., mask_offset: _Optional[int] = ..., env_seeds_offset: _Optional[int] = ...) -> None: ...
 
 class AugmentationStage(_message.Message):
     __slots__ = ("name", "args")

@@ -22,6 +22,9 @@ pub enum CoreError {
     /// Actions that do not fit the action space: dtype, shape, size, NaN, bounds.
     #[error("{0}")]
     InvalidActions(String),
+    /// A reset mask, skip mask or per-env seed list that does not fit the session.
+    #[error("{0}")]
+    InvalidMask(String),
 
     /// A seed beyond the simulators' 32-bit seeds.
     #[error("seed + num_envs must be at most {max} (simulators take 32-bit seeds); got seed {seed} with {num_envs} envs")]

@@ -208,8 +208,11 @@ impl EnvGroup for FakeGroup {
         &self.frames
     }
 
-    async fn reset(&mut self, seeds: Option<Vec<u64>>) -> Result<(), SimulatorError> {
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<(), SimulatorError> {
         for local in 0..self.state.len() {
+            if mask.as_ref().is_some_and(|mask| !mask[local]) {
+                continue;
+            }
             let env = &mut self.state[local];
             match &seeds {
                 Some(seeds) => *env = FakeEnv { seed: seeds[local], episode: 0, t: 0, started: true },
@@ -224,7 +227,7 @@ impl EnvGroup for FakeGroup {
         Ok(())
     }
 
-    async fn step(&mut self, actions: Vec<u8>) -> Result<StepResult, SimulatorError> {
+    async fn step(&mut self, actions: Vec<u8>, skip: Option<Vec<bool>>) -> Result<StepResult, SimulatorError> {
         let (lose, raise, fail) = {
             let mut faults = self.faults.lock().expect("fake faults lock");
             faults.steps += 1;
@@ -251,6 +254,9 @@ impl EnvGroup for FakeGroup {
         let mut result =
             StepResult { rewards: vec![0.0; n], terminated: vec![false; n], truncated: vec![false; n], errors: Vec::new() };
         for local in 0..n {
+            if skip.as_ref().is_some_and(|skip| skip[local]) {
+                continue;
+            }
             let action = i64::from_le_bytes(actions[local * 8..][..8].try_into().expect("8 bytes"));
             if raise.contains(&local) {
                 result.errors.push((local as u32, "FakeError: the simulator raised".to_string()));

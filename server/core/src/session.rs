@@ -14,7 +14,7 @@ use radserve_replay::{RecordedStep, ReplayBuffer};
 
 use crate::catalog::{EnvId, Options};
 use crate::error::CoreError;
-use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators};
+use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
 use crate::space::{DType, Space};
 
 /// Largest seed + num_envs: dm_control and ProcGen seeds are 32-bit signed integers.
@@ -43,6 +43,20 @@ pub struct SessionStats {
     pub seed: AtomicU64,
     pub total_env_steps: AtomicU64,
     pub episodes_completed: AtomicU64,
+}
+
+/// One group's part of a reset: its envs' seeds (if re-seeded) and mask (if partial).
+type GroupReset = (Option<Vec<u64>>, Option<Vec<bool>>);
+
+/// What a reset resets and how it seeds (gymnasium's `reset(seed=..., options={"reset_mask": ...})`).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ResetSpec {
+    /// Re-seed env i with `seed + i`.
+    pub seed: Option<u64>,
+    /// Or one seed per env (`num_envs` of them).
+    pub env_seeds: Option<Vec<u64>>,
+    /// Reset only these envs (`num_envs` entries, at least one true); None: every env.
+    pub mask: Option<Vec<bool>>,
 }
 
 pub struct SessionConfig {
@@ -89,6 +103,8 @@ pub struct Session {
     stacks: Vec<u8>,
     episode_returns: Vec<f64>,
     episode_lengths: Vec<u64>,
+    /// Each env's seed: what it was last seeded with (seed + i at creation).
+    seeds: Vec<u64>,
     needs_reset: bool,
     pub total_env_steps: u64,
     pub episodes_completed: u64,
@@ -124,6 +140,7 @@ impl Session {
             stacks: vec![0; config.num_envs * config.frame_stack * layout.frame_bytes],
             episode_returns: vec![0.0; config.num_envs],
             episode_lengths: vec![0; config.num_envs],
+            seeds: (0..config.num_envs as u64).map(|i| config_seed + i).collect(),
             config,
             frame_spec,
             groups,
@@ -189,13 +206,16 @@ impl Session {
         self.replay.as_ref()
     }
 
-    /// Record each env of group `index` starting an episode at its current frame, before the
-    /// Step call `step_index`.
-    fn record_first_frames(&self, index: usize, step_index: u64) {
+    /// Record each env of group `index` (those `mask` marks, if given) starting an episode at its
+    /// current frame, before the Step call `step_index`.
+    fn record_first_frames(&self, index: usize, step_index: u64, mask: Option<&[bool]>) {
         let Some(replay) = &self.replay else { return };
         let mut replay = replay.write().expect("replay lock");
         let group = &self.groups[index];
         for (local, env) in group.envs().enumerate() {
+            if mask.is_some_and(|mask| !mask[env]) {
+                continue;
+            }
             replay.abandon_episode(env);
             replay.record_first_frame(env, &group.frames()[self.layout.frame(local)], step_index);
         }
@@ -205,50 +225,123 @@ impl Session {
         self.config.frame_stack * self.layout.frame_bytes
     }
 
-    /// Seeds of the envs of group `index` under the session's seed: env i gets seed + i.
+    /// The seeds of the envs of group `index`.
     fn group_seeds(&self, index: usize) -> Vec<u64> {
-        self.groups[index].envs().map(|env| self.config.seed + env as u64).collect()
+        self.groups[index].envs().map(|env| self.seeds[env]).collect()
     }
 
     /// Resets every environment (re-seeding env i with seed + i when a seed is given) and returns the
     /// stacked observations: the first frame repeated `frame_stack` times.
     pub async fn reset(&mut self, seed: Option<u64>) -> Result<Vec<u8>, CoreError> {
-        if let Some(seed) = seed {
-            check_seed(seed, self.num_envs())?;
-            self.config.seed = seed;
-            self.stats.seed.store(seed, Ordering::Relaxed);
+        self.reset_with(&ResetSpec { seed, ..ResetSpec::default() }).await
+    }
+
+    /// Resets the envs `spec` names (all, or a mask), seeded as it says, and returns every env's
+    /// stacked observation (those reset: their first frame repeated `frame_stack` times).
+    pub async fn reset_with(&mut self, spec: &ResetSpec) -> Result<Vec<u8>, CoreError> {
+        let num_envs = self.num_envs();
+        if let Some(mask) = &spec.mask {
+            check_mask(mask, num_envs, "reset_mask")?;
+            if !mask.iter().any(|&reset| reset) {
+                return Err(CoreError::InvalidMask("reset_mask must mark at least one env (gymnasium's rule)".into()));
+            }
+            if self.needs_reset && mask.iter().any(|&reset| !reset) {
+                return Err(CoreError::InvalidMask(
+                    "a reset with a mask resets some envs of a session already reset; reset every env first".into(),
+                ));
+            }
         }
-        let seeds: Vec<Option<Vec<u64>>> = (0..self.groups.len()).map(|index| seed.map(|_| self.group_seeds(index))).collect();
-        let results = join_all(self.groups.iter_mut().zip(seeds).map(|(group, seeds)| group.reset(seeds))).await;
+        let seeds = match (spec.seed, &spec.env_seeds) {
+            (Some(_), Some(_)) => return Err(CoreError::InvalidMask("give a seed or one seed per env, not both".into())),
+            (Some(seed), None) => {
+                check_seed(seed, num_envs)?;
+                Some((0..num_envs as u64).map(|i| seed + i).collect::<Vec<_>>())
+            }
+            (None, Some(seeds)) => {
+                if seeds.len() != num_envs {
+                    return Err(CoreError::InvalidMask(format!("{} per-env seeds for {num_envs} envs", seeds.len())));
+                }
+                if let Some(&seed) = seeds.iter().find(|&&seed| seed > MAX_SEED) {
+                    return Err(CoreError::InvalidSeed { seed, num_envs: 1, max: MAX_SEED });
+                }
+                Some(seeds.clone())
+            }
+            (None, None) => None,
+        };
+        let masked = |env: usize| spec.mask.as_ref().is_none_or(|mask| mask[env]);
+        if let Some(seeds) = &seeds {
+            for env in (0..num_envs).filter(|&env| masked(env)) {
+                self.seeds[env] = seeds[env];
+            }
+            if masked(0) {
+                self.config.seed = self.seeds[0];
+                self.stats.seed.store(self.seeds[0], Ordering::Relaxed);
+            }
+        }
+        // Per group: its part of the mask (None: all of it), skipped when it resets nothing.
+        let plans: Vec<Option<GroupReset>> = (0..self.groups.len())
+            .map(|index| {
+                let envs = self.groups[index].envs();
+                let mask = spec.mask.as_ref().map(|mask| mask[envs.clone()].to_vec());
+                if mask.as_ref().is_some_and(|mask| !mask.contains(&true)) {
+                    return None;
+                }
+                Some((seeds.as_ref().map(|_| self.group_seeds(index)), mask))
+            })
+            .collect();
+        let results = join_all(self.groups.iter_mut().zip(plans.iter().cloned()).map(|(group, plan)| async move {
+            match plan {
+                Some((seeds, mask)) => Some(group.reset(seeds, mask).await),
+                None => None,
+            }
+        }))
+        .await;
+        // A group whose process was replaced was rebuilt from its seeds: it is reset whole, so every
+        // env of it starts over (unmasked ones too: their simulator state went with the process).
+        let mut whole = vec![spec.mask.is_none(); self.groups.len()];
         for (index, result) in results.into_iter().enumerate() {
             match result {
-                Ok(()) => {}
-                // The group's process was replaced and the group rebuilt from its seeds: reset that one again.
-                Err(SimulatorError::Lost(_)) => self.reset_group(index).await?,
-                Err(error) => return Err(error.into()),
+                None | Some(Ok(())) => {}
+                Some(Err(SimulatorError::Lost(_))) => {
+                    self.reset_group(index).await?;
+                    whole[index] = true;
+                }
+                Some(Err(error)) => return Err(error.into()),
             }
         }
         for index in 0..self.groups.len() {
-            self.fill_stacks_from_current(index);
-            self.record_first_frames(index, self.step_calls);
+            if plans[index].is_none() && !whole[index] {
+                continue;
+            }
+            let mask = if whole[index] { None } else { spec.mask.as_deref() };
+            self.fill_stacks_from_current(index, mask);
+            self.record_first_frames(index, self.step_calls, mask);
+            for env in self.groups[index].envs().filter(|&env| mask.is_none_or(|mask| mask[env])) {
+                self.episode_returns[env] = 0.0;
+                self.episode_lengths[env] = 0;
+            }
         }
-        self.episode_returns.iter_mut().for_each(|value| *value = 0.0);
-        self.episode_lengths.iter_mut().for_each(|value| *value = 0);
-        self.needs_reset = false;
+        if spec.mask.is_none() {
+            self.needs_reset = false;
+        }
         Ok(self.viewed(&self.stacks))
     }
 
     /// Resets one group with its envs' seeds (after its process was replaced).
     async fn reset_group(&mut self, index: usize) -> Result<(), CoreError> {
         let seeds = self.group_seeds(index);
-        Ok(self.groups[index].reset(Some(seeds)).await?)
+        Ok(self.groups[index].reset(Some(seeds), None).await?)
     }
 
-    /// Sets each stack of a group to its env's current frame repeated (the stacking at reset).
-    fn fill_stacks_from_current(&mut self, index: usize) {
+    /// Sets each stack of a group (those `mask` marks, if given) to its env's current frame
+    /// repeated (the stacking at reset).
+    fn fill_stacks_from_current(&mut self, index: usize, mask: Option<&[bool]>) {
         let stack_bytes = self.stack_bytes();
         let group = &self.groups[index];
         for (local, env) in group.envs().enumerate() {
+            if mask.is_some_and(|mask| !mask[env]) {
+                continue;
+            }
             let frame = &group.frames()[self.layout.frame(local)];
             for slot in self.stacks[env * stack_bytes..(env + 1) * stack_bytes].chunks_exact_mut(frame.len()) {
                 slot.copy_from_slice(frame);
@@ -258,17 +351,49 @@ impl Session {
 
     /// Steps every environment with `actions` ([num_envs, *action shape] of the action dtype).
     pub async fn step(&mut self, dtype: DType, shape: &[usize], actions: &[u8]) -> Result<StepOutcome, CoreError> {
+        self.step_except(dtype, shape, actions, None).await
+    }
+
+    /// Steps every environment but those `skip` marks (`num_envs` entries): a skipped env keeps its
+    /// observation, gets reward 0 and no episode end, and nothing of it is recorded; its action is
+    /// ignored (still checked). This is gymnasium NEXT_STEP's reset step, for a client whose env
+    /// was already reset when its episode ended.
+    pub async fn step_except(
+        &mut self,
+        dtype: DType,
+        shape: &[usize],
+        actions: &[u8],
+        skip: Option<&[bool]>,
+    ) -> Result<StepOutcome, CoreError> {
         if self.needs_reset {
             return Err(CoreError::NotReset);
         }
         validate_actions(&self.frame_spec.action, self.num_envs(), dtype, shape, actions)?;
+        if let Some(skip) = skip {
+            check_mask(skip, self.num_envs(), "skip")?;
+        }
+        let skip = skip.filter(|skip| skip.contains(&true));
         let action_bytes = self.frame_spec.action.num_bytes();
-        let slices: Vec<Vec<u8>> = self
+        let calls: Vec<(Vec<u8>, Option<Vec<bool>>)> = self
             .groups
             .iter()
-            .map(|group| actions[group.envs().start * action_bytes..group.envs().end * action_bytes].to_vec())
+            .map(|group| {
+                let envs = group.envs();
+                (actions[envs.start * action_bytes..envs.end * action_bytes].to_vec(), skip.map(|skip| skip[envs].to_vec()))
+            })
             .collect();
-        let results = join_all(self.groups.iter_mut().zip(slices).map(|(group, slice)| group.step(slice))).await;
+        let results = join_all(self.groups.iter_mut().zip(calls).map(|(group, (slice, skip))| async move {
+            match skip {
+                // Nothing of this group steps: no call at all.
+                Some(skip) if !skip.contains(&false) => {
+                    let n = skip.len();
+                    Ok(StepResult { rewards: vec![0.0; n], terminated: vec![false; n], truncated: vec![false; n], errors: Vec::new() })
+                }
+                skip => group.step(slice, skip).await,
+            }
+        }))
+        .await;
+        let skipped = |env: usize| skip.is_some_and(|skip| skip[env]);
         let num_envs = self.num_envs();
         let mut outcome = StepOutcome {
             rewards: vec![0.0; num_envs],
@@ -308,6 +433,9 @@ impl Session {
                 let mut replay = replay.write().expect("replay lock");
                 let group = &self.groups[index];
                 for (local, env) in group_envs.clone().enumerate() {
+                    if skipped(env) {
+                        continue;
+                    }
                     let ended = result.terminated[local] || result.truncated[local];
                     let next = if ended { self.layout.final_frame(local) } else { self.layout.frame(local) };
                     replay.record_step(
@@ -328,6 +456,9 @@ impl Session {
                 }
             }
             for (local, env) in group_envs.enumerate() {
+                if skipped(env) {
+                    continue;
+                }
                 let (reward, terminated, truncated) =
                     (result.rewards[local], result.terminated[local], result.truncated[local]);
                 outcome.rewards[env] = reward;
@@ -353,7 +484,7 @@ impl Session {
                 }
             }
         }
-        self.total_env_steps += num_envs as u64;
+        self.total_env_steps += (0..num_envs).filter(|&env| !skipped(env)).count() as u64;
         self.stats.total_env_steps.store(self.total_env_steps, Ordering::Relaxed);
         self.stats.episodes_completed.store(self.episodes_completed, Ordering::Relaxed);
         self.step_calls += 1;
@@ -381,9 +512,9 @@ impl Session {
             self.episode_lengths[env] += 1;
             outcome.episodes.push(self.end_episode(env, false, true, Some(message.to_string())));
         }
-        self.fill_stacks_from_current(index);
+        self.fill_stacks_from_current(index, None);
         // The crashed step has no next frame to record; the episodes restart from the new frames.
-        self.record_first_frames(index, self.step_calls + 1);
+        self.record_first_frames(index, self.step_calls + 1, None);
         Ok(())
     }
 
@@ -415,6 +546,14 @@ fn push_frame(stack: &mut [u8], frame: &[u8]) {
     stack.copy_within(frame.len().., 0);
     let tail = stack.len() - frame.len();
     stack[tail..].copy_from_slice(frame);
+}
+
+/// A mask has one entry per env.
+fn check_mask(mask: &[bool], num_envs: usize, what: &str) -> Result<(), CoreError> {
+    if mask.len() != num_envs {
+        return Err(CoreError::InvalidMask(format!("{what} has {} entries; the session has {num_envs} envs", mask.len())));
+    }
+    Ok(())
 }
 
 pub fn check_seed(seed: u64, num_envs: usize) -> Result<(), CoreError> {

@@ -94,13 +94,15 @@ pub trait EnvGroup: Send + Sync {
     /// The group's frames, laid out by [`FrameLayout`]; what the last reset or step wrote.
     fn frames(&self) -> &[u8];
 
-    /// Resets every env of the group, reseeding env j with `seeds[j]` when given. After
-    /// [`SimulatorError::Lost`], the group is usable again once a reset succeeds.
-    async fn reset(&mut self, seeds: Option<Vec<u64>>) -> Result<(), SimulatorError>;
+    /// Resets every env of the group, or those `mask` marks (one entry per env of the group),
+    /// reseeding env j with `seeds[j]` when given. After [`SimulatorError::Lost`], the group is
+    /// usable again once a full reset succeeds.
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<(), SimulatorError>;
 
     /// Steps every env of the group with `actions` (the group's envs' actions, little-endian bytes of
-    /// the action dtype, already checked against the action space).
-    async fn step(&mut self, actions: Vec<u8>) -> Result<StepResult, SimulatorError>;
+    /// the action dtype, already checked against the action space), except those `skip` marks: they
+    /// keep their frame and report reward 0 and no episode end.
+    async fn step(&mut self, actions: Vec<u8>, skip: Option<Vec<bool>>) -> Result<StepResult, SimulatorError>;
 
     /// Releases the envs. The group is not used afterwards.
     async fn close(&mut self);

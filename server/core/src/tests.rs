@@ -12,7 +12,7 @@ use crate::error::CoreError;
 use crate::fake::{self, FakeSimulators, FAKE_ENV, FRAME_BYTES};
 use crate::manager::{BufferRequest, Limits, SessionExtras, SessionManager};
 use crate::principal::{Principal, PrincipalLimits, Role};
-use crate::session::StepOutcome;
+use crate::session::{ResetSpec, StepOutcome};
 use crate::space::DType;
 
 /// A small memory budget, so that budget tests need few sessions (the fake's envs cost 2 MiB each).
@@ -373,4 +373,52 @@ async fn sessions_belong_to_their_creator_and_quotas_hold_per_principal() {
     manager.create_session(&alice, FAKE_ENV, 2, 0, &options, &no_extras()).await.unwrap();
     manager.shutdown().await;
     assert_eq!(manager.memory().0, 0, "every reservation, quota included, came back");
+}
+
+/// gymnasium's NEXT_STEP and reset_mask, as the core serves them: skipped envs do not move and
+/// record nothing; a masked reset resets only the envs it marks, with per-env seeds if given.
+#[tokio::test]
+async fn skipped_envs_stay_put_and_masked_resets_reset_only_their_envs() {
+    let (_, manager) = manager(2, limits());
+    let extras = SessionExtras { buffer: Some(BufferRequest::Replay { capacity: 100 }), ..SessionExtras::default() };
+    let id = create(&manager, 4, 10, 1, extras).await;
+    let session = manager.get(&local(), &id).unwrap();
+    let mut session = session.lock().await;
+    let frame = |obs: &[u8], env: usize| obs[env * FRAME_BYTES..][..3].to_vec();
+    let bad = session.reset_with(&ResetSpec { mask: Some(vec![true, false, false, false]), ..ResetSpec::default() }).await;
+    assert!(matches!(bad, Err(CoreError::InvalidMask(_))), "a masked reset needs a session reset once");
+    let obs = session.reset(None).await.unwrap();
+    assert_eq!((0..4).map(|env| frame(&obs, env)).collect::<Vec<_>>(), [[10, 0, 0], [11, 0, 0], [12, 0, 0], [13, 0, 0]]);
+
+    let skip = [false, true, false, false];
+    let outcome = session.step_except(DType::Int64, &[4], &actions(&[1, 1, 1, 1]), Some(&skip)).await.unwrap();
+    assert_eq!(frame(&outcome.obs, 1), [11, 0, 0], "a skipped env keeps its frame");
+    assert_eq!(frame(&outcome.obs, 0), [10, 0, 1]);
+    assert_eq!(outcome.rewards, [2.0, 0.0, 2.0, 2.0]);
+    assert_eq!(session.total_env_steps, 3);
+    assert_eq!(session.replay().unwrap().read().unwrap().len(), 3, "nothing recorded for the skipped env");
+
+    // Env 1 alone starts a new episode (unseeded: its stream goes on); the others keep their step.
+    let spec = ResetSpec { mask: Some(vec![false, true, false, false]), ..ResetSpec::default() };
+    let obs = session.reset_with(&spec).await.unwrap();
+    assert_eq!((0..4).map(|env| frame(&obs, env)).collect::<Vec<_>>(), [[10, 0, 1], [11, 1, 0], [12, 0, 1], [13, 0, 1]]);
+    // Per-env seeds, used where the mask is true.
+    let spec = ResetSpec { env_seeds: Some(vec![100, 7, 7, 40]), mask: Some(vec![true, false, false, true]), ..ResetSpec::default() };
+    let obs = session.reset_with(&spec).await.unwrap();
+    assert_eq!((0..4).map(|env| frame(&obs, env)).collect::<Vec<_>>(), [[100, 0, 0], [11, 1, 0], [12, 0, 1], [40, 0, 0]]);
+    let outcome = session.step(DType::Int64, &[4], &actions(&[0, 0, 0, 0])).await.unwrap();
+    assert_eq!(frame(&outcome.obs, 2), [12, 0, 2]);
+
+    for (spec, what) in [
+        (ResetSpec { mask: Some(vec![true; 3]), ..ResetSpec::default() }, "short mask"),
+        (ResetSpec { mask: Some(vec![false; 4]), ..ResetSpec::default() }, "empty mask"),
+        (ResetSpec { seed: Some(1), env_seeds: Some(vec![1; 4]), ..ResetSpec::default() }, "two kinds of seed"),
+        (ResetSpec { env_seeds: Some(vec![1; 5]), ..ResetSpec::default() }, "seeds for 5 envs"),
+    ] {
+        assert!(matches!(session.reset_with(&spec).await, Err(CoreError::InvalidMask(_))), "{what}");
+    }
+    let short = session.step_except(DType::Int64, &[4], &actions(&[0; 4]), Some(&[true])).await;
+    assert!(matches!(short, Err(CoreError::InvalidMask(_))));
+    drop(session);
+    manager.shutdown().await;
 }

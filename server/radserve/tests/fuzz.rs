@@ -81,7 +81,7 @@ fn harness() -> &'static Harness {
             ] {
                 let request = proto::CreateSessionRequest { env_id: env_id.into(), num_envs: 2, replay, ..Default::default() };
                 let id = client.create_session(request).await.unwrap().into_inner().session_id;
-                client.reset(proto::ResetRequest { session_id: id.clone(), seed: Some(0) }).await.unwrap();
+                client.reset(proto::ResetRequest { session_id: id.clone(), seed: Some(0), ..Default::default() }).await.unwrap();
                 base.push(id);
             }
             let actions = [
@@ -91,7 +91,7 @@ fn harness() -> &'static Harness {
             ];
             for _ in 0..40 {
                 for (id, actions) in base.iter().zip(&actions) {
-                    client.step(proto::StepRequest { session_id: id.clone(), actions: Some(actions.clone()) }).await.unwrap();
+                    client.step(proto::StepRequest { session_id: id.clone(), actions: Some(actions.clone()), ..Default::default() }).await.unwrap();
                 }
             }
             (server, channel, base)
@@ -451,11 +451,11 @@ impl Case {
             }
             Op::ListSessions => self.client.list_sessions(proto::ListSessionsRequest {}).await.map(drop),
             Op::Reset(target, seed) => {
-                let request = proto::ResetRequest { session_id: self.session(&target), seed };
+                let request = proto::ResetRequest { session_id: self.session(&target), seed, ..Default::default() };
                 within(limit, self.client.reset(request)).await.expect("a reset answers").map(drop)
             }
             Op::Step(target, actions) => {
-                let request = proto::StepRequest { session_id: self.session(&target), actions: Some(actions) };
+                let request = proto::StepRequest { session_id: self.session(&target), actions: Some(actions), ..Default::default() };
                 within(limit, self.client.step(request)).await.expect("a step answers").map(drop)
             }
             Op::Act(target, messages) => {
@@ -464,10 +464,11 @@ impl Case {
                     .into_iter()
                     .map(|message| proto::ActRequest {
                         request: message.map(|message| match message {
-                            Ok(seed) => proto::act_request::Request::Reset(proto::ResetRequest { session_id: session_id.clone(), seed }),
+                            Ok(seed) => proto::act_request::Request::Reset(proto::ResetRequest { session_id: session_id.clone(), seed, ..Default::default() }),
                             Err(actions) => proto::act_request::Request::Step(proto::StepRequest {
                                 session_id: session_id.clone(),
                                 actions: Some(actions),
+                                ..Default::default()
                             }),
                         }),
                     })

@@ -61,11 +61,11 @@ async fn serves_health_reflection_and_answers_bad_input() {
     assert_eq!(session.autoreset_mode, "same-step");
     let session_id = session.session_id.clone();
 
-    let step = |actions: proto::Tensor| proto::StepRequest { session_id: session_id.clone(), actions: Some(actions) };
+    let step = |actions: proto::Tensor| proto::StepRequest { session_id: session_id.clone(), actions: Some(actions), ..Default::default() };
     let early = client.step(step(f32_tensor(&[2, 1], &[0.0, 0.0]))).await.unwrap_err();
     assert_eq!(early.code(), Code::FailedPrecondition);
 
-    let reset = client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: None }).await.unwrap().into_inner();
+    let reset = client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: None, ..Default::default() }).await.unwrap().into_inner();
     let obs = reset.obs.unwrap();
     assert_eq!(obs.shape, vec![2, 3]);
     assert_eq!(obs.dtype, proto::DType::DtypeFloat32 as i32);

@@ -26,14 +26,14 @@ fn replay_capacity(capacity: u64) -> Option<proto::ReplayOptions> {
 async fn session_with_replay(client: &mut RadServeClient<Channel>) -> String {
     let session = client.create_session(cartpole(replay_capacity(1000))).await.unwrap().into_inner();
     let session_id = session.session_id;
-    client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: Some(0) }).await.unwrap();
+    client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: Some(0), ..Default::default() }).await.unwrap();
     for _ in 0..20 {
         let actions = proto::Tensor {
             dtype: proto::DType::DtypeInt64 as i32,
             shape: vec![1],
             data: 0i64.to_le_bytes().to_vec().into(),
         };
-        client.step(proto::StepRequest { session_id: session_id.clone(), actions: Some(actions) }).await.unwrap();
+        client.step(proto::StepRequest { session_id: session_id.clone(), actions: Some(actions), ..Default::default() }).await.unwrap();
     }
     session_id
 }
@@ -345,10 +345,10 @@ async fn every_allocation_is_charged_to_one_memory_budget() {
         ..Default::default()
     };
     let session_id = client.create_session(request).await.unwrap().into_inner().session_id;
-    client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: Some(0) }).await.unwrap();
+    client.reset(proto::ResetRequest { session_id: session_id.clone(), seed: Some(0), ..Default::default() }).await.unwrap();
     for _ in 0..20 {
         let actions = proto::Tensor { dtype: proto::DType::DtypeInt64 as i32, shape: vec![1], data: 0i64.to_le_bytes().to_vec().into() };
-        client.step(proto::StepRequest { session_id: session_id.clone(), actions: Some(actions) }).await.unwrap();
+        client.step(proto::StepRequest { session_id: session_id.clone(), actions: Some(actions), ..Default::default() }).await.unwrap();
     }
     use proto::sample_batches_request::Augmentation;
     let translate = || proto::SampleBatchesRequest {

@@ -63,14 +63,14 @@ const TABLE: &[Row] = &[
         proto::CloseSessionRequest { session_id: id.into() }.encode_to_vec()
     } },
     Row { method: "Reset", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
-        proto::ResetRequest { session_id: id.into(), seed: Some(1) }.encode_to_vec()
+        proto::ResetRequest { session_id: id.into(), seed: Some(1), ..Default::default() }.encode_to_vec()
     } },
     Row { method: "Step", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
         let actions = proto::Tensor { dtype: proto::DType::DtypeInt64 as i32, shape: vec![2], data: vec![0u8; 16].into() };
-        proto::StepRequest { session_id: id.into(), actions: Some(actions) }.encode_to_vec()
+        proto::StepRequest { session_id: id.into(), actions: Some(actions), ..Default::default() }.encode_to_vec()
     } },
     Row { method: "Act", client_streams: true, server_streams: true, scope: Scope::Session, request: |id| {
-        let reset = proto::ResetRequest { session_id: id.into(), seed: Some(1) };
+        let reset = proto::ResetRequest { session_id: id.into(), seed: Some(1), ..Default::default() };
         proto::ActRequest { request: Some(proto::act_request::Request::Reset(reset)) }.encode_to_vec()
     } },
     Row { method: "ShareActing", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {

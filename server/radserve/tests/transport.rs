@@ -32,9 +32,9 @@ fn create(num_envs: u32, capacity: u64) -> proto::CreateSessionRequest {
 /// A fake session of 2 envs with a replay buffer, reset and stepped `steps` times with `actions`.
 async fn session_with_transitions(client: &mut RadServeClient<tonic::transport::Channel>, steps: usize, actions: [i64; 2]) -> String {
     let id = client.create_session(create(2, 100)).await.unwrap().into_inner().session_id;
-    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None }).await.unwrap();
+    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None, ..Default::default() }).await.unwrap();
     for _ in 0..steps {
-        client.step(proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(&actions)) }).await.unwrap();
+        client.step(proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(&actions)), ..Default::default() }).await.unwrap();
     }
     id
 }
@@ -45,13 +45,13 @@ async fn core_failures_reach_the_client_with_their_codes() {
     let mut client = RadServeClient::new(connect(&server.address).await);
     let session = client.create_session(create(4, 0)).await.unwrap().into_inner();
     let id = session.session_id.clone();
-    let step = |values: &[i64]| proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(values)) };
+    let step = |values: &[i64]| proto::StepRequest { session_id: id.clone(), actions: Some(int64_tensor(values)), ..Default::default() };
 
     let code = |result: Result<tonic::Response<proto::StepResponse>, tonic::Status>| result.unwrap_err().code();
     assert_eq!(code(client.step(step(&[0; 4])).await), Code::FailedPrecondition, "step before reset");
-    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None }).await.unwrap();
+    client.reset(proto::ResetRequest { session_id: id.clone(), seed: None, ..Default::default() }).await.unwrap();
     assert_eq!(code(client.step(step(&[0, 0, 0, 3])).await), Code::InvalidArgument, "action out of range");
-    let unknown = proto::StepRequest { session_id: "s0-nothing".into(), actions: Some(int64_tensor(&[0; 4])) };
+    let unknown = proto::StepRequest { session_id: "s0-nothing".into(), actions: Some(int64_tensor(&[0; 4])), ..Default::default() };
     assert_eq!(code(client.step(unknown).await), Code::NotFound);
 
     // A lost group ends its episodes, with the reason, inside a successful step.

@@ -32,9 +32,13 @@ pub const ACTING_MAGIC: &[u8; 16] = b"radserve-acting\0";
 /// The magic and token, padded to a cache line.
 const HEADER_BYTES: usize = 64;
 const ARRAY_ALIGN: usize = 64;
+/// Byte 2 of a request: the mask array holds a skip (step) or reset (reset) mask.
+const MASK_FLAG: u8 = 1;
+/// Byte 2 of a request: the seeds array holds one seed per env (reset).
+const SEEDS_FLAG: u8 = 2;
 /// How long a client has to connect and present the token after ShareActing answered.
 pub use crate::handoff::CONNECT_TIMEOUT;
-/// A request on the socket: kind, has-seed flag, 6 zero bytes, seed.
+/// A request on the socket: kind, has-seed flag, array flags, 5 zero bytes, seed.
 const REQUEST_BYTES: usize = 16;
 
 /// Byte offsets of the arrays in the region, for a session of `num_envs` envs.
@@ -51,6 +55,10 @@ pub struct ActingLayout {
     pub truncated: usize,
     pub episode_return: usize,
     pub episode_length: usize,
+    /// u8 [num_envs]: a step's skip mask or a reset's reset mask, read when the request says so.
+    pub mask: usize,
+    /// u64 [num_envs]: a reset's per-env seeds, read when the request says so.
+    pub env_seeds: usize,
     pub len: usize,
 }
 
@@ -71,6 +79,8 @@ impl ActingLayout {
         let truncated = place(num_envs);
         let episode_return = place(num_envs * 8);
         let episode_length = place(num_envs * 8);
+        let mask = place(num_envs);
+        let env_seeds = place(num_envs * 8);
         ActingLayout {
             num_envs,
             action_bytes,
@@ -83,6 +93,8 @@ impl ActingLayout {
             truncated,
             episode_return,
             episode_length,
+            mask,
+            env_seeds,
             len: end,
         }
     }
@@ -161,6 +173,8 @@ pub async fn open(
         truncated_offset: layout.truncated as u64,
         episode_return_offset: layout.episode_return as u64,
         episode_length_offset: layout.episode_length as u64,
+        mask_offset: layout.mask as u64,
+        env_seeds_offset: layout.env_seeds as u64,
     };
     let lease = manager.hold(&caller, session_id)?;
     let channel =
@@ -216,13 +230,30 @@ impl ActingChannel {
                 return Err(ServiceError::BadRequest(format!("byte 1 of a request is 0 or 1 (a seed follows), got {other}")))
             }
         };
+        let (with_mask, with_seeds) = match request[2] {
+            flags @ 0..=3 => (flags & MASK_FLAG != 0, flags & SEEDS_FLAG != 0),
+            other => {
+                return Err(ServiceError::BadRequest(format!(
+                    "byte 2 of a request holds flags 1 (mask) and 2 (per-env seeds), got {other}"
+                )))
+            }
+        };
         let layout = self.layout;
         let session = self.manager.get(&self.caller, session_id)?;
         let mut session = session.lock().await;
         let memory = self.memory.as_mut_slice();
+        // Copied out of the shared memory before use: the client may write it at any time.
+        let mask: Option<Vec<bool>> =
+            with_mask.then(|| memory[layout.mask..][..layout.num_envs].iter().map(|&byte| byte != 0).collect());
         match request[0] {
             b'R' => {
-                let obs = session.reset(seed).await?;
+                let env_seeds = with_seeds.then(|| {
+                    memory[layout.env_seeds..][..8 * layout.num_envs]
+                        .chunks_exact(8)
+                        .map(|bytes| u64::from_le_bytes(bytes.try_into().expect("8 bytes")))
+                        .collect()
+                });
+                let obs = session.reset_with(&radserve_core::ResetSpec { seed, env_seeds, mask }).await?;
                 check_len("observations", obs.len(), layout.num_envs * layout.obs_bytes)?;
                 memory[layout.obs..][..obs.len()].copy_from_slice(&obs);
                 Ok(Vec::new())
@@ -231,8 +262,11 @@ impl ActingChannel {
                 let action = &session.frame_spec.action;
                 let (dtype, mut shape) = (action.dtype(), vec![layout.num_envs]);
                 shape.extend_from_slice(action.shape());
+                if with_seeds {
+                    return Err(ServiceError::BadRequest("per-env seeds go with a reset, not a step".into()));
+                }
                 let actions = memory[layout.actions..][..layout.num_envs * layout.action_bytes].to_vec();
-                let outcome = session.step(dtype, &shape, &actions).await?;
+                let outcome = session.step_except(dtype, &shape, &actions, mask.as_deref()).await?;
                 check_len("observations", outcome.obs.len(), layout.num_envs * layout.obs_bytes)?;
                 memory[layout.obs..][..outcome.obs.len()].copy_from_slice(&outcome.obs);
                 for (env, reward) in outcome.rewards.iter().enumerate() {
@@ -285,6 +319,8 @@ mod tests {
             (layout.truncated, 3),
             (layout.episode_return, 24),
             (layout.episode_length, 24),
+            (layout.mask, 3),
+            (layout.env_seeds, 24),
         ];
         let mut end = HEADER_BYTES;
         for (offset, bytes) in arrays {

@@ -137,6 +137,15 @@ pub fn session_summary_to_proto(summary: &SessionSummary) -> proto::SessionSumma
     }
 }
 
+/// What a ResetRequest resets: empty repeated fields mean "not given".
+pub fn reset_spec(request: &proto::ResetRequest) -> radserve_core::ResetSpec {
+    radserve_core::ResetSpec {
+        seed: request.seed,
+        env_seeds: (!request.env_seeds.is_empty()).then(|| request.env_seeds.clone()),
+        mask: (!request.mask.is_empty()).then(|| request.mask.clone()),
+    }
+}
+
 /// The buffer a CreateSession asks for: a rollout when rollout_steps is set, else replay when
 /// capacity is (zero capacity: none).
 pub fn buffer_request(options: Option<&proto::ReplayOptions>) -> Option<BufferRequest> {

@@ -52,6 +52,7 @@ impl From<ServiceError> for Status {
                 CoreError::InvalidOption(_)
                 | CoreError::OutOfBounds(_)
                 | CoreError::InvalidActions(_)
+                | CoreError::InvalidMask(_)
                 | CoreError::InvalidSeed { .. }
                 | CoreError::InvalidView { .. }
                 | CoreError::InvalidSession(_)

@@ -190,7 +190,7 @@ impl RadServeService {
         run_to_end(async move {
             let mut session = session.lock().await;
             check_deadline(deadline, "Reset")?;
-            let obs = session.reset(request.seed).await?;
+            let obs = session.reset_with(&convert::reset_spec(&request)).await?;
             Ok(proto::ResetResponse { obs: Some(observation_tensor(&session.observation_space, session.num_envs(), obs)) })
         })
         .await
@@ -199,11 +199,13 @@ impl RadServeService {
     async fn step(&self, caller: &Principal, request: proto::StepRequest, deadline: Option<Instant>) -> ServiceResult<proto::StepResponse> {
         let (dtype, shape) = convert::tensor_header(request.actions.as_ref(), "actions")?;
         let actions = request.actions.map(|tensor| tensor.data).unwrap_or_default();
+        let skip = request.skip;
         let session = self.manager.get(caller, &request.session_id)?;
         run_to_end(async move {
             let mut session = session.lock().await;
             check_deadline(deadline, "Step")?;
-            let outcome = session.step(dtype, &shape, &actions).await?;
+            let skip = (!skip.is_empty()).then_some(skip.as_slice());
+            let outcome = session.step_except(dtype, &shape, &actions, skip).await?;
             Ok(convert::step_to_proto(&session.observation_space, outcome))
         })
         .await

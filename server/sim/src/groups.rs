@@ -36,8 +36,8 @@ impl EnvGroup for WorkerGroup {
         self.frames.as_slice()
     }
 
-    async fn reset(&mut self, seeds: Option<Vec<u64>>) -> Result<(), SimulatorError> {
-        match await_generation(self.worker.submit(Request::Reset { group: self.id, seeds }).await).await {
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<(), SimulatorError> {
+        match await_generation(self.worker.submit(Request::Reset { group: self.id, seeds, mask }).await).await {
             Ok((Response::Reset, generation)) => {
                 self.generation = generation;
                 Ok(())
@@ -46,10 +46,10 @@ impl EnvGroup for WorkerGroup {
         }
     }
 
-    async fn step(&mut self, actions: Vec<u8>) -> Result<StepResult, SimulatorError> {
+    async fn step(&mut self, actions: Vec<u8>, skip: Option<Vec<bool>>) -> Result<StepResult, SimulatorError> {
         // Refused by a newer process of the worker: the group was rebuilt there (another session's
         // step crashed it, or it was stuck), which the session sees as a lost group.
-        let request = Request::Step { group: self.id, actions };
+        let request = Request::Step { group: self.id, actions, skip };
         match await_generation(self.worker.submit_in(request, self.generation).await).await {
             Ok((Response::Stepped(result), _)) => Ok(result),
             other => Err(unexpected(other)),

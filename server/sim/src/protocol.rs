@@ -62,9 +62,12 @@ pub enum Request {
         #[serde(skip)]
         memory: PassedFd,
     },
-    Reset { group: u64, seeds: Option<Vec<u64>> },
+    /// Resets the group's envs, or those `mask` marks; `seeds` (one per env of the group) re-seed
+    /// the envs reset.
+    Reset { group: u64, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>> },
     /// Actions of every environment of the group, raw little-endian bytes of the action dtype.
-    Step { group: u64, actions: Vec<u8> },
+    /// Envs that `skip` marks are not stepped (their actions are ignored).
+    Step { group: u64, actions: Vec<u8>, skip: Option<Vec<bool>> },
     CloseGroup { group: u64 },
     /// Exit abruptly, as a crashing simulator would (used to test recovery).
     Abort,
@@ -127,7 +130,7 @@ mod tests {
 
     #[test]
     fn messages_round_trip_through_the_framing() {
-        let step = Request::Step { group: 7, actions: vec![1, 2, 3, 4] };
+        let step = Request::Step { group: 7, actions: vec![1, 2, 3, 4], skip: Some(vec![true, false]) };
         let mut wire = Vec::new();
         write_blocking(&mut wire, &step).unwrap();
         write_blocking(&mut wire, &Request::ListNames).unwrap();

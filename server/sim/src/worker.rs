@@ -241,13 +241,13 @@ fn handle(
             hosted.frames = Some(frames);
             Ok(Response::Attached)
         }
-        Request::Reset { group, seeds } => {
-            hosted_group(groups, group)?.object.bind(py).call_method1("reset", (seeds,))?;
+        Request::Reset { group, seeds, mask } => {
+            hosted_group(groups, group)?.object.bind(py).call_method1("reset", (seeds, mask))?;
             Ok(Response::Reset)
         }
-        Request::Step { group, actions } => {
+        Request::Step { group, actions, skip } => {
             let hosted = hosted_group(groups, group)?;
-            let outcome = hosted.object.bind(py).call_method1("step", (PyBytes::new(py, &actions),))?;
+            let outcome = hosted.object.bind(py).call_method1("step", (PyBytes::new(py, &actions), skip))?;
             let (rewards, terminated, truncated, errors): GroupStepTuple = outcome.extract()?;
             Ok(Response::Stepped(StepResult { rewards, terminated, truncated, errors }))
         }

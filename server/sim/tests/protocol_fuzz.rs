@@ -48,8 +48,10 @@ fn request() -> impl Strategy<Value = Request> {
         (any::<u64>(), family(), "\\PC{0,16}", options(), prop::collection::vec(any::<u64>(), 0..6))
             .prop_map(|(group, family, name, options, seeds)| Request::CreateGroup(GroupConfig { group, family, name, options, seeds })),
         (any::<u64>(), any::<usize>()).prop_map(|(group, shm_len)| Request::Attach { group, shm_len, memory: Default::default() }),
-        (any::<u64>(), prop::option::of(prop::collection::vec(any::<u64>(), 0..6))).prop_map(|(group, seeds)| Request::Reset { group, seeds }),
-        (any::<u64>(), prop::collection::vec(any::<u8>(), 0..64)).prop_map(|(group, actions)| Request::Step { group, actions }),
+        (any::<u64>(), prop::option::of(prop::collection::vec(any::<u64>(), 0..6)), prop::option::of(prop::collection::vec(any::<bool>(), 0..6)))
+            .prop_map(|(group, seeds, mask)| Request::Reset { group, seeds, mask }),
+        (any::<u64>(), prop::collection::vec(any::<u8>(), 0..64), prop::option::of(prop::collection::vec(any::<bool>(), 0..6)))
+            .prop_map(|(group, actions, skip)| Request::Step { group, actions, skip }),
         any::<u64>().prop_map(|group| Request::CloseGroup { group }),
         Just(Request::Abort),
     ]

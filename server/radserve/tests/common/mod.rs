@@ -85,7 +85,7 @@ pub async fn connect(address: &str) -> Channel {
 pub async fn still_serves(client: &mut RadServeClient<Channel>) {
     let request = proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 1, ..Default::default() };
     let session = client.create_session(request).await.expect("the server still serves").into_inner();
-    client.reset(proto::ResetRequest { session_id: session.session_id.clone(), seed: Some(1) }).await.unwrap();
+    client.reset(proto::ResetRequest { session_id: session.session_id.clone(), seed: Some(1), ..Default::default() }).await.unwrap();
     client.close_session(proto::CloseSessionRequest { session_id: session.session_id }).await.unwrap();
 }
 

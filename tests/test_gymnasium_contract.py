@@ -1,0 +1,184 @@
+"""radserve's vector env against gymnasium's own SyncVectorEnv of the same envs, in each autoreset
+mode: the same observations, rewards, flags and infos (radserve's extras, `radserve_*`, aside) through
+seeded, unseeded, per-env and masked resets and episode ends; and gymnasium's vector wrappers on
+radserve envs."""
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
+
+import radserve
+
+N = 3
+STEPS = 240
+# Short episodes, so that every id ends several inside the run (random actions rarely end
+# Acrobot or MountainCarContinuous before their own limits).
+MAX_STEPS = 40
+# Ids whose envs return no infos of their own: infos compare whole. Hopper's step infos (positions,
+# reward terms) do not travel through radserve; its observations, rewards and flags still compare.
+WITHOUT_INFOS = ("CartPole-v1", "Pendulum-v1", "Acrobot-v1", "MountainCarContinuous-v0")
+IDS = (*WITHOUT_INFOS, "Hopper-v5")
+MODES = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP, AutoresetMode.DISABLED)
+
+
+def ours_only(infos: dict) -> dict:
+    return {key: value for key, value in infos.items() if not key.lstrip("_").startswith("radserve")}
+
+
+def assert_same_infos(want: dict, have: dict, observation_dtype) -> None:
+    assert want.keys() == have.keys(), (want.keys(), have.keys())
+    for key, value in want.items():
+        if key == "final_obs":
+            for i, row in enumerate(value):
+                if row is None:
+                    assert have[key][i] is None
+                else:
+                    np.testing.assert_array_equal(np.asarray(row, observation_dtype), have[key][i])
+        elif isinstance(value, dict):
+            assert_same_infos(value, have[key], observation_dtype)
+        else:
+            np.testing.assert_array_equal(value, have[key])
+
+
+def compare(want, have, with_infos: bool, what: str) -> None:
+    """One step's (or reset's) results, gymnasium's against radserve's."""
+    want_obs, have_obs = want[0], have[0]
+    dtype = have_obs.dtype
+    np.testing.assert_array_equal(np.asarray(want_obs, dtype), have_obs, err_msg=f"obs at {what}")
+    for index, name in ((1, "rewards"), (2, "terminated"), (3, "truncated")):
+        if len(want) > 3:
+            np.testing.assert_array_equal(want[index], have[index], err_msg=f"{name} at {what}")
+    if with_infos:
+        assert_same_infos(want[-1], ours_only(have[-1]), dtype)
+
+
+@pytest.mark.parametrize("mode", MODES, ids=lambda mode: mode.value)
+@pytest.mark.parametrize("env_id", IDS)
+def test_the_same_as_gymnasium_sync_vector_env(client, env_id, mode):
+    reference = SyncVectorEnv([lambda: gymnasium.make(env_id, max_episode_steps=MAX_STEPS) for _ in range(N)],
+                              autoreset_mode=mode)
+    envs = client.make_vec(f"gym/{env_id}", num_envs=N, seed=0, autoreset_mode=mode, max_episode_steps=MAX_STEPS)
+    with_infos = env_id in WITHOUT_INFOS
+    try:
+        assert envs.metadata["autoreset_mode"] == mode
+        reference.single_action_space.seed(0)
+        compare(reference.reset(seed=5), envs.reset(seed=5), with_infos, "reset(seed=5)")
+        episodes = 0
+        for t in range(STEPS):
+            actions = np.stack([reference.single_action_space.sample() for _ in range(N)])
+            want, have = reference.step(actions), envs.step(actions)
+            compare(want, have, with_infos, f"step {t}")
+            ended = want[2] | want[3]
+            episodes += int(ended.sum())
+            if mode == AutoresetMode.DISABLED and ended.any():
+                options = {"reset_mask": ended.copy()}
+                compare(reference.reset(options=dict(options)), envs.reset(options=dict(options)), with_infos,
+                        f"masked reset after step {t}")
+            if t == 80:
+                compare(reference.reset(), envs.reset(), with_infos, "reset()")
+            if t == 140:
+                seeds = [7, 100, 3]
+                compare(reference.reset(seed=seeds), envs.reset(seed=seeds), with_infos, "reset(seed=[7, 100, 3])")
+            if t == 190 and mode != AutoresetMode.DISABLED:
+                options = {"reset_mask": np.array([True, False, True])}
+                compare(reference.reset(options=dict(options)), envs.reset(options=dict(options)), with_infos,
+                        "reset(options={'reset_mask': [True, False, True]})")
+        assert episodes >= N, f"only {episodes} episodes ended: the run did not cover episode ends"
+    finally:
+        envs.close()
+        reference.close()
+
+
+def test_disabled_mode_refuses_to_step_an_ended_env(client):
+    envs = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0, autoreset_mode="Disabled")
+    try:
+        envs.reset(seed=0)
+        for _ in range(500):
+            _, _, terminated, truncated, _ = envs.step(np.zeros(2, np.int64))
+            if (terminated | truncated).any():
+                break
+        with pytest.raises(radserve.FailedPreconditionError, match="reset them"):
+            envs.step(np.zeros(2, np.int64))
+        envs.reset(options={"reset_mask": terminated | truncated})
+        envs.step(np.zeros(2, np.int64))
+        for bad in (np.array([1, 0]), np.array([False, False]), [True, False]):
+            with pytest.raises(radserve.InvalidArgumentError, match="reset_mask"):
+                envs.reset(options={"reset_mask": bad})
+        with pytest.raises(radserve.InvalidArgumentError, match="autoreset_mode"):
+            client.make_vec("gym/CartPole-v1", autoreset_mode="sometimes")
+    finally:
+        envs.close()
+
+
+@pytest.mark.parametrize("delivery", ["grpc", "shared_memory"])
+def test_gymnasium_vector_wrappers_run_on_radserve(client, delivery):
+    """The wrappers the issue names, on a NEXT_STEP env (which they require), and RecordEpisodeStatistics
+    counting the same episodes as radserve's own figures."""
+    from gymnasium.wrappers import vector as wrappers
+
+    def make():
+        return client.make_vec("gym/CartPole-v1", num_envs=2, seed=0, autoreset_mode=AutoresetMode.NEXT_STEP,
+                               delivery=delivery)
+
+    stacks = [
+        lambda env: wrappers.NormalizeObservation(env),
+        lambda env: wrappers.TransformObservation(env, lambda obs: obs * 2.0),
+        lambda env: wrappers.FlattenObservation(env),
+        lambda env: wrappers.DtypeObservation(env, np.float64),
+        lambda env: wrappers.VectorizeTransformObservation(
+            env, gymnasium.wrappers.TransformObservation, func=lambda obs: obs + 1.0,
+            observation_space=env.single_observation_space),
+        lambda env: wrappers.RecordEpisodeStatistics(env),
+    ]
+    for wrap in stacks:
+        env = wrap(make())
+        try:
+            obs, _ = env.reset(seed=1)
+            assert obs.shape == env.observation_space.shape
+            counted = 0
+            for _ in range(120):
+                obs, _, terminated, truncated, infos = env.step(env.action_space.sample())
+                if "episode" in infos:
+                    counted += int(infos["_episode"].sum())
+                    np.testing.assert_array_equal(infos["_episode"], infos["_radserve_episode"])
+                    ended = infos["_episode"]
+                    np.testing.assert_array_equal(infos["episode"]["r"][ended], infos["radserve_episode"]["r"][ended])
+            if isinstance(env, wrappers.RecordEpisodeStatistics):
+                assert counted > 0
+        finally:
+            env.close()
+
+
+@pytest.mark.parametrize("env_id", ["procgen/bigfish", "gym/Hopper-v5"])
+def test_next_step_is_same_step_one_step_later(client, env_id):
+    """Where gymnasium has no reference (ProcGen, whose games are stepped as one procgen vector):
+    under NEXT_STEP an ending step returns what SAME_STEP gives as final_obs, and the next step
+    returns, with reward 0 and no flags, what SAME_STEP returned as the new episode's start; the
+    other envs are unaffected by the skipped one."""
+    same = client.make_vec(env_id, num_envs=4, seed=3, autoreset_mode="SameStep")
+    nxt = client.make_vec(env_id, num_envs=4, seed=3, autoreset_mode="NextStep")
+    try:
+        rng = np.random.default_rng(0)
+        np.testing.assert_array_equal(same.reset(seed=3)[0], nxt.reset(seed=3)[0])
+        for _ in range(3000):
+            actions = np.stack([same.single_action_space.sample() for _ in range(4)])
+            a, b = same.step(actions), nxt.step(actions)
+            np.testing.assert_array_equal(a[1], b[1])
+            ended = a[2] | a[3]
+            if not ended.any():
+                np.testing.assert_array_equal(a[0], b[0])
+                continue
+            i = int(np.flatnonzero(ended)[0])
+            np.testing.assert_array_equal(a[4]["final_obs"][i], b[0][i])
+            started = a[0][i].copy()
+            after = nxt.step(np.stack([same.single_action_space.sample() for _ in range(4)]))
+            np.testing.assert_array_equal(after[0][i], started)
+            assert after[1][i] == 0.0 and not after[2][i] and not after[3][i]
+            break
+        else:
+            pytest.fail("no episode ended")
+        del rng
+    finally:
+        same.close()
+        nxt.close()
