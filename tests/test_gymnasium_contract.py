@@ -159,7 +159,6 @@ def test_next_step_is_same_step_one_step_later(client, env_id):
     same = client.make_vec(env_id, num_envs=4, seed=3, autoreset_mode="SameStep")
     nxt = client.make_vec(env_id, num_envs=4, seed=3, autoreset_mode="NextStep")
     try:
-        rng = np.random.default_rng(0)
         np.testing.assert_array_equal(same.reset(seed=3)[0], nxt.reset(seed=3)[0])
         for _ in range(3000):
             actions = np.stack([same.single_action_space.sample() for _ in range(4)])
@@ -178,7 +177,6 @@ def test_next_step_is_same_step_one_step_later(client, env_id):
             break
         else:
             pytest.fail("no episode ended")
-        del rng
     finally:
         same.close()
         nxt.close()

@@ -2,10 +2,7 @@
 made here (trustme), the Python client as users use it. The per-RPC table (every method without a
 token, with another principal's session) is server/radserve/tests/security.rs."""
 
-import os
 import subprocess
-import sys
-from pathlib import Path
 
 import grpc
 import numpy as np
@@ -15,8 +12,6 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import radserve
 from radserve.server import find_binary
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def new_token(name: str, role: str = "user") -> "tuple[str, str]":

@@ -2,7 +2,6 @@
 SharedActingChannel): actions are written into memory the server maps, a 16-byte request goes over
 a Unix socket, and after an 8-byte answer the results are read where the server wrote them."""
 
-import socket
 import struct
 
 import numpy as np

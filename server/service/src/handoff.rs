@@ -47,12 +47,6 @@ impl PeerPolicy {
     }
 }
 
-impl Default for PeerPolicy {
-    fn default() -> Self {
-        PeerPolicy::new(&[])
-    }
-}
-
 /// A socket waiting for the one client that may have a memory file.
 pub struct HandoffSocket {
     listener: UnixListener,
