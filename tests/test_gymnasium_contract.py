@@ -150,6 +150,49 @@ def test_gymnasium_vector_wrappers_run_on_radserve(client, delivery):
             env.close()
 
 
+@pytest.mark.parametrize("env_id,options", [("procgen/coinrun", {}),
+                                             ("dmc/cartpole-balance", {"height": 48, "width": 48, "action_repeat": 8})])
+def test_gymnasium_vector_wrappers_run_on_radserve_pixels(client, env_id, options):
+    """The observation wrappers on pixel envs, channels last (gymnasium's image layout, which
+    GrayscaleObservation needs): each wrapped env's observations equal the wrapper applied to the
+    bare env's (the same seed and actions), step for step."""
+    from gymnasium.wrappers import vector as wrappers
+
+    def make():
+        return client.make_vec(env_id, num_envs=2, seed=4, autoreset_mode=AutoresetMode.NEXT_STEP, channels_last=True,
+                               frame_stack=1, **options)
+
+    stacks = [
+        (lambda env: wrappers.GrayscaleObservation(env),
+         lambda obs: (obs.astype(np.float64) @ np.array([0.2125, 0.7154, 0.0721])).astype(np.uint8)),
+        (lambda env: wrappers.GrayscaleObservation(env, keep_dim=True), None),
+        (lambda env: wrappers.TransformObservation(env, lambda obs: obs // 2), lambda obs: obs // 2),
+        (lambda env: wrappers.DtypeObservation(env, np.float32), lambda obs: obs.astype(np.float32)),
+        (lambda env: wrappers.FlattenObservation(env), lambda obs: obs.reshape(len(obs), -1)),
+        (lambda env: wrappers.NormalizeObservation(env), None),
+        (lambda env: wrappers.RecordEpisodeStatistics(env), lambda obs: obs),
+    ]
+    bare = make()
+    try:
+        assert bare.single_observation_space.shape[-1] == 3
+        for wrap, expected in stacks:
+            env = wrap(make())
+            try:
+                obs, _ = env.reset(seed=4)
+                bare_obs, _ = bare.reset(seed=4)
+                for _ in range(40):
+                    assert obs.shape == env.observation_space.shape
+                    if expected is not None:
+                        np.testing.assert_allclose(obs, expected(bare_obs), atol=1)
+                    actions = bare.action_space.sample()
+                    obs, *_ = env.step(actions)
+                    bare_obs, *_ = bare.step(actions)
+            finally:
+                env.close()
+    finally:
+        bare.close()
+
+
 @pytest.mark.parametrize("env_id", ["procgen/bigfish", "gym/Hopper-v5"])
 def test_next_step_is_same_step_one_step_later(client, env_id):
     """Where gymnasium has no reference (ProcGen, whose games are stepped as one procgen vector):

@@ -28,7 +28,7 @@ def run_learner(script: str, runs_dir: Path, *flags: str) -> Path:
                              "--workers", "1", "--torch-threads", "1", "--device", "cpu"],
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "final evaluation return" in result.stdout
+    assert "evaluation return" in result.stdout
     (run_dir,) = runs_dir.iterdir()
     return run_dir
 
@@ -55,6 +55,9 @@ def test_rad_sac_from_pixels(tmp_path):
     metrics = check_run(run_dir, {"losses/critic_loss", "losses/actor_loss", "losses/alpha_loss", "losses/alpha"})
     # 30 agent steps at action repeat 8: the steps are counted in environment steps, like the paper.
     assert metrics["charts/eval_return"][0][-1] == 240
+    # The one line `make demo` ends with: first and last evaluation, the curve's path.
+    summary = (run_dir / "summary.txt").read_text()
+    assert " at 0 -> " in summary and " at 240 environment steps" in summary and str(run_dir / "curve.png") in summary
 
 
 def test_rad_sac_crop_with_bfloat16_convs(tmp_path):

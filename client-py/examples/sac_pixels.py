@@ -46,6 +46,8 @@ class Args:
     """0 keeps the paper's value for the task (2 finger-spin and walker-walk, 8 cartpole, 4 otherwise)"""
     frame_stack: int = 3
     """frames stacked on the channel axis"""
+    image_size: int = 0
+    """side of the rendered square frames (dm_control's height and width options); 0: the env's default (100, the paper's)"""
     num_envs: int = 1
     """environments acting together; each vector step takes num_envs updates, keeping one update per transition"""
     seed: int = 1
@@ -286,6 +288,8 @@ def train(args: Args, address: str) -> RunLog:
     options = {"frame_stack": args.frame_stack, "render_profile": args.render_profile}
     if args.action_repeat:
         options["action_repeat"] = args.action_repeat
+    if args.image_size:
+        options["height"] = options["width"] = args.image_size
 
     client = radserve.Client(address)
     # Acting sees the evaluation view (the centre of what the learner trains on); replay keeps raw frames.
@@ -309,8 +313,11 @@ def train(args: Args, address: str) -> RunLog:
     def scaled(action: np.ndarray) -> np.ndarray:
         return (low + (action + 1.0) * 0.5 * (high - low)).astype(np.float32)
 
+    evaluations: "list[tuple[int, float]]" = []
+
     def run_evaluation(env_steps: int) -> float:
         returns = evaluate(eval_envs, lambda o: scaled(agent.act(o, deterministic=True)), args.eval_episodes)
+        evaluations.append((env_steps, float(np.mean(returns))))
         log.scalars(env_steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
         log.flush()
         if args.checkpoint:
@@ -364,8 +371,12 @@ def train(args: Args, address: str) -> RunLog:
         client.close()
         log.close()
     curve = plot_curves({f"RAD-SAC ({aug})": log.dir}, log.dir / "curve.png", title=f"{args.env}, aug {aug}")
-    print(f"final evaluation return {last_eval:.1f} after {agent_steps * env_steps_per_step} environment steps; "
-          f"curve: {curve}")
+    (first_steps, first), (last_steps, last) = evaluations[0], evaluations[-1]
+    summary = (f"{args.env}: evaluation return {first:.1f} at {first_steps} -> {last:.1f} at {last_steps} environment "
+               f"steps (best {max(value for _, value in evaluations):.1f}, {args.eval_episodes} episodes each, "
+               f"{(time.perf_counter() - start) / 60:.1f} min); curve: {curve}")
+    (log.dir / "summary.txt").write_text(summary + "\n")
+    print(summary)
     return log
 
 

@@ -180,6 +180,7 @@ class Client:
         rollout_steps: "int | None" = None,
         observation_view: str = "",
         autoreset_mode: "str | Any" = "SameStep",
+        channels_last: bool = False,
         **options: Any,
     ):
         """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
@@ -201,6 +202,8 @@ class Client:
         it keeps the last that many steps of every env as a rollout (`source="rollout"`).
         `observation_view="center_crop(84)"` (or `"center_translate(108)"`) returns observations
         through RAD's evaluation view, matching what the learner trains on; replay keeps raw frames.
+        `channels_last=True` returns image observations as `[H, W, C]` (gymnasium's pixel layout, which
+        `gymnasium.wrappers.vector.GrayscaleObservation` needs) instead of the server's `[C, H, W]`.
         """
         from .vector import RemoteVectorEnv
 
@@ -217,7 +220,8 @@ class Client:
         info = SessionInfo.from_proto(self._call("CreateSession", request))
         self._open_sessions.add(info.session_id)
         try:
-            return RemoteVectorEnv(self, info, stream=stream, delivery=delivery, autoreset_mode=autoreset_mode)
+            return RemoteVectorEnv(self, info, stream=stream, delivery=delivery, autoreset_mode=autoreset_mode,
+                                   channels_last=channels_last)
         except BaseException:
             self.close_session(info.session_id)  # the session would otherwise outlive the failed env
             raise

@@ -5,6 +5,7 @@ from typing import Any, NamedTuple
 
 import grpc
 import numpy as np
+from gymnasium.spaces import Box
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
@@ -65,7 +66,7 @@ class RemoteVectorEnv(VectorEnv):
     """
 
     def __init__(self, client, info, *, stream: bool = False, delivery: str = "grpc",
-                 autoreset_mode: "AutoresetMode | str" = AutoresetMode.SAME_STEP):
+                 autoreset_mode: "AutoresetMode | str" = AutoresetMode.SAME_STEP, channels_last: bool = False):
         if delivery not in DELIVERIES:
             raise ValueError(f"delivery must be one of {DELIVERIES}, got {delivery!r}")
         try:
@@ -80,6 +81,14 @@ class RemoteVectorEnv(VectorEnv):
         self.session_id = info.session_id
         self.num_envs = info.num_envs
         self.single_observation_space = info.observation_space
+        # Image observations as [H, W, C] (the transpose is made here, on the way out).
+        self._channels_last = bool(channels_last)
+        if self._channels_last:
+            space = info.observation_space
+            if len(space.shape) != 3:
+                raise InvalidArgumentError(f"channels_last needs image observations [C, H, W]; {info.env_id} observes {space}")
+            self.single_observation_space = Box(
+                np.moveaxis(space.low, 0, -1), np.moveaxis(space.high, 0, -1), dtype=space.dtype)
         self.single_action_space = info.action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
@@ -100,7 +109,7 @@ class RemoteVectorEnv(VectorEnv):
             action_shape = () if info.action_space.shape == () else info.action_space.shape
             try:
                 self._shared = SharedActing(
-                    channel, self.num_envs, self.single_observation_space, self._action_dtype, action_shape,
+                    channel, self.num_envs, info.observation_space, self._action_dtype, action_shape,
                     explain_loss=self._session_error,
                 )
             except SharedMemoryError:
@@ -161,7 +170,13 @@ class RemoteVectorEnv(VectorEnv):
             obs[mask] = server_obs[mask]
         self._ended[requested] = False
         self._server_obs, self._last_obs = server_obs, obs
-        return obs.copy(), {}
+        return self._present(obs), {}
+
+    def _present(self, obs: np.ndarray) -> np.ndarray:
+        """Observations as this env returns them: its own copy, channels last if asked."""
+        if self._channels_last:
+            return np.ascontiguousarray(np.moveaxis(obs, -3, -1))
+        return obs.copy()
 
     def _reset_mask(self, mask) -> "np.ndarray | None":
         if mask is None:
@@ -307,7 +322,7 @@ class RemoteVectorEnv(VectorEnv):
                 final_obs = np.full(self.num_envs, None, dtype=object)
                 mask = np.zeros(self.num_envs, dtype=bool)
                 for row, i in enumerate(step.ended):
-                    final_obs[i], mask[i] = step.final_rows[row], True
+                    final_obs[i], mask[i] = self._present(step.final_rows[row]), True
                 # gymnasium 1.x: final_info holds the ended episodes' infos, batched (the envs'
                 # own infos do not travel; radserve's figures are under radserve_episode).
                 infos.update({"final_obs": final_obs, "_final_obs": mask, "final_info": {}, "_final_info": mask.copy()})
@@ -319,7 +334,7 @@ class RemoteVectorEnv(VectorEnv):
                     obs[i] = step.final_rows[row]
             self._ended = step.terminated | step.truncated
         self._last_obs = obs
-        return obs, step.rewards, step.terminated, step.truncated, infos
+        return self._present(obs) if self._channels_last else obs, step.rewards, step.terminated, step.truncated, infos
 
     def _episode_infos(self, step: "_Step") -> dict:
         """radserve's figures for the episodes that ended, under names no gymnasium wrapper uses."""

@@ -159,6 +159,22 @@ impl Session {
         self.config.num_envs
     }
 
+    /// Whether the session must be reset (every env) before it steps: new, or after a failed step.
+    pub fn needs_reset(&self) -> bool {
+        self.needs_reset
+    }
+
+    /// Steps taken in each env's current episode (0: at an episode's first observation).
+    pub fn episode_lengths(&self) -> &[u64] {
+        &self.episode_lengths
+    }
+
+    /// Every env's current stacked observation `[num_envs, ...]`, as the last reset or step returned
+    /// it (through the view, if any); None before the first reset.
+    pub fn observations(&self) -> Option<Vec<u8>> {
+        (!self.needs_reset).then(|| self.viewed(&self.stacks))
+    }
+
     /// Return observations through `view` (a centre crop or centre translate, RAD's evaluation
     /// views), so that a policy trained on augmented crops acts on the matching view.
     pub fn set_view(&mut self, text: &str) -> Result<(), CoreError> {

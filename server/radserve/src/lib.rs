@@ -10,7 +10,9 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
-use radserve_service::{proto::FILE_DESCRIPTOR_SET, RadServeServer, RadServeService, MAX_MESSAGE_BYTES};
+use radserve_service::{
+    proto::FILE_DESCRIPTOR_SET, EnvironmentServer, EnvironmentService, RadServeServer, RadServeService, MAX_MESSAGE_BYTES,
+};
 use radserve_core::{Limits, SessionManager};
 use radserve_sim::{GlBackend, WorkerLauncher, WorkerPool};
 use tokio::net::TcpListener;
@@ -159,6 +161,7 @@ pub async fn serve(
     );
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
     health_reporter.set_serving::<RadServeServer<RadServeService>>().await;
+    health_reporter.set_serving::<EnvironmentServer<EnvironmentService>>().await;
     // Both reflection versions: grpcurl and grpcui speak v1, grpc_cli, grpcio-reflection's Python
     // client and Postman still v1alpha.
     let reflection = || {
@@ -169,6 +172,10 @@ pub async fn serve(
     let (reflection_v1, reflection_v1alpha) = (reflection().build_v1()?, reflection().build_v1alpha()?);
     let peers = radserve_service::handoff::PeerPolicy::new(&options.shared_memory_uids);
     let (service, streams) = RadServeService::new(manager.clone(), augment_pool, peers);
+    // DeepMind's dm_env_rpc on the same port, over the same sessions (docs/dm_env_rpc.md).
+    let environment = EnvironmentServer::new(EnvironmentService::new(manager.clone(), service.stopping()))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let service = RadServeServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -196,6 +203,7 @@ pub async fn serve(
         let _ = signalled.send(started);
         info!(notice_s = notice.as_secs_f64(), "shutting down: not serving, new sessions refused, streams ending");
         reporter.set_not_serving::<RadServeServer<RadServeService>>().await;
+        reporter.set_not_serving::<EnvironmentServer<EnvironmentService>>().await;
         reporter.set_service_status("", tonic_health::ServingStatus::NotServing).await;
         draining.refuse_new_sessions();
         streams.stop();
@@ -243,6 +251,7 @@ pub async fn serve(
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
         .add_service(service)
+        .add_service(environment)
         .serve_with_incoming_shutdown(connections, graceful);
     tokio::pin!(server);
     let mut signal_seen = signal_seen;

@@ -645,6 +645,8 @@ const METHODS: &[(&str, bool, bool)] = &[
     ("ShareActing", false, false),
     ("SampleBatches", false, true),
     ("SampleBatchesShared", true, true),
+    // dm_env_rpc on the same port (a full path: another service).
+    ("/dm_env_rpc.v1.Environment/Process", true, true),
 ];
 
 /// Anything at all, or a live session's id as field 1 (every session-scoped request's `session_id`)
@@ -677,7 +679,8 @@ fn arbitrary_bytes_as_any_message_get_documented_answers() {
         executed.fetch_add(1, Ordering::Relaxed);
         harness.runtime.block_on(async {
             let (name, client_streams, server_streams) = METHODS[method];
-            let path: tonic::codegen::http::uri::PathAndQuery = format!("/radserve.v1.RadServe/{name}").parse().unwrap();
+            let path = if name.starts_with('/') { name.to_string() } else { format!("/radserve.v1.RadServe/{name}") };
+            let path: tonic::codegen::http::uri::PathAndQuery = path.parse().unwrap();
             let mut grpc = tonic::client::Grpc::new(harness.channel.clone());
             grpc.ready().await.map_err(|error| TestCaseError::fail(format!("the server stopped accepting calls: {error}")))?;
             let outcome: Result<(), Status> = match (client_streams, server_streams) {

@@ -42,6 +42,7 @@ async fn serves_health_reflection_and_answers_bad_input() {
     for services in [list_services!(v1), list_services!(v1alpha)] {
         assert!(services.contains(&"radserve.v1.RadServe".to_string()), "{services:?}");
         assert!(services.contains(&"grpc.health.v1.Health".to_string()), "{services:?}");
+        assert!(services.contains(&"dm_env_rpc.v1.Environment".to_string()), "{services:?}");
     }
 
     let mut client = RadServeClient::new(channel);

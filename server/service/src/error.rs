@@ -18,6 +18,9 @@ pub enum ServiceError {
     /// The session already has what the request would open (one acting channel per session).
     #[error("{0}")]
     AlreadyOpen(String),
+    /// The request does not fit the state it finds (a dm_env_rpc step before joining a world).
+    #[error("{0}")]
+    FailedPrecondition(String),
     /// The client's deadline passed before the call could start, or a stream's first message did
     /// not come in time.
     #[error("{0}")]
@@ -65,7 +68,7 @@ impl From<ServiceError> for Status {
             },
             ServiceError::Replay(replay) => replay_code(replay),
             ServiceError::BadRequest(_) => Code::InvalidArgument,
-            ServiceError::AlreadyOpen(_) => Code::FailedPrecondition,
+            ServiceError::AlreadyOpen(_) | ServiceError::FailedPrecondition(_) => Code::FailedPrecondition,
             ServiceError::TooLate(_) => Code::DeadlineExceeded,
             ServiceError::StreamEnded => Code::Unavailable,
             ServiceError::Unauthenticated(_) => Code::Unauthenticated,

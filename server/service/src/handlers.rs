@@ -55,7 +55,7 @@ impl StreamStopper {
 }
 
 /// Resolves once `stopping` turns true (never, if its sender is gone without stopping).
-async fn stopped(mut stopping: watch::Receiver<bool>) {
+pub(crate) async fn stopped(mut stopping: watch::Receiver<bool>) {
     if stopping.wait_for(|stop| *stop).await.is_err() {
         std::future::pending::<()>().await;
     }
@@ -82,7 +82,7 @@ impl Drop for AbortOnDrop {
 
 /// Who made the request: the authentication layer puts the principal in every request it lets
 /// through (`crate::auth`), so a request without one never passed it.
-fn caller<T>(request: &Request<T>) -> ServiceResult<Principal> {
+pub(crate) fn caller<T>(request: &Request<T>) -> ServiceResult<Principal> {
     request.extensions().get::<Principal>().cloned().ok_or_else(|| {
         ServiceError::Unauthenticated("this request did not pass the server's authentication layer".into())
     })
@@ -119,7 +119,7 @@ fn check_deadline(deadline: Option<Instant>, what: &str) -> ServiceResult<()> {
 
 /// Ends a stream with the shutdown status; a client that does not read within a second misses it
 /// (its stream then just ends: nothing it would read is lost).
-async fn end_with_shutdown<T>(sender: &mpsc::Sender<Result<T, Status>>) {
+pub(crate) async fn end_with_shutdown<T>(sender: &mpsc::Sender<Result<T, Status>>) {
     end_with(sender, ServiceError::StreamEnded).await;
 }
 
@@ -160,7 +160,7 @@ async fn end_with<T>(sender: &mpsc::Sender<Result<T, Status>>, error: ServiceErr
 }
 
 /// Sends `item` unless the server stops or the client leaves first; false when it was not sent.
-async fn send_or_stop<T>(sender: &mpsc::Sender<Result<T, Status>>, item: T, stopping: &watch::Receiver<bool>) -> bool {
+pub(crate) async fn send_or_stop<T>(sender: &mpsc::Sender<Result<T, Status>>, item: T, stopping: &watch::Receiver<bool>) -> bool {
     tokio::select! {
         sent = sender.send(Ok(item)) => sent.is_ok(),
         () = stopped(stopping.clone()) => {
@@ -171,6 +171,11 @@ async fn send_or_stop<T>(sender: &mpsc::Sender<Result<T, Status>>, item: T, stop
 }
 
 impl RadServeService {
+    /// Turns true when the server begins to shut down (for the other services' streams).
+    pub fn stopping(&self) -> watch::Receiver<bool> {
+        self.stopping.clone()
+    }
+
     pub fn new(
         manager: Arc<SessionManager>,
         augment_pool: Arc<rayon::ThreadPool>,

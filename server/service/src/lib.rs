@@ -9,6 +9,7 @@ pub mod acting;
 pub mod auth;
 pub mod codec;
 pub mod convert;
+pub mod dm_env_rpc;
 pub mod error;
 pub mod handoff;
 pub mod handlers;
@@ -20,6 +21,23 @@ pub mod proto {
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("radserve_descriptor");
 }
 
+/// Other protocols served on the same port, at their packages' paths (their generated code refers
+/// to each other by those paths).
+pub mod pb {
+    pub mod dm_env_rpc {
+        pub mod v1 {
+            tonic::include_proto!("dm_env_rpc.v1");
+        }
+    }
+    pub mod google {
+        pub mod rpc {
+            tonic::include_proto!("google.rpc");
+        }
+    }
+}
+
+pub use dm_env_rpc::EnvironmentService;
+pub use pb::dm_env_rpc::v1::environment_server::EnvironmentServer;
 pub use handlers::{RadServeService, StreamStopper};
 pub use proto::rad_serve_server::RadServeServer;
 
