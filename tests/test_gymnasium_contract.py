@@ -15,10 +15,9 @@ STEPS = 240
 # Short episodes, so that every id ends several inside the run (random actions rarely end
 # Acrobot or MountainCarContinuous before their own limits).
 MAX_STEPS = 40
-# Ids whose envs return no infos of their own: infos compare whole. Hopper's step infos (positions,
-# reward terms) do not travel through radserve; its observations, rewards and flags still compare.
-WITHOUT_INFOS = ("CartPole-v1", "Pendulum-v1", "Acrobot-v1", "MountainCarContinuous-v0")
-IDS = (*WITHOUT_INFOS, "Hopper-v5")
+# Hopper returns infos of its own at reset and at every step (positions, reward terms): they travel
+# from the worker as JSON with their numpy dtypes and are batched as SyncVectorEnv batches them.
+IDS = ("CartPole-v1", "Pendulum-v1", "Acrobot-v1", "MountainCarContinuous-v0", "Hopper-v5")
 MODES = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP, AutoresetMode.DISABLED)
 
 
@@ -38,10 +37,11 @@ def assert_same_infos(want: dict, have: dict, observation_dtype) -> None:
         elif isinstance(value, dict):
             assert_same_infos(value, have[key], observation_dtype)
         else:
-            np.testing.assert_array_equal(value, have[key])
+            np.testing.assert_array_equal(value, have[key], err_msg=key)
+            assert value.dtype == have[key].dtype, (key, value.dtype, have[key].dtype)
 
 
-def compare(want, have, with_infos: bool, what: str) -> None:
+def compare(want, have, what: str) -> None:
     """One step's (or reset's) results, gymnasium's against radserve's."""
     want_obs, have_obs = want[0], have[0]
     dtype = have_obs.dtype
@@ -49,40 +49,39 @@ def compare(want, have, with_infos: bool, what: str) -> None:
     for index, name in ((1, "rewards"), (2, "terminated"), (3, "truncated")):
         if len(want) > 3:
             np.testing.assert_array_equal(want[index], have[index], err_msg=f"{name} at {what}")
-    if with_infos:
-        assert_same_infos(want[-1], ours_only(have[-1]), dtype)
+    assert_same_infos(want[-1], ours_only(have[-1]), dtype)
 
 
 @pytest.mark.parametrize("mode", MODES, ids=lambda mode: mode.value)
-@pytest.mark.parametrize("env_id", IDS)
-def test_the_same_as_gymnasium_sync_vector_env(client, env_id, mode):
+@pytest.mark.parametrize("env_id,delivery", [(env_id, "grpc") for env_id in IDS] + [("Hopper-v5", "shared_memory")])
+def test_the_same_as_gymnasium_sync_vector_env(client, env_id, delivery, mode):
     reference = SyncVectorEnv([lambda: gymnasium.make(env_id, max_episode_steps=MAX_STEPS) for _ in range(N)],
                               autoreset_mode=mode)
-    envs = client.make_vec(f"gym/{env_id}", num_envs=N, seed=0, autoreset_mode=mode, max_episode_steps=MAX_STEPS)
-    with_infos = env_id in WITHOUT_INFOS
+    envs = client.make_vec(f"gym/{env_id}", num_envs=N, seed=0, autoreset_mode=mode, max_episode_steps=MAX_STEPS,
+                           delivery=delivery)
     try:
         assert envs.metadata["autoreset_mode"] == mode
         reference.single_action_space.seed(0)
-        compare(reference.reset(seed=5), envs.reset(seed=5), with_infos, "reset(seed=5)")
+        compare(reference.reset(seed=5), envs.reset(seed=5), "reset(seed=5)")
         episodes = 0
         for t in range(STEPS):
             actions = np.stack([reference.single_action_space.sample() for _ in range(N)])
             want, have = reference.step(actions), envs.step(actions)
-            compare(want, have, with_infos, f"step {t}")
+            compare(want, have, f"step {t}")
             ended = want[2] | want[3]
             episodes += int(ended.sum())
             if mode == AutoresetMode.DISABLED and ended.any():
                 options = {"reset_mask": ended.copy()}
-                compare(reference.reset(options=dict(options)), envs.reset(options=dict(options)), with_infos,
+                compare(reference.reset(options=dict(options)), envs.reset(options=dict(options)),
                         f"masked reset after step {t}")
             if t == 80:
-                compare(reference.reset(), envs.reset(), with_infos, "reset()")
+                compare(reference.reset(), envs.reset(), "reset()")
             if t == 140:
                 seeds = [7, 100, 3]
-                compare(reference.reset(seed=seeds), envs.reset(seed=seeds), with_infos, "reset(seed=[7, 100, 3])")
+                compare(reference.reset(seed=seeds), envs.reset(seed=seeds), "reset(seed=[7, 100, 3])")
             if t == 190 and mode != AutoresetMode.DISABLED:
                 options = {"reset_mask": np.array([True, False, True])}
-                compare(reference.reset(options=dict(options)), envs.reset(options=dict(options)), with_infos,
+                compare(reference.reset(options=dict(options)), envs.reset(options=dict(options)),
                         "reset(options={'reset_mask': [True, False, True]})")
         assert episodes >= N, f"only {episodes} episodes ended: the run did not cover episode ends"
     finally:
@@ -193,9 +192,9 @@ def test_gymnasium_vector_wrappers_run_on_radserve_pixels(client, env_id, option
         bare.close()
 
 
-@pytest.mark.parametrize("env_id", ["procgen/bigfish", "gym/Hopper-v5"])
+@pytest.mark.parametrize("env_id", ["procgen/bigfish", "gym/Hopper-v5", "dmc/cartpole-balance"])
 def test_next_step_is_same_step_one_step_later(client, env_id):
-    """Where gymnasium has no reference (ProcGen, whose games are stepped as one procgen vector):
+    """Where gymnasium has no reference (ProcGen, whose games are stepped as one procgen vector; dm_control):
     under NEXT_STEP an ending step returns what SAME_STEP gives as final_obs, and the next step
     returns, with reward 0 and no flags, what SAME_STEP returned as the new episode's start; the
     other envs are unaffected by the skipped one."""

@@ -13,7 +13,9 @@ from .errors import UnavailableError, from_status
 _MAGIC = b"radserve-acting\0"
 _REQUEST = struct.Struct("<cBB5xQ")
 _ANSWER = struct.Struct("<II")
-_ERROR = struct.Struct("<II")
+# An OK answer's records: env index, kind (_RECORD_KINDS), length of the UTF-8 text that follows.
+_RECORD = struct.Struct("<IBI")
+_RECORD_KINDS = ("error", "step_info", "reset_info")
 _HINT = ("shared-memory acting needs the client on the server's host, in its network namespace, as a user the "
          "server allows; use delivery='grpc' otherwise")
 
@@ -61,20 +63,23 @@ class SharedActing:
         except OSError as error:
             raise self._lost(f"the server's acting channel is gone: {error}") from None
 
-    def receive(self) -> "dict[int, str]":
-        """Waits for the answer to the request sent; returns the simulator errors of ended episodes
-        by env index, or raises the server's error."""
+    def receive(self) -> "dict[str, dict[int, str]]":
+        """Waits for the answer to the request sent and returns its records by kind ("error": the
+        simulator errors of ended episodes, "step_info" and "reset_info": the envs' info dicts as
+        JSON text), each by env index; or raises the server's error."""
         code, length = _ANSWER.unpack(self._read(_ANSWER.size))
         body = self._read(length) if length else b""
         if code != 0:
             raise from_status(code, body.decode("utf-8", "replace"))
-        errors, at = {}, 0
+        records: "dict[str, dict[int, str]]" = {kind: {} for kind in _RECORD_KINDS}
+        at = 0
         while at < len(body):
-            env, size = _ERROR.unpack_from(body, at)
-            at += _ERROR.size
-            errors[env] = body[at:at + size].decode("utf-8", "replace")
+            env, kind, size = _RECORD.unpack_from(body, at)
+            at += _RECORD.size
+            if kind < len(_RECORD_KINDS):
+                records[_RECORD_KINDS[kind]][env] = body[at:at + size].decode("utf-8", "replace")
             at += size
-        return errors
+        return records
 
     def _read(self, size: int) -> bytes:
         data = b""

@@ -1,5 +1,6 @@
 """A radserve session as a gymnasium VectorEnv."""
 
+import json
 import queue
 from typing import Any, NamedTuple
 
@@ -29,6 +30,25 @@ class _Step(NamedTuple):
     returns: Any
     lengths: Any
     errors: "dict[int, str]"
+    # env index -> (its step's info, the info of the reset the server made in the step), as JSON text
+    infos: "dict[int, tuple[str | None, str | None]]"
+
+
+def _numpy_value(tagged: dict):
+    """A JSON object as the worker wrote it (radserve_worker.info_json): numpy values rebuilt."""
+    if "__numpy__" in tagged:
+        dtype = np.dtype(tagged["__numpy__"])
+        if "shape" in tagged:
+            return np.array(tagged["value"], dtype=dtype).reshape(tagged["shape"])
+        return dtype.type(tagged["value"])
+    if set(tagged) == {"__repr__"}:
+        return tagged["__repr__"]
+    return tagged
+
+
+def _info(text: "str | None") -> dict:
+    """An env's info dict from its JSON text (empty when none travelled)."""
+    return json.loads(text, object_hook=_numpy_value) if text else {}
 
 
 def _bools(mask) -> "list[bool]":
@@ -104,6 +124,9 @@ class RemoteVectorEnv(VectorEnv):
         # last returned (they differ in the rows of ended envs under NEXT_STEP and DISABLED).
         self._server_obs = None
         self._last_obs = None
+        # Reset infos of envs the server reset in the step that ended their episode, until this env
+        # returns them (NEXT_STEP: in the next step; DISABLED: in their reset).
+        self._held_reset_infos: "dict[int, str | None]" = {}
         if delivery != "grpc":
             channel = client._call("ShareActing", pb.ShareActingRequest(session_id=self.session_id))
             action_shape = () if info.action_space.shape == () else info.action_space.shape
@@ -155,14 +178,21 @@ class RemoteVectorEnv(VectorEnv):
             server_mask = None if on_server.all() else on_server
             if self._shared is not None:
                 self._shared.send(b"R", seed, mask=server_mask, env_seeds=env_seeds)
-                self._shared.receive()
+                reset_infos = self._shared.receive()["reset_info"]
                 server_obs = self._shared.obs.copy()
             else:
                 request = pb.ResetRequest(session_id=self.session_id, seed=seed, mask=_bools(server_mask),
                                           env_seeds=env_seeds or [])
-                server_obs = _convert.to_numpy(self._act(pb.ActRequest(reset=request), "reset").obs).copy()
+                response = self._act(pb.ActRequest(reset=request), "reset")
+                server_obs = _convert.to_numpy(response.obs).copy()
+                reset_infos = {info.env_index: info.reset_json for info in response.infos}
         else:
-            server_obs = self._server_obs
+            server_obs, reset_infos = self._server_obs, {}
+        # Each env's reset info, as gymnasium's SyncVectorEnv batches them (env order, `_key` masks).
+        infos: dict = {}
+        for i in np.flatnonzero(requested):
+            held = self._held_reset_infos.pop(i, None)
+            infos = self._add_info(infos, _info(reset_infos.get(i) if on_server[i] else held), int(i))
         if mask is None or self._last_obs is None:
             obs = server_obs.copy()
         else:
@@ -170,7 +200,7 @@ class RemoteVectorEnv(VectorEnv):
             obs[mask] = server_obs[mask]
         self._ended[requested] = False
         self._server_obs, self._last_obs = server_obs, obs
-        return self._present(obs), {}
+        return self._present(obs), infos
 
     def _present(self, obs: np.ndarray) -> np.ndarray:
         """Observations as this env returns them: its own copy, channels last if asked."""
@@ -293,13 +323,15 @@ class RemoteVectorEnv(VectorEnv):
             )
         np.copyto(target, actions, casting="same_kind")
 
-    def _unpack_shared(self, errors: "dict[int, str]") -> "_Step":
+    def _unpack_shared(self, records: "dict[str, dict[int, str]]") -> "_Step":
         shared = self._shared
         terminated, truncated = shared.terminated.copy(), shared.truncated.copy()
         ended = np.flatnonzero(terminated | truncated)
+        step_infos, reset_infos = records["step_info"], records["reset_info"]
+        infos = {i: (step_infos.get(i), reset_infos.get(i)) for i in step_infos.keys() | reset_infos.keys()}
         return _Step(shared.obs.copy(), shared.reward.copy(), terminated, truncated, ended,
                      shared.final_obs[ended].copy(), shared.episode_return[ended].copy(),
-                     shared.episode_length[ended].copy(), errors)
+                     shared.episode_length[ended].copy(), records["error"], infos)
 
     def _unpack(self, response: "pb.StepResponse") -> "_Step":
         episodes = response.episodes
@@ -311,22 +343,36 @@ class RemoteVectorEnv(VectorEnv):
             _convert.to_numpy(response.final_obs) if episodes else None,
             [episode.episode_return for episode in episodes], [episode.episode_length for episode in episodes],
             {episode.env_index: episode.error for episode in episodes if episode.error},
+            {info.env_index: (info.step_json or None, info.reset_json or None) for info in response.infos},
         )
 
     def _finish(self, step: "_Step"):
-        """The step as this env's autoreset mode returns it, from the server's same-step result."""
-        infos = self._episode_infos(step) if len(step.ended) else {}
+        """The step as this env's autoreset mode returns it, from the server's same-step result, with
+        the envs' infos batched as gymnasium's SyncVectorEnv batches them in that mode."""
         obs = step.obs
-        if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            if len(step.ended):
-                final_obs = np.full(self.num_envs, None, dtype=object)
-                mask = np.zeros(self.num_envs, dtype=bool)
-                for row, i in enumerate(step.ended):
-                    final_obs[i], mask[i] = self._present(step.final_rows[row]), True
-                # gymnasium 1.x: final_info holds the ended episodes' infos, batched (the envs'
-                # own infos do not travel; radserve's figures are under radserve_episode).
-                infos.update({"final_obs": final_obs, "_final_obs": mask, "final_info": {}, "_final_info": mask.copy()})
-        else:
+        rows = {int(i): row for row, i in enumerate(step.ended)}
+        infos: dict = {}
+        # Only envs with something to report (an empty info adds nothing), in env order as gymnasium's.
+        for i in sorted(step.infos.keys() | rows.keys() | set(np.flatnonzero(self._ended).tolist())):
+            step_info, reset_info = step.infos.get(i, (None, None))
+            if self.autoreset_mode == AutoresetMode.SAME_STEP:
+                if i in rows:
+                    # gymnasium 1.x: the ended episode's last observation and info, then the reset's info.
+                    final = {"final_obs": self._present(step.final_rows[rows[i]]), "final_info": _info(step_info)}
+                    infos = self._add_info(infos, final, i)
+                    infos = self._add_info(infos, _info(reset_info), i)
+                else:
+                    infos = self._add_info(infos, _info(step_info), i)
+            elif self._ended[i]:
+                # NEXT_STEP's reset step: the info of the reset the server made a step ago.
+                infos = self._add_info(infos, _info(self._held_reset_infos.pop(i, None)), i)
+            else:
+                infos = self._add_info(infos, _info(step_info), i)
+                if i in rows:
+                    self._held_reset_infos[i] = reset_info
+        if len(step.ended):
+            infos.update(self._episode_infos(step))
+        if self.autoreset_mode != AutoresetMode.SAME_STEP:
             self._server_obs = obs
             if len(step.ended):
                 obs = obs.copy()

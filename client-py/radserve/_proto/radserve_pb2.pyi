@@ -272,10 +272,22 @@ class ResetRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., seed: _Optional[int] = ..., mask: _Optional[_Iterable[bool]] = ..., env_seeds: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class ResetResponse(_message.Message):
-    __slots__ = ("obs",)
+    __slots__ = ("obs", "infos")
     OBS_FIELD_NUMBER: _ClassVar[int]
+    INFOS_FIELD_NUMBER: _ClassVar[int]
     obs: Tensor
-    def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+    infos: _containers.RepeatedCompositeFieldContainer[InfoDicts]
+    def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ..., infos: _Optional[_Iterable[_Union[InfoDicts, _Mapping]]] = ...) -> None: ...
+
+class InfoDicts(_message.Message):
+    __slots__ = ("env_index", "step_json", "reset_json")
+    ENV_INDEX_FIELD_NUMBER: _ClassVar[int]
+    STEP_JSON_FIELD_NUMBER: _ClassVar[int]
+    RESET_JSON_FIELD_NUMBER: _ClassVar[int]
+    env_index: int
+    step_json: str
+    reset_json: str
+    def __init__(self, env_index: _Optional[int] = ..., step_json: _Optional[str] = ..., reset_json: _Optional[str] = ...) -> None: ...
 
 class StepRequest(_message.Message):
     __slots__ = ("session_id", "actions", "skip")
@@ -304,20 +316,22 @@ class EpisodeEnd(_message.Message):
     def __init__(self, env_index: _Optional[int] = ..., episode_return: _Optional[float] = ..., episode_length: _Optional[int] = ..., terminated: _Optional[bool] = ..., truncated: _Optional[bool] = ..., error: _Optional[str] = ...) -> None: ...
 
 class StepResponse(_message.Message):
-    __slots__ = ("obs", "reward", "terminated", "truncated", "episodes", "final_obs")
+    __slots__ = ("obs", "reward", "terminated", "truncated", "episodes", "final_obs", "infos")
     OBS_FIELD_NUMBER: _ClassVar[int]
     REWARD_FIELD_NUMBER: _ClassVar[int]
     TERMINATED_FIELD_NUMBER: _ClassVar[int]
     TRUNCATED_FIELD_NUMBER: _ClassVar[int]
     EPISODES_FIELD_NUMBER: _ClassVar[int]
     FINAL_OBS_FIELD_NUMBER: _ClassVar[int]
+    INFOS_FIELD_NUMBER: _ClassVar[int]
     obs: Tensor
     reward: Tensor
     terminated: _containers.RepeatedScalarFieldContainer[bool]
     truncated: _containers.RepeatedScalarFieldContainer[bool]
     episodes: _containers.RepeatedCompositeFieldContainer[EpisodeEnd]
     final_obs: Tensor
-    def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ..., reward: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Iterable[bool]] = ..., truncated: _Optional[_Iterable[bool]] = ..., episodes: _Optional[_Iterable[_Union[EpisodeEnd, _Mapping]]] = ..., final_obs: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+    infos: _containers.RepeatedCompositeFieldContainer[InfoDicts]
+    def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ..., reward: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Iterable[bool]] = ..., truncated: _Optional[_Iterable[bool]] = ..., episodes: _Optional[_Iterable[_Union[EpisodeEnd, _Mapping]]] = ..., final_obs: _Optional[_Union[Tensor, _Mapping]] = ..., infos: _Optional[_Iterable[_Union[InfoDicts, _Mapping]]] = ...) -> None: ...
 
 class ActRequest(_message.Message):
     __slots__ = ("reset", "step")

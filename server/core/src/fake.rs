@@ -20,7 +20,7 @@ use std::sync::{Arc, Mutex};
 use async_trait::async_trait;
 
 use crate::catalog::{EnvId, EnvNames, Family, Options};
-use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
+use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, GroupInfo, ResetInfos, SimulatorError, Simulators, StepResult};
 use crate::space::{DType, Space};
 
 /// The fake env's id.
@@ -208,7 +208,8 @@ impl EnvGroup for FakeGroup {
         &self.frames
     }
 
-    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<(), SimulatorError> {
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<ResetInfos, SimulatorError> {
+        let mut infos = ResetInfos::new();
         for local in 0..self.state.len() {
             if mask.as_ref().is_some_and(|mask| !mask[local]) {
                 continue;
@@ -222,9 +223,10 @@ impl EnvGroup for FakeGroup {
             }
             let current = self.current(local);
             self.write(local, false, current);
+            infos.push((local as u32, fake_info("episode", self.state[local].episode)));
         }
         self.lost = false;
-        Ok(())
+        Ok(infos)
     }
 
     async fn step(&mut self, actions: Vec<u8>, skip: Option<Vec<bool>>) -> Result<StepResult, SimulatorError> {
@@ -251,8 +253,12 @@ impl EnvGroup for FakeGroup {
         }
         let n = self.state.len();
         assert_eq!(actions.len(), n * 8, "the core sends one int64 action per env");
-        let mut result =
-            StepResult { rewards: vec![0.0; n], terminated: vec![false; n], truncated: vec![false; n], errors: Vec::new() };
+        let mut result = StepResult {
+            rewards: vec![0.0; n],
+            terminated: vec![false; n],
+            truncated: vec![false; n],
+            ..StepResult::default()
+        };
         for local in 0..n {
             if skip.as_ref().is_some_and(|skip| skip[local]) {
                 continue;
@@ -272,13 +278,16 @@ impl EnvGroup for FakeGroup {
             result.rewards[local] = action as f64 + 1.0;
             self.state[local].t += 1;
             let env = self.state[local];
+            let mut info = GroupInfo { env: local as u32, step: Some(fake_info("t", env.t)), reset: None };
             if env.t == episode_length(env.seed) {
                 result.terminated[local] = ends_terminated(env.episode);
                 result.truncated[local] = !ends_terminated(env.episode);
                 let last = self.current(local);
                 self.write(local, true, last);
                 self.state[local] = FakeEnv { episode: env.episode + 1, t: 0, ..env };
+                info.reset = Some(fake_info("episode", env.episode + 1));
             }
+            result.infos.push(info);
             let current = self.current(local);
             self.write(local, false, current);
         }
@@ -288,6 +297,11 @@ impl EnvGroup for FakeGroup {
     async fn close(&mut self) {
         self.faults.lock().expect("fake faults lock").groups_alive -= 1;
     }
+}
+
+/// A fake env's info dict, as a worker writes one: `{"fake_<name>": value}`.
+fn fake_info(name: &str, value: u64) -> String {
+    format!("{{\"fake_{name}\": {value}}}")
 }
 
 /// Options for a fake session: `frame_stack` frames per observation.

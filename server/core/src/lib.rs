@@ -28,6 +28,6 @@ pub use manager::{
     BufferRequest, CatalogEntry, LeaseHold, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
 };
 pub use principal::{Principal, PrincipalLimits, Role};
-pub use session::{AutoresetMode, EpisodeEnd, ResetSpec, StepOutcome};
-pub use simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
+pub use session::{AutoresetMode, EnvInfo, EpisodeEnd, ResetSpec, StepOutcome};
+pub use simulators::{EnvGroup, EnvSpec, FrameLayout, GroupInfo, ResetInfos, SimulatorError, Simulators, StepResult};
 pub use space::{DType, Space};

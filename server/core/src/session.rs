@@ -89,6 +89,17 @@ pub struct StepOutcome {
     pub episodes: Vec<EpisodeEnd>,
     /// [episodes.len(), *observation shape]: the last observation of each ended episode.
     pub final_obs: Vec<u8>,
+    /// The envs' own info dicts (JSON text from the simulators), for the envs that returned any.
+    pub infos: Vec<EnvInfo>,
+}
+
+/// An env's own info dicts from one step: the step's, and (when the step ended its episode) the
+/// reset's, as JSON text the simulator wrote; the server only carries them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct EnvInfo {
+    pub env_index: usize,
+    pub step: Option<String>,
+    pub reset: Option<String>,
 }
 
 pub struct Session {
@@ -116,6 +127,8 @@ pub struct Session {
     pub stats: Arc<SessionStats>,
     /// The evaluation view observations are returned through (replay keeps the raw frames).
     view: Option<ImagePlan>,
+    /// The reset info dicts of the envs the last reset reset (env index, JSON text).
+    reset_infos: Vec<(usize, String)>,
 }
 
 impl Session {
@@ -152,6 +165,7 @@ impl Session {
             replay: None,
             stats: Arc::new(SessionStats { seed: AtomicU64::new(config_seed), ..SessionStats::default() }),
             view: None,
+            reset_infos: Vec::new(),
         })
     }
 
@@ -162,6 +176,12 @@ impl Session {
     /// Whether the session must be reset (every env) before it steps: new, or after a failed step.
     pub fn needs_reset(&self) -> bool {
         self.needs_reset
+    }
+
+    /// The reset info dicts (env index, JSON text) of the envs the last reset reset, for those that
+    /// returned a non-empty one.
+    pub fn reset_infos(&self) -> &[(usize, String)] {
+        &self.reset_infos
     }
 
     /// Steps taken in each env's current episode (0: at an episode's first observation).
@@ -315,16 +335,21 @@ impl Session {
         // A group whose process was replaced was rebuilt from its seeds: it is reset whole, so every
         // env of it starts over (unmasked ones too: their simulator state went with the process).
         let mut whole = vec![spec.mask.is_none(); self.groups.len()];
+        self.reset_infos.clear();
         for (index, result) in results.into_iter().enumerate() {
-            match result {
-                None | Some(Ok(())) => {}
+            let infos = match result {
+                None => continue,
+                Some(Ok(infos)) => infos,
                 Some(Err(SimulatorError::Lost(_))) => {
-                    self.reset_group(index).await?;
                     whole[index] = true;
+                    self.reset_group(index).await?
                 }
                 Some(Err(error)) => return Err(error.into()),
-            }
+            };
+            let start = self.groups[index].envs().start;
+            self.reset_infos.extend(infos.into_iter().map(|(local, info)| (start + local as usize, info)));
         }
+        self.reset_infos.sort_by_key(|(env, _)| *env);
         for index in 0..self.groups.len() {
             if plans[index].is_none() && !whole[index] {
                 continue;
@@ -343,8 +368,8 @@ impl Session {
         Ok(self.viewed(&self.stacks))
     }
 
-    /// Resets one group with its envs' seeds (after its process was replaced).
-    async fn reset_group(&mut self, index: usize) -> Result<(), CoreError> {
+    /// Resets one group with its envs' seeds (after its process was replaced); its reset infos.
+    async fn reset_group(&mut self, index: usize) -> Result<crate::simulators::ResetInfos, CoreError> {
         let seeds = self.group_seeds(index);
         Ok(self.groups[index].reset(Some(seeds), None).await?)
     }
@@ -403,7 +428,12 @@ impl Session {
                 // Nothing of this group steps: no call at all.
                 Some(skip) if !skip.contains(&false) => {
                     let n = skip.len();
-                    Ok(StepResult { rewards: vec![0.0; n], terminated: vec![false; n], truncated: vec![false; n], errors: Vec::new() })
+                    Ok(StepResult {
+                        rewards: vec![0.0; n],
+                        terminated: vec![false; n],
+                        truncated: vec![false; n],
+                        ..StepResult::default()
+                    })
                 }
                 skip => group.step(slice, skip).await,
             }
@@ -444,6 +474,9 @@ impl Session {
                 }
             };
             let group_envs = self.groups[index].envs();
+            outcome.infos.extend(result.infos.iter().filter(|info| !skipped(group_envs.start + info.env as usize)).map(|info| {
+                EnvInfo { env_index: group_envs.start + info.env as usize, step: info.step.clone(), reset: info.reset.clone() }
+            }));
             if let Some(replay) = &self.replay {
                 // Recorded before the stacks move on; sync, so no lock is held across an await.
                 let mut replay = replay.write().expect("replay lock");
@@ -517,10 +550,19 @@ impl Session {
         message: &str,
         outcome: &mut StepOutcome,
     ) -> Result<(), CoreError> {
-        if let Err(error) = self.reset_group(index).await {
-            self.needs_reset = true;
-            return Err(error);
-        }
+        let infos = match self.reset_group(index).await {
+            Ok(infos) => infos,
+            Err(error) => {
+                self.needs_reset = true;
+                return Err(error);
+            }
+        };
+        let start = self.groups[index].envs().start;
+        outcome.infos.extend(infos.into_iter().map(|(local, info)| EnvInfo {
+            env_index: start + local as usize,
+            step: None,
+            reset: Some(info),
+        }));
         let stack_bytes = self.stack_bytes();
         for env in self.groups[index].envs() {
             outcome.final_obs.extend_from_slice(&self.stacks[env * stack_bytes..(env + 1) * stack_bytes]);

@@ -23,7 +23,7 @@ pub struct EnvSpec {
 }
 
 /// A group's answer to a step.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StepResult {
     pub rewards: Vec<f64>,
     pub terminated: Vec<bool>,
@@ -31,7 +31,24 @@ pub struct StepResult {
     /// (index within the group, message) for each env whose simulator raised during this step; that
     /// env's episode ends as truncated and it starts a new one.
     pub errors: Vec<(u32, String)>,
+    /// The envs' own info dicts (gymnasium's `info`), for the envs that returned a non-empty one.
+    pub infos: Vec<GroupInfo>,
 }
+
+/// One env's info dicts from a step, as JSON text the worker wrote (numpy values tagged with their
+/// dtype, so the client rebuilds them exactly): the step's, and the reset's when the step ended an
+/// episode and the env was reset in it. Opaque to the server, which only carries them.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GroupInfo {
+    /// Index within the group.
+    pub env: u32,
+    pub step: Option<String>,
+    pub reset: Option<String>,
+}
+
+/// The reset info dicts of the envs a reset reset, by index within the group, for those that
+/// returned a non-empty one (JSON text, as [`GroupInfo`]).
+pub type ResetInfos = Vec<(u32, String)>;
 
 impl StepResult {
     /// Whether this result has one entry per environment of a group of `envs`.
@@ -97,7 +114,7 @@ pub trait EnvGroup: Send + Sync {
     /// Resets every env of the group, or those `mask` marks (one entry per env of the group),
     /// reseeding env j with `seeds[j]` when given. After [`SimulatorError::Lost`], the group is
     /// usable again once a full reset succeeds.
-    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<(), SimulatorError>;
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<ResetInfos, SimulatorError>;
 
     /// Steps every env of the group with `actions` (the group's envs' actions, little-endian bytes of
     /// the action dtype, already checked against the action space), except those `skip` marks: they

@@ -221,7 +221,7 @@ impl ActingChannel {
         debug!(session = log_id(&session_id), "acting channel closed");
     }
 
-    /// One request: Ok holds the simulator errors of ended episodes, encoded for the answer.
+    /// One request: Ok holds the answer's records (simulator errors of ended episodes, the envs' infos).
     async fn handle(&mut self, session_id: &str, request: &[u8; REQUEST_BYTES]) -> Result<Vec<u8>> {
         let seed = match request[1] {
             0 => None,
@@ -256,7 +256,11 @@ impl ActingChannel {
                 let obs = session.reset_with(&radserve_core::ResetSpec { seed, env_seeds, mask }).await?;
                 check_len("observations", obs.len(), layout.num_envs * layout.obs_bytes)?;
                 memory[layout.obs..][..obs.len()].copy_from_slice(&obs);
-                Ok(Vec::new())
+                let mut records = Vec::new();
+                for (env, info) in session.reset_infos() {
+                    push_record(&mut records, *env, RECORD_RESET_INFO, info);
+                }
+                Ok(records)
             }
             b'S' => {
                 let action = &session.frame_spec.action;
@@ -274,7 +278,7 @@ impl ActingChannel {
                     memory[layout.terminated + env] = outcome.terminated[env] as u8;
                     memory[layout.truncated + env] = outcome.truncated[env] as u8;
                 }
-                let mut errors = Vec::new();
+                let mut records = Vec::new();
                 for (row, episode) in outcome.episodes.iter().enumerate() {
                     let env = episode.env_index;
                     let final_obs = &outcome.final_obs[row * layout.obs_bytes..][..layout.obs_bytes];
@@ -282,18 +286,37 @@ impl ActingChannel {
                     memory[layout.episode_return + 8 * env..][..8].copy_from_slice(&episode.episode_return.to_le_bytes());
                     memory[layout.episode_length + 8 * env..][..8].copy_from_slice(&episode.episode_length.to_le_bytes());
                     if let Some(message) = &episode.error {
-                        errors.extend_from_slice(&(env as u32).to_le_bytes());
-                        errors.extend_from_slice(&(message.len() as u32).to_le_bytes());
-                        errors.extend_from_slice(message.as_bytes());
+                        push_record(&mut records, env, RECORD_ERROR, message);
                     }
                 }
-                Ok(errors)
+                for info in &outcome.infos {
+                    if let Some(step) = &info.step {
+                        push_record(&mut records, info.env_index, RECORD_STEP_INFO, step);
+                    }
+                    if let Some(reset) = &info.reset {
+                        push_record(&mut records, info.env_index, RECORD_RESET_INFO, reset);
+                    }
+                }
+                Ok(records)
             }
             other => Err(ServiceError::BadRequest(format!(
                 "a request starts with 'S' (step) or 'R' (reset), got byte {other:#04x}"
             ))),
         }
     }
+}
+
+/// Kinds of the records of an OK answer: an env's simulator error, step info, reset info.
+const RECORD_ERROR: u8 = 0;
+const RECORD_STEP_INFO: u8 = 1;
+const RECORD_RESET_INFO: u8 = 2;
+
+/// Appends one record of an answer: u32 env index, u8 kind, u32 length, the UTF-8 text.
+fn push_record(records: &mut Vec<u8>, env: usize, kind: u8, text: &str) {
+    records.extend_from_slice(&(env as u32).to_le_bytes());
+    records.push(kind);
+    records.extend_from_slice(&(text.len() as u32).to_le_bytes());
+    records.extend_from_slice(text.as_bytes());
 }
 
 fn check_len(what: &str, got: usize, expected: usize) -> Result<()> {

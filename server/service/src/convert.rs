@@ -411,7 +411,24 @@ pub fn step_to_proto(space: &Space, outcome: StepOutcome) -> proto::StepResponse
         truncated: outcome.truncated,
         final_obs: Some(observation_tensor(space, outcome.episodes.len(), outcome.final_obs)),
         episodes: outcome.episodes.iter().map(episode_to_proto).collect(),
+        infos: outcome
+            .infos
+            .into_iter()
+            .map(|info| proto::InfoDicts {
+                env_index: info.env_index as u32,
+                step_json: info.step.unwrap_or_default(),
+                reset_json: info.reset.unwrap_or_default(),
+            })
+            .collect(),
     }
+}
+
+/// The reset infos of the envs the session's last reset reset.
+pub fn reset_infos_to_proto(infos: &[(usize, String)]) -> Vec<proto::InfoDicts> {
+    infos
+        .iter()
+        .map(|(env, info)| proto::InfoDicts { env_index: *env as u32, step_json: String::new(), reset_json: info.clone() })
+        .collect()
 }
 
 fn episode_to_proto(episode: &EpisodeEnd) -> proto::EpisodeEnd {

@@ -196,7 +196,10 @@ impl RadServeService {
             let mut session = session.lock().await;
             check_deadline(deadline, "Reset")?;
             let obs = session.reset_with(&convert::reset_spec(&request)).await?;
-            Ok(proto::ResetResponse { obs: Some(observation_tensor(&session.observation_space, session.num_envs(), obs)) })
+            Ok(proto::ResetResponse {
+                obs: Some(observation_tensor(&session.observation_space, session.num_envs(), obs)),
+                infos: convert::reset_infos_to_proto(session.reset_infos()),
+            })
         })
         .await
     }

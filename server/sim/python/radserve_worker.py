@@ -13,6 +13,7 @@ Each adapter turns one simulator into the same small contract:
 
 import contextlib
 import io
+import json
 import os
 import warnings
 
@@ -115,7 +116,8 @@ class DmcEnv:
     def reset(self, seed):
         if seed is not None:
             self._load(seed)
-        return self._observe(self.env.reset())
+        # dm_control's time steps carry no info dict.
+        return self._observe(self.env.reset()), {}
 
     def step(self, action):
         reward = 0.0
@@ -127,7 +129,7 @@ class DmcEnv:
         # dm_env: a last step with discount 0 is a termination, otherwise the time limit truncated it.
         ended = time_step.last()
         terminated = ended and time_step.discount == 0.0
-        return self._observe(time_step), reward, terminated, ended and not terminated
+        return self._observe(time_step), reward, terminated, ended and not terminated, {}
 
     def close(self):
         if self.camera is not None:
@@ -137,6 +139,24 @@ class DmcEnv:
         if self.env is not None:
             self.env.close()
             self.env = None
+
+
+def info_json(info):
+    """An env's info dict as JSON text for the client (None when empty). numpy values are tagged with
+    their dtype, `{"__numpy__": dtype, "value": ...}` (and `"shape"` for arrays), so the client
+    rebuilds them as the env returned them (gymnasium batches infos by their values' types);
+    anything JSON cannot hold travels as its repr."""
+    if not info:
+        return None
+    return json.dumps(info, default=_tagged)
+
+
+def _tagged(value):
+    if isinstance(value, np.ndarray):
+        return {"__numpy__": value.dtype.str, "shape": list(value.shape), "value": value.ravel().tolist()}
+    if isinstance(value, np.generic):
+        return {"__numpy__": value.dtype.str, "value": value.item()}
+    return {"__repr__": repr(value)}
 
 
 class GymEnv:
@@ -169,18 +189,19 @@ class GymEnv:
         if seed is None:
             seed = self.seed
         self.seed = None
-        obs, _ = self.env.reset(seed=seed)
-        return obs
+        obs, info = self.env.reset(seed=seed)
+        return obs, info
 
     def step(self, action):
         action = int(action) if self.discrete else action
         reward, terminated, truncated = 0.0, False, False
         for _ in range(self.action_repeat):
-            obs, r, terminated, truncated, _ = self.env.step(action)
+            obs, r, terminated, truncated, info = self.env.step(action)
             reward += float(r)
             if terminated or truncated:
                 break
-        return obs, reward, bool(terminated), bool(truncated)
+        # The info of the last step of the action repeat.
+        return obs, reward, bool(terminated), bool(truncated), info
 
     def close(self):
         self.env.close()
@@ -270,16 +291,21 @@ class Group:
 
     def reset(self, seeds, mask=None):
         """Resets every env, or those whose `mask` entry is true; `seeds` (one per env of the group)
-        re-seed the envs reset."""
+        re-seed the envs reset. Returns the non-empty reset infos: (env, JSON text)."""
+        infos = []
         for j, env in enumerate(self.envs):
             if mask is not None and not mask[j]:
                 continue
             if seeds is not None:
                 self.seeds[j] = seeds[j]
-            self.current[j] = env.reset(None if seeds is None else seeds[j])
+            self.current[j], info = env.reset(None if seeds is None else seeds[j])
+            if info:
+                infos.append((j, info_json(info)))
+        return infos
 
     def _restart(self, j):
-        """Resets env j after its simulator raised; rebuilds it when even the reset fails."""
+        """Resets env j after its simulator raised (its frame and reset info); rebuilds it when even
+        the reset fails."""
         try:
             return self.envs[j].reset(None)
         except Exception:
@@ -294,24 +320,29 @@ class Group:
         rewards = [0.0] * n
         terminated = [False] * n
         truncated = [False] * n
-        errors = []
+        errors, infos = [], []
         for j, env in enumerate(self.envs):
             if skip is not None and skip[j]:
                 continue
+            reset_info = None
             try:
-                frame, rewards[j], terminated[j], truncated[j] = env.step(actions[j])
+                frame, rewards[j], terminated[j], truncated[j], info = env.step(actions[j])
             except Exception as exc:  # the simulator raised: end this episode, keep the worker
                 errors.append((j, f"{type(exc).__name__}: {exc}"))
                 self.final[j] = self.current[j]
                 truncated[j] = True
-                self.current[j] = self._restart(j)
+                self.current[j], reset_info = self._restart(j)
+                if reset_info:
+                    infos.append((j, None, info_json(reset_info)))
                 continue
             if terminated[j] or truncated[j]:
                 self.final[j] = frame
-                self.current[j] = env.reset(None)
+                self.current[j], reset_info = env.reset(None)
             else:
                 self.current[j] = frame
-        return rewards, terminated, truncated, errors
+            if info or reset_info:
+                infos.append((j, info_json(info), info_json(reset_info)))
+        return rewards, terminated, truncated, errors, infos
 
     def close(self):
         for env in self.envs:
@@ -380,6 +411,8 @@ class ProcgenGroup(Group):
                 states[j] = _procgen(1, self.name, self.options, seed).get_state()[0]
             self.vec.set_state(states)
         self.current[:] = self._frames()
+        # gym3's info (level seeds) is not an env's gymnasium info: none travels.
+        return []
 
     def step(self, actions, skip=None):
         actions = np.frombuffer(actions, dtype=self.action_dtype).astype(np.int32)
@@ -397,7 +430,7 @@ class ProcgenGroup(Group):
             self.final[:] = self.current
             self.vec = self._fresh_vector()
             self.current[:] = self._frames()
-            return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)]
+            return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)], []
         ended = first.astype(bool)
         rewards = rewards.astype(np.float64)
         if skipped:
@@ -416,7 +449,7 @@ class ProcgenGroup(Group):
         np.einsum("nhwc->nchw", obs["rgb"], out=self.current)
         if skipped:
             self.current[skipped] = held
-        return rewards.tolist(), ended.tolist(), [False] * self.n, []
+        return rewards.tolist(), ended.tolist(), [False] * self.n, [], []
 
     def close(self):
         if self.vec is not None:

@@ -6,7 +6,7 @@ use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use async_trait::async_trait;
-use radserve_core::{EnvGroup, EnvId, EnvNames, EnvSpec, FrameLayout, Options, SimulatorError, Simulators, StepResult};
+use radserve_core::{EnvGroup, EnvId, EnvNames, EnvSpec, FrameLayout, Options, ResetInfos, SimulatorError, Simulators, StepResult};
 use radserve_shm::MemFile;
 
 use crate::pool::{await_generation, WorkerFault, WorkerHandle, WorkerPool};
@@ -36,11 +36,11 @@ impl EnvGroup for WorkerGroup {
         self.frames.as_slice()
     }
 
-    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<(), SimulatorError> {
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<ResetInfos, SimulatorError> {
         match await_generation(self.worker.submit(Request::Reset { group: self.id, seeds, mask }).await).await {
-            Ok((Response::Reset, generation)) => {
+            Ok((Response::Reset(infos), generation)) => {
                 self.generation = generation;
-                Ok(())
+                Ok(infos)
             }
             other => Err(unexpected(other)),
         }

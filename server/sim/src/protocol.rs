@@ -8,7 +8,7 @@ use std::sync::Arc;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
-pub use radserve_core::simulators::{EnvSpec, StepResult};
+pub use radserve_core::simulators::{EnvSpec, GroupInfo, ResetInfos, StepResult};
 use radserve_core::{EnvNames, Family, Options};
 
 /// A descriptor the server sends beside a request (not serialized: it travels as SCM_RIGHTS). Kept
@@ -79,7 +79,8 @@ pub enum Response {
     Specs(Vec<Result<EnvSpec, String>>),
     Created(EnvSpec),
     Attached,
-    Reset,
+    /// The reset infos of the envs reset (index within the group, JSON text).
+    Reset(ResetInfos),
     Stepped(StepResult),
     Closed,
     /// The request failed inside the worker; the worker itself is fine.

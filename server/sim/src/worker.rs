@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 use radserve_core::{DType, EnvNames, Family, OptionValue, Options, Space};
 use radserve_shm::MemFile;
 
-use crate::protocol::{self, EnvSpec, GroupConfig, Request, Response, StepResult};
+use crate::protocol::{self, EnvSpec, GroupConfig, GroupInfo, Request, Response, StepResult};
 
 const ADAPTERS_SOURCE: &str = include_str!("../python/radserve_worker.py");
 
@@ -149,7 +149,9 @@ fn status_message(what: &str, status: &ffi::PyStatus) -> String {
 }
 
 /// What `Group.step` returns: rewards, terminated, truncated, (env, message) for simulators that raised.
-type GroupStepTuple = (Vec<f64>, Vec<bool>, Vec<bool>, Vec<(u32, String)>);
+/// What a group's `step` returns: rewards, terminated, truncated, errors (env, message) and infos
+/// (env, step info JSON or None, reset info JSON or None).
+type GroupStepTuple = (Vec<f64>, Vec<bool>, Vec<bool>, Vec<(u32, String)>, Vec<(u32, Option<String>, Option<String>)>);
 
 struct HostedGroup {
     object: Py<PyAny>,
@@ -242,14 +244,15 @@ fn handle(
             Ok(Response::Attached)
         }
         Request::Reset { group, seeds, mask } => {
-            hosted_group(groups, group)?.object.bind(py).call_method1("reset", (seeds, mask))?;
-            Ok(Response::Reset)
+            let infos = hosted_group(groups, group)?.object.bind(py).call_method1("reset", (seeds, mask))?.extract()?;
+            Ok(Response::Reset(infos))
         }
         Request::Step { group, actions, skip } => {
             let hosted = hosted_group(groups, group)?;
             let outcome = hosted.object.bind(py).call_method1("step", (PyBytes::new(py, &actions), skip))?;
-            let (rewards, terminated, truncated, errors): GroupStepTuple = outcome.extract()?;
-            Ok(Response::Stepped(StepResult { rewards, terminated, truncated, errors }))
+            let (rewards, terminated, truncated, errors, infos): GroupStepTuple = outcome.extract()?;
+            let infos = infos.into_iter().map(|(env, step, reset)| GroupInfo { env, step, reset }).collect();
+            Ok(Response::Stepped(StepResult { rewards, terminated, truncated, errors, infos }))
         }
         Request::CloseGroup { group } => {
             if let Some(hosted) = groups.remove(&group) {

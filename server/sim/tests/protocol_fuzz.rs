@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 
 use proptest::prelude::*;
 use radserve_core::{DType, EnvNames, Family, OptionValue, Space};
-use radserve_sim::protocol::{self, EnvSpec, GroupConfig, Request, Response, StepResult, MAX_MESSAGE_BYTES};
+use radserve_sim::protocol::{self, EnvSpec, GroupConfig, GroupInfo, Request, Response, StepResult, MAX_MESSAGE_BYTES};
 
 fn config() -> ProptestConfig {
     let cases = std::env::var("PROPTEST_CASES").ok().and_then(|value| value.parse().ok()).unwrap_or(2048);
@@ -68,15 +68,19 @@ fn response() -> impl Strategy<Value = Response> {
         prop::collection::vec(prop_oneof![spec().prop_map(Ok), "\\PC{0,12}".prop_map(Err)], 0..3).prop_map(Response::Specs),
         spec().prop_map(Response::Created),
         Just(Response::Attached),
-        Just(Response::Reset),
+        prop::collection::vec((any::<u32>(), "\\PC{0,12}"), 0..2).prop_map(Response::Reset),
         (0usize..6)
             .prop_flat_map(|n| (
                 prop::collection::vec(any::<f64>(), n),
                 prop::collection::vec(any::<bool>(), n),
                 prop::collection::vec(any::<bool>(), n),
                 prop::collection::vec((any::<u32>(), "\\PC{0,12}"), 0..2),
+                prop::collection::vec((any::<u32>(), prop::option::of("\\PC{0,12}"), prop::option::of("\\PC{0,12}")), 0..2),
             ))
-            .prop_map(|(rewards, terminated, truncated, errors)| Response::Stepped(StepResult { rewards, terminated, truncated, errors })),
+            .prop_map(|(rewards, terminated, truncated, errors, infos)| {
+                let infos = infos.into_iter().map(|(env, step, reset)| GroupInfo { env, step, reset }).collect();
+                Response::Stepped(StepResult { rewards, terminated, truncated, errors, infos })
+            }),
         Just(Response::Closed),
         "\\PC{0,24}".prop_map(Response::Failed),
     ]
