@@ -3,6 +3,7 @@ within the drain deadline with no worker left; a second signal exits at once."""
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -15,6 +16,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import radserve
 from _procs import worker_pids
+from radserve.server import find_binary
 
 
 def _running(pid):
@@ -30,6 +32,12 @@ def _health(address):
         reply = health_pb2_grpc.HealthStub(channel).Check(
             health_pb2.HealthCheckRequest(service="radserve.v1.RadServe"), timeout=5)
         return reply.status
+
+
+def _healthcheck(address, *args):
+    """`radserve healthcheck`, as a container HEALTHCHECK runs it."""
+    return subprocess.run([find_binary(), "healthcheck", "--address", address, *args], capture_output=True, text=True,
+                          timeout=30)
 
 
 def _busy_server(notice, drain):
@@ -59,11 +67,17 @@ def test_sigterm_drains_with_statuses_and_exits_within_the_deadline():
     try:
         workers = _wait_forworker_pids(server.process.pid)
         assert _health(server.address) == health_pb2.HealthCheckResponse.SERVING
+        for service in ("", "radserve.v1.RadServe", "dm_env_rpc.v1.Environment"):
+            checked = _healthcheck(server.address, "--service", service)
+            assert (checked.returncode, checked.stdout) == (0, "SERVING\n"), checked.stderr
         started = time.monotonic()
         server.process.send_signal(signal.SIGTERM)
         time.sleep(0.3)
         # During the notice: still answering, but not serving and refusing new sessions.
         assert _health(server.address) == health_pb2.HealthCheckResponse.NOT_SERVING
+        checked = _healthcheck(server.address)
+        assert (checked.returncode, checked.stdout) == (1, "NOT_SERVING\n")
+        assert "reports NOT_SERVING" in checked.stderr
         with pytest.raises(radserve.UnavailableError, match="shutting down"):
             client.make_vec("gym/CartPole-v1")
         # The open stream ends with a status, not silently and not never.
@@ -78,6 +92,15 @@ def test_sigterm_drains_with_statuses_and_exits_within_the_deadline():
     finally:
         client.close()
         server.stop()
+
+
+def test_healthcheck_fails_clearly_without_a_server():
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    checked = _healthcheck(f"127.0.0.1:{port}", "--timeout-s", "2")
+    assert checked.returncode == 1 and checked.stdout == ""
+    assert f"connecting to 127.0.0.1:{port}" in checked.stderr
 
 
 def test_a_second_signal_exits_at_once():

@@ -15,6 +15,7 @@ pub mod error;
 #[cfg(any(test, feature = "testing"))]
 pub mod fake;
 pub mod manager;
+pub mod metrics;
 pub mod principal;
 pub mod session;
 pub mod simulators;

@@ -16,6 +16,7 @@ use crate::bounds;
 use crate::budget::{self, MemoryBudget, Reservation};
 use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
 use crate::error::CoreError;
+use crate::metrics::CoreMetrics;
 use crate::principal::{log_id, Principal};
 use crate::session::{check_seed, AutoresetMode, Session, SessionConfig, SessionStats};
 use crate::simulators::Simulators;
@@ -194,6 +195,9 @@ pub struct SessionSummary {
     pub idle: Duration,
     pub open_streams: usize,
     pub age: Duration,
+    /// Transitions its replay buffer holds now, and the bytes the buffer takes (0 without one).
+    pub replay_transitions: u64,
+    pub replay_bytes: u64,
 }
 
 struct Entry {
@@ -222,6 +226,8 @@ pub struct SessionManager {
     id_salt: std::collections::hash_map::RandomState,
     /// The time base of leases.
     clock: Instant,
+    /// What every session has done since the server started (for the metrics endpoint).
+    metrics: Arc<CoreMetrics>,
 }
 
 #[derive(Default)]
@@ -264,7 +270,13 @@ impl SessionManager {
             next_id: AtomicU64::new(1),
             id_salt: std::collections::hash_map::RandomState::new(),
             clock: Instant::now(),
+            metrics: Arc::default(),
         }
+    }
+
+    /// Counters and the step-latency histogram of every session since the server started.
+    pub fn metrics(&self) -> &Arc<CoreMetrics> {
+        &self.metrics
     }
 
     pub fn limits(&self) -> &Limits {
@@ -352,7 +364,7 @@ impl SessionManager {
         let owner = caller.shared_name();
         let config = SessionConfig { env, num_envs, seed, options, frame_stack };
         let mut session = match Session::create(self.simulators.as_ref(), config).await {
-            Ok(session) => session,
+            Ok(session) => session.with_metrics(self.metrics.clone()),
             Err(error) => {
                 self.release(&owner, num_envs, 1);
                 return Err(error);
@@ -687,6 +699,8 @@ impl SessionManager {
                 idle: self.idle(entry),
                 open_streams: entry.lease.holds.load(Ordering::Acquire),
                 age: entry.created.elapsed(),
+                replay_transitions: entry.replay.as_ref().map_or(0, |replay| replay.read().expect("replay lock").len() as u64),
+                replay_bytes: entry.replay.as_ref().map_or(0, |replay| replay.read().expect("replay lock").layout().memory_bytes() as u64),
             })
             .collect();
         sessions.sort_by(|a, b| b.age.cmp(&a.age).then_with(|| a.session_id.cmp(&b.session_id)));

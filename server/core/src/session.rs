@@ -14,6 +14,7 @@ use radserve_replay::{RecordedStep, ReplayBuffer};
 
 use crate::catalog::{EnvId, Options};
 use crate::error::CoreError;
+use crate::metrics::CoreMetrics;
 use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
 use crate::space::{DType, Space};
 
@@ -129,6 +130,8 @@ pub struct Session {
     view: Option<ImagePlan>,
     /// The reset info dicts of the envs the last reset reset (env index, JSON text).
     reset_infos: Vec<(usize, String)>,
+    /// Where its steps and resets are counted (the manager's, shared by every session).
+    metrics: Arc<CoreMetrics>,
 }
 
 impl Session {
@@ -166,7 +169,14 @@ impl Session {
             stats: Arc::new(SessionStats { seed: AtomicU64::new(config_seed), ..SessionStats::default() }),
             view: None,
             reset_infos: Vec::new(),
+            metrics: Arc::default(),
         })
+    }
+
+    /// Count this session's steps and resets in `metrics` (the manager's) from now on.
+    pub fn with_metrics(mut self, metrics: Arc<CoreMetrics>) -> Session {
+        self.metrics = metrics;
+        self
     }
 
     pub fn num_envs(&self) -> usize {
@@ -365,6 +375,7 @@ impl Session {
         if spec.mask.is_none() {
             self.needs_reset = false;
         }
+        self.metrics.record_reset();
         Ok(self.viewed(&self.stacks))
     }
 
@@ -409,6 +420,7 @@ impl Session {
         if self.needs_reset {
             return Err(CoreError::NotReset);
         }
+        let started = std::time::Instant::now();
         validate_actions(&self.frame_spec.action, self.num_envs(), dtype, shape, actions)?;
         if let Some(skip) = skip {
             check_mask(skip, self.num_envs(), "skip")?;
@@ -533,7 +545,10 @@ impl Session {
                 }
             }
         }
-        self.total_env_steps += (0..num_envs).filter(|&env| !skipped(env)).count() as u64;
+        let stepped = (0..num_envs).filter(|&env| !skipped(env)).count() as u64;
+        self.total_env_steps += stepped;
+        let errors = outcome.episodes.iter().filter(|episode| episode.error.is_some()).count() as u64;
+        self.metrics.record_step(self.config.env.family, stepped, started.elapsed(), outcome.episodes.len() as u64, errors);
         self.stats.total_env_steps.store(self.total_env_steps, Ordering::Relaxed);
         self.stats.episodes_completed.store(self.episodes_completed, Ordering::Relaxed);
         self.step_calls += 1;

@@ -25,6 +25,17 @@ pub struct Config {
     pub limits: Limits,
     pub auth: AuthConfig,
     pub tls: TlsConfig,
+    pub metrics: MetricsConfig,
+}
+
+/// The Prometheus endpoint (`GET /metrics`, OpenMetrics text; the README's "The server").
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MetricsConfig {
+    /// host:port of the HTTP endpoint, e.g. "127.0.0.1:9090" (or "0.0.0.0:9090" in a container for
+    /// the cluster's Prometheus). Empty: off. It shows counts and sizes, no session ids or owners,
+    /// and has no authentication: keep it on a port only the scraper reaches.
+    pub address: String,
 }
 
 /// Who may call (docs/security.md).
@@ -215,6 +226,11 @@ impl Config {
             .address
             .parse::<SocketAddr>()
             .with_context(|| format!("server.address '{}' is not a host:port socket address", self.server.address))?;
+        if !self.metrics.address.is_empty() {
+            self.metrics.address.parse::<SocketAddr>().with_context(|| {
+                format!("metrics.address '{}' is not a host:port socket address (empty: no metrics endpoint)", self.metrics.address)
+            })?;
+        }
         let server = &self.server;
         let seconds = |value: f64| value.is_finite() && (0.0..=86_400.0).contains(&value);
         let positive = |value: f64| seconds(value) && value > 0.0;

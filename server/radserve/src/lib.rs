@@ -3,6 +3,7 @@
 
 pub mod augment_cli;
 pub mod config;
+pub mod metrics;
 pub mod incoming;
 
 use std::future::Future;

@@ -46,6 +46,28 @@ enum Command {
         #[arg(long, default_value = "user")]
         role: String,
     },
+    /// Ask a server's gRPC health service (grpc.health.v1) and exit 0 only if it answers SERVING:
+    /// the container HEALTHCHECK, for images with no grpc_health_probe or curl.
+    Healthcheck {
+        /// The server (default: the configuration's server.address, with 0.0.0.0 read as 127.0.0.1).
+        #[arg(long)]
+        address: Option<String>,
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// The service to ask about; "" (the default) is the whole server, "radserve.v1.RadServe"
+        /// or "dm_env_rpc.v1.Environment" one of its services.
+        #[arg(long, default_value = "")]
+        service: String,
+        /// Seconds allowed for connecting and for the answer.
+        #[arg(long, default_value_t = 3.0)]
+        timeout_s: f64,
+        /// A server with TLS: the CA certificate (PEM) that signed its certificate.
+        #[arg(long)]
+        ca: Option<PathBuf>,
+        /// With --ca: the name the server's certificate must carry.
+        #[arg(long, default_value = "localhost")]
+        server_name: String,
+    },
     /// List every environment id with its observation and action spaces.
     Envs {
         /// Only ids starting with this prefix, e.g. `dmc/`.
@@ -166,8 +188,57 @@ fn settings(config: &Config) -> anyhow::Result<ServerSettings> {
     })
 }
 
+/// The address a client on this host reaches a server bound to `bound` at: an unspecified address
+/// (0.0.0.0, [::]) is read as the loopback of its family.
+fn local_address(bound: &str) -> String {
+    match bound.parse::<std::net::SocketAddr>() {
+        Ok(address) if address.ip().is_unspecified() => {
+            let loopback: std::net::IpAddr =
+                if address.is_ipv4() { std::net::Ipv4Addr::LOCALHOST.into() } else { std::net::Ipv6Addr::LOCALHOST.into() };
+            std::net::SocketAddr::new(loopback, address.port()).to_string()
+        }
+        _ => bound.to_string(),
+    }
+}
+
+/// `radserve healthcheck`: the serving status the server reports for `service` (SERVING,
+/// NOT_SERVING, ...), or an error if it could not be asked.
+async fn health(address: &str, service: String, timeout: std::time::Duration, tls: Option<(PathBuf, String)>) -> anyhow::Result<String> {
+    use tonic_health::pb::{health_check_response::ServingStatus, health_client::HealthClient, HealthCheckRequest};
+    let scheme = if tls.is_some() { "https" } else { "http" };
+    let mut endpoint = tonic::transport::Endpoint::from_shared(format!("{scheme}://{address}"))
+        .with_context(|| format!("{address} is not a host:port address"))?
+        .connect_timeout(timeout)
+        .timeout(timeout);
+    if let Some((ca, server_name)) = tls {
+        let pem = std::fs::read(&ca).with_context(|| format!("reading --ca {}", ca.display()))?;
+        let config = tonic::transport::ClientTlsConfig::new()
+            .ca_certificate(tonic::transport::Certificate::from_pem(pem))
+            .domain_name(server_name);
+        endpoint = endpoint.tls_config(config)?;
+    }
+    let channel = endpoint.connect().await.with_context(|| format!("connecting to {address}"))?;
+    let reply = HealthClient::new(channel)
+        .check(HealthCheckRequest { service })
+        .await
+        .with_context(|| format!("asking {address} for its health"))?;
+    let status = reply.into_inner().status;
+    Ok(ServingStatus::try_from(status).map_or_else(|_| format!("UNKNOWN({status})"), |status| status.as_str_name().to_string()))
+}
+
 async fn run(command: Command) -> anyhow::Result<()> {
     match command {
+        Command::Healthcheck { address, config, service, timeout_s, ca, server_name } => {
+            let address = match address {
+                Some(address) => address,
+                None => local_address(&Config::load(config.as_deref())?.server.address),
+            };
+            let timeout = std::time::Duration::try_from_secs_f64(timeout_s).context("--timeout-s must be a positive number of seconds")?;
+            let status = health(&address, service, timeout, ca.map(|ca| (ca, server_name))).await?;
+            println!("{status}");
+            anyhow::ensure!(status == "SERVING", "{address} reports {status}");
+            Ok(())
+        }
         Command::Serve { address, workers, config, insecure } => {
             let mut config = Config::load(config.as_deref())?;
             if let Some(address) = address {
@@ -193,8 +264,21 @@ async fn run(command: Command) -> anyhow::Result<()> {
             info!(address = %bound, workers = settings.workers, venv = %settings.venv.display(), gl = settings.gl.name(), "radserve starting");
             // The one line on stdout: launchers (the Python client's, the tests') read the port here.
             println!("radserve listening on {bound}");
+            // The Prometheus endpoint, on its own port (off unless metrics.address is set).
+            let metrics = match config.metrics.address.as_str() {
+                "" => None,
+                address => {
+                    let listener = TcpListener::bind(address).await.with_context(|| format!("binding metrics.address {address}"))?;
+                    info!(address = %listener.local_addr()?, "metrics at http://<address>/metrics");
+                    Some(listener)
+                }
+            };
             let (manager, workers) = radserve::session_manager(settings);
             let pool = workers.clone();
+            if let Some(listener) = metrics {
+                let sources = radserve::metrics::Sources { manager: manager.clone(), workers: Some(pool.clone()) };
+                tokio::spawn(radserve::metrics::serve(listener, sources));
+            }
             let (first_signal, signalled) = tokio::sync::oneshot::channel::<()>();
             tokio::spawn(async move {
                 shutdown_signal().await;

@@ -413,6 +413,7 @@ impl RadServeService {
         let session_id = request.session_id;
         let (repeat_first_batch, max_batches) = (request.repeat_first_batch, request.max_batches);
         let stopping = self.stopping.clone();
+        let metrics = self.manager.metrics().clone();
         tokio::spawn(async move {
             let stream = async {
                 let mut in_flight = InFlight::new(recycler);
@@ -443,6 +444,7 @@ impl RadServeService {
                                     return;
                                 }
                             }
+                            metrics.record_batch();
                         }
                         return;
                     }
@@ -453,6 +455,7 @@ impl RadServeService {
                             return;
                         }
                     }
+                    metrics.record_batch();
                 }
                 debug!(session = log_id(&session_id), "sample stream ended");
             };
@@ -528,6 +531,7 @@ impl RadServeService {
             .expect("the receiver is still here");
         let session_id = start.session_id;
         let stopping = self.stopping.clone();
+        let metrics = self.manager.metrics().clone();
         tokio::spawn(async move {
             let _offer = offer;
             let stream = async {
@@ -545,6 +549,7 @@ impl RadServeService {
                                 debug!(session = log_id(&session_id), "shared sample stream cancelled");
                                 return;
                             }
+                            metrics.record_batch();
                         }
                         message = inbound.message() => {
                             let released = match message {
