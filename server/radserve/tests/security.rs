@@ -142,11 +142,8 @@ async fn new_session(channel: &Channel, token: &str) -> String {
     client.create_session(authorized(request, Some(token))).await.unwrap().into_inner().session_id
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn every_rpc_checks_the_token_the_role_and_the_owner() {
-    let listed: BTreeSet<String> = TABLE.iter().map(|row| row.method.to_string()).collect();
-    assert_eq!(listed, declared_methods(), "every RPC needs a row in this table (and so its checks)");
-
+/// A fake server that admits alice and bob (users) and grafana (monitor) by their tokens.
+async fn server_with_tokens() -> (common::TestServer, std::sync::Arc<radserve_core::fake::FakeSimulators>) {
     let mut tokens = HashMap::new();
     tokens.insert(digest(ALICE.as_bytes()), principal("alice", Role::User));
     tokens.insert(digest(BOB.as_bytes()), principal("bob", Role::User));
@@ -155,7 +152,15 @@ async fn every_rpc_checks_the_token_the_role_and_the_owner() {
         security: radserve::Security { auth: AuthPolicy::tokens(tokens, false), ..Default::default() },
         ..Default::default()
     };
-    let (server, _simulators) = start_fake_server_with(Limits::default(), 1, options).await;
+    start_fake_server_with(Limits::default(), 1, options).await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_rpc_checks_the_token_the_role_and_the_owner() {
+    let listed: BTreeSet<String> = TABLE.iter().map(|row| row.method.to_string()).collect();
+    assert_eq!(listed, declared_methods(), "every RPC needs a row in this table (and so its checks)");
+
+    let (server, _simulators) = server_with_tokens().await;
     let channel = connect(&server.address).await;
     let never_created = "s999-0123456789abcdef";
 
@@ -230,15 +235,7 @@ async fn dm_env_rpc_checks_the_token_the_role_and_the_owner() {
     use dm::environment_request::Payload as In;
     use dm::environment_response::Payload as Out;
 
-    let mut tokens = HashMap::new();
-    tokens.insert(digest(ALICE.as_bytes()), principal("alice", Role::User));
-    tokens.insert(digest(BOB.as_bytes()), principal("bob", Role::User));
-    tokens.insert(digest(GRAFANA.as_bytes()), principal("grafana", Role::Monitor));
-    let options = radserve::ServeOptions {
-        security: radserve::Security { auth: AuthPolicy::tokens(tokens, false), ..Default::default() },
-        ..Default::default()
-    };
-    let (server, _simulators) = start_fake_server_with(Limits::default(), 1, options).await;
+    let (server, _simulators) = server_with_tokens().await;
     let channel = connect(&server.address).await;
     // One request, its answer (or the stream's status).
     let send = |token: Option<&'static str>, request: In| {

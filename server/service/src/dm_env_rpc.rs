@@ -28,12 +28,12 @@ use radserve_core::session::{Session, MAX_SEED};
 use radserve_core::{DType, LeaseHold, OptionValue, Options, Principal, ResetSpec, SessionExtras, SessionManager, Space};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
-use tokio_stream::{Stream, StreamExt};
+use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 use tracing::debug;
 
 use crate::error::{Result, ServiceError};
-use crate::handlers::{caller, end_with_shutdown, send_or_stop, stopped};
+use crate::handlers::{caller, next_or_stop, send_or_stop};
 use crate::pb::dm_env_rpc::v1 as dm;
 use crate::pb::google::rpc as rpc;
 use dm::environment_request::Payload as Inbound;
@@ -119,19 +119,11 @@ impl dm::environment_server::Environment for EnvironmentService {
         let stopping = self.stopping.clone();
         let mut connection = Connection { service: self.clone(), caller, joined: None };
         tokio::spawn(async move {
-            loop {
-                let message = tokio::select! {
-                    message = inbound.next() => message,
-                    () = stopped(stopping.clone()) => {
-                        end_with_shutdown(&sender).await;
-                        break;
-                    }
-                };
+            while let Some(message) = next_or_stop(&mut inbound, &stopping, &sender).await {
                 let request = match message {
-                    None => break,
-                    Some(Ok(request)) => request,
+                    Ok(request) => request,
                     // Bytes that are no EnvironmentRequest: the stream cannot go on.
-                    Some(Err(status)) => {
+                    Err(status) => {
                         let _ = sender.send(Err(status)).await;
                         break;
                     }

@@ -117,6 +117,22 @@ fn check_deadline(deadline: Option<Instant>, what: &str) -> ServiceResult<()> {
     }
 }
 
+/// The next message of a bidirectional stream, or None once it ended or the server began to stop
+/// (the client then gets the shutdown status).
+pub(crate) async fn next_or_stop<M, T>(
+    inbound: &mut Streaming<M>,
+    stopping: &watch::Receiver<bool>,
+    sender: &mpsc::Sender<Result<T, Status>>,
+) -> Option<Result<M, Status>> {
+    tokio::select! {
+        message = inbound.next() => message,
+        () = stopped(stopping.clone()) => {
+            end_with_shutdown(sender).await;
+            None
+        }
+    }
+}
+
 /// Ends a stream with the shutdown status; a client that does not read within a second misses it
 /// (its stream then just ends: nothing it would read is lost).
 pub(crate) async fn end_with_shutdown<T>(sender: &mpsc::Sender<Result<T, Status>>) {
@@ -319,14 +335,7 @@ impl RadServe for RadServeService {
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
             loop {
-                let message = tokio::select! {
-                    message = inbound.next() => message,
-                    () = stopped(stopping.clone()) => {
-                        end_with_shutdown(&sender).await;
-                        break;
-                    }
-                };
-                let Some(message) = message else { break };
+                let Some(message) = next_or_stop(&mut inbound, &stopping, &sender).await else { break };
                 let outcome = match message {
                     Ok(request) => service.act_once(&caller, request).await.map_err(Status::from),
                     Err(status) => Err(status),
