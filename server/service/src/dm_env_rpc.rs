@@ -461,60 +461,35 @@ fn env_row(data: &[u8], index: usize, rows: usize) -> &[u8] {
 /// A setting's single value.
 fn setting(name: &str, tensor: &dm::Tensor) -> Result<OptionValue> {
     let clipped = radserve_core::bounds::clip(name);
-    let single = |count: usize| {
+    // The one element of a scalar tensor (shape [] or all ones).
+    let only = |count: usize| {
         let elements: i64 = tensor.shape.iter().map(|&d| i64::from(d)).product();
         if count != 1 || elements != 1 {
             return Err(bad(format!("setting '{clipped}' must be a single value (a scalar tensor); it holds {count}")));
         }
-        Ok(())
+        Ok(0)
     };
-    let value = match &tensor.payload {
+    Ok(match &tensor.payload {
         Some(TensorPayload::Strings(array)) => {
-            single(array.array.len())?;
-            check_len(&format!("setting '{clipped}'"), &array.array[0], MAX_OPTION_TEXT_BYTES)?;
-            OptionValue::Str(array.array[0].clone())
+            let text = &array.array[only(array.array.len())?];
+            check_len(&format!("setting '{clipped}'"), text, MAX_OPTION_TEXT_BYTES)?;
+            OptionValue::Str(text.clone())
         }
-        Some(TensorPayload::Bools(array)) => {
-            single(array.array.len())?;
-            OptionValue::Bool(array.array[0])
-        }
-        Some(TensorPayload::Int32s(array)) => {
-            single(array.array.len())?;
-            OptionValue::Int(array.array[0].into())
-        }
-        Some(TensorPayload::Int64s(array)) => {
-            single(array.array.len())?;
-            OptionValue::Int(array.array[0])
-        }
-        Some(TensorPayload::Uint32s(array)) => {
-            single(array.array.len())?;
-            OptionValue::Int(array.array[0].into())
-        }
-        Some(TensorPayload::Uint64s(array)) => {
-            single(array.array.len())?;
-            OptionValue::Int(i64::try_from(array.array[0]).map_err(|_| bad(format!("setting '{clipped}' is too large")))?)
-        }
-        Some(TensorPayload::Uint8s(array)) => {
-            single(array.array.len())?;
-            OptionValue::Int(array.array[0].into())
-        }
-        Some(TensorPayload::Int8s(array)) => {
-            single(array.array.len())?;
-            OptionValue::Int(i64::from(array.array[0] as i8))
-        }
-        Some(TensorPayload::Floats(array)) => {
-            single(array.array.len())?;
-            OptionValue::Float(array.array[0].into())
-        }
-        Some(TensorPayload::Doubles(array)) => {
-            single(array.array.len())?;
-            OptionValue::Float(array.array[0])
-        }
+        Some(TensorPayload::Bools(array)) => OptionValue::Bool(array.array[only(array.array.len())?]),
+        Some(TensorPayload::Int32s(array)) => OptionValue::Int(array.array[only(array.array.len())?].into()),
+        Some(TensorPayload::Int64s(array)) => OptionValue::Int(array.array[only(array.array.len())?]),
+        Some(TensorPayload::Uint32s(array)) => OptionValue::Int(array.array[only(array.array.len())?].into()),
+        Some(TensorPayload::Uint64s(array)) => OptionValue::Int(
+            i64::try_from(array.array[only(array.array.len())?]).map_err(|_| bad(format!("setting '{clipped}' is too large")))?,
+        ),
+        Some(TensorPayload::Uint8s(array)) => OptionValue::Int(array.array[only(array.array.len())?].into()),
+        Some(TensorPayload::Int8s(array)) => OptionValue::Int(i64::from(array.array[only(array.array.len())?] as i8)),
+        Some(TensorPayload::Floats(array)) => OptionValue::Float(array.array[only(array.array.len())?].into()),
+        Some(TensorPayload::Doubles(array)) => OptionValue::Float(array.array[only(array.array.len())?]),
         Some(TensorPayload::Protos(_)) | None => {
             return Err(bad(format!("setting '{clipped}' must hold a number, a bool or a string")));
         }
-    };
-    Ok(value)
+    })
 }
 
 /// An integer setting in `[0, max]`.
