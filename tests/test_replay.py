@@ -376,7 +376,7 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
 
     # The first request must say what to sample.
     pb = radserve.batches.pb
-    method = client._channel.stream_stream("/radserve.v1.RadServe/SampleBatchesShared",
+    method = client._transport.channel.stream_stream("/radserve.v1.RadServe/SampleBatchesShared",
                                            request_serializer=pb.SharedSampleRequest.SerializeToString,
                                            response_deserializer=pb.SharedSampleResponse.FromString)
     with pytest.raises(grpc.RpcError) as refused:

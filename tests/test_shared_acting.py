@@ -141,11 +141,11 @@ def _ask(sock, request: bytes):
 def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client):
     envs = client.make_vec("gym/CartPole-v1", num_envs=2)
     try:
-        channel = client._stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
+        channel = client._transport.stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
         assert channel.size > channel.episode_length_offset and len(channel.token) == 16
         # One channel per session at a time.
         with pytest.raises(radserve.FailedPreconditionError, match="already has"):
-            client._call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
+            client._transport.call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
         # A connection without the token is dropped; the rightful client can still take the channel.
         stranger = _connect(channel, b"x" * 16)
         assert stranger.recv(1) == b""
@@ -176,7 +176,7 @@ def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client
         sock.close()
         for _ in range(100):
             try:
-                client._call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
+                client._transport.call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
                 break
             except radserve.FailedPreconditionError:
                 time.sleep(0.05)
@@ -188,7 +188,7 @@ def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client
 
 def test_unknown_or_closed_sessions(client):
     with pytest.raises(radserve.NotFoundError, match="unknown session"):
-        client._call("ShareActing", pb.ShareActingRequest(session_id="nope"))
+        client._transport.call("ShareActing", pb.ShareActingRequest(session_id="nope"))
     envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="shared_memory")
     envs.reset()
     client.close_session(envs.session_id)
@@ -290,7 +290,7 @@ def test_another_user_gets_no_descriptor_even_with_the_token(client):
     so even the right token (which another user could only have stolen) hands nothing over."""
     envs = client.make_vec("gym/CartPole-v1", num_envs=1)
     try:
-        channel = client._stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
+        channel = client._transport.stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
         stranger = "\n".join([
             "import socket, sys",
             "s = socket.socket(socket.AF_UNIX)",

@@ -107,7 +107,7 @@ def test_a_step_whose_deadline_passed_while_waiting_is_never_sent(strict_server)
             request = pb.StepRequest(session_id=envs.session_id,
                                      actions=_convert.to_tensor(np.zeros((2, 6), dtype=np.float32)))
             with pytest.raises(grpc.RpcError) as raised:
-                client._stub.Step(request, timeout=0.5)
+                client._transport.stub.Step(request, timeout=0.5)
             # The client's own deadline, or tonic's answer to it ("Timeout expired", CANCELLED).
             assert raised.value.code() in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.CANCELLED)
             thread.join(timeout=CALL_TIMEOUT_S + 20)

@@ -105,7 +105,7 @@ class Args:
     checkpoint: bool = True
     """save the network and optimizer to checkpoint.pt at every evaluation"""
     address: str = ""
-    """an existing radserve server; empty starts one on a free localhost port"""
+    """an existing radserve server, or several separated by commas (one sharded session over them); empty starts one on a free localhost port"""
     workers: int = 0
     """worker processes of a started server (0: one per core)"""
 

@@ -19,11 +19,12 @@ from .errors import (
 )
 from ._security import TlsConfig
 from .server import LocalServer
+from .sharded import ShardedBatchStream, ShardedVectorEnv
 from .vector import RemoteVectorEnv
 
 __all__ = [
     "Client", "EnvInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "SharedBatchStream", "RemoteVectorEnv",
-    "LocalServer", "TlsConfig",
+    "ShardedVectorEnv", "ShardedBatchStream", "LocalServer", "TlsConfig",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",
     "UnauthenticatedError", "PermissionDeniedError",

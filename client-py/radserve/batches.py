@@ -56,6 +56,8 @@ class Batch:
     step_index: np.ndarray
     next_obs: "np.ndarray | None" = None
     t: "np.ndarray | None" = None
+    # Sharded sessions: the index (in `Client.addresses`) of the server each transition came from.
+    server: "np.ndarray | None" = None
 
     def __len__(self) -> int:
         return len(self.reward)
@@ -118,8 +120,9 @@ class _Chunk:
                 raise ValueError(f"unexpected protobuf wire type {wire} in a BatchChunk")
 
 
-def iterate_batches(stream) -> Iterator[Batch]:
-    """Assemble Batch objects from a stream of raw BatchChunk messages."""
+def iterate_batches(stream, error=from_rpc_error) -> Iterator[Batch]:
+    """Assemble Batch objects from a stream of raw BatchChunk messages (`error` maps a failed call to
+    the error raised)."""
     buffers: "dict[str, tuple[np.ndarray, int, list]]" = {}
     try:
         for message in stream:
@@ -141,17 +144,17 @@ def iterate_batches(stream) -> Iterator[Batch]:
                 arrays["truncated"] = arrays["truncated"].astype(bool)
                 buffers = {}
                 yield Batch(index=chunk.batch_index, **arrays)
-    except grpc.RpcError as error:
-        raise from_rpc_error(error) from None
+    except grpc.RpcError as failure:
+        raise error(failure) from None
 
 
 class BatchStream:
     """An iterator of Batch objects; `close()` (or leaving a `with` block) cancels the stream and the
     server frees its producer."""
 
-    def __init__(self, call):
+    def __init__(self, call, error=from_rpc_error):
         self._call = call
-        self._batches = iterate_batches(call)
+        self._batches = iterate_batches(call, error)
 
     def __iter__(self) -> "BatchStream":
         return self
@@ -193,17 +196,18 @@ class SharedBatchStream:
     memory, and what this process mapped stays readable until its arrays are gone.
     """
 
-    def __init__(self, method, request: "pb.SampleBatchesRequest"):
+    def __init__(self, method, request: "pb.SampleBatchesRequest", error=from_rpc_error):
         self._closed = False
+        self._error = error
         self._requests: "queue.SimpleQueue" = queue.SimpleQueue()
         self._requests.put(pb.SharedSampleRequest(start=request))
         self._call = method(iter(self._requests.get, _END_OF_REQUESTS))
         self._held: "int | None" = None
         try:
             first = next(self._call)
-        except grpc.RpcError as error:
+        except grpc.RpcError as failure:
             self.close()
-            raise from_rpc_error(error) from None
+            raise error(failure) from None
         try:
             self._memory = _map_region(first.region)
         except SharedMemoryError:
@@ -223,9 +227,9 @@ class SharedBatchStream:
         except StopIteration:
             self.close()  # ends the request iterator, whose thread would otherwise wait on it forever
             raise
-        except grpc.RpcError as error:
+        except grpc.RpcError as failure:
             self.close()
-            raise from_rpc_error(error) from None
+            raise self._error(failure) from None
         arrays = {}
         for name, tensor in message.shared.items():
             dtype = np.dtype(_NUMPY_DTYPES[tensor.dtype])
@@ -249,3 +253,33 @@ class SharedBatchStream:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+def open_batch_stream(transport, request: "pb.SampleBatchesRequest", delivery: str):
+    """The batch stream `request` asks one server for, delivered as `delivery` says ("auto": shared
+    memory when it can be mapped here, else the gRPC byte stream). Errors in the request are raised
+    before the first batch."""
+
+    def shared() -> SharedBatchStream:
+        method = transport.channel.stream_stream(
+            "/radserve.v1.RadServe/SampleBatchesShared",
+            request_serializer=pb.SharedSampleRequest.SerializeToString,
+            response_deserializer=pb.SharedSampleResponse.FromString,
+        )
+        return SharedBatchStream(method, request, transport.error)
+
+    def streamed() -> BatchStream:
+        method = transport.channel.unary_stream(
+            "/radserve.v1.RadServe/SampleBatches",
+            request_serializer=pb.SampleBatchesRequest.SerializeToString,
+            response_deserializer=None,  # raw bytes: parsed here without copies
+        )
+        call = method(request)
+        # The server checks the whole request before its stream starts: a refusal arrives instead of
+        # the response headers, and ends the call at once.
+        call.initial_metadata()
+        if call.done() and call.code() != grpc.StatusCode.OK:
+            raise transport.error(call) from None
+        return BatchStream(call, transport.error)
+
+    return transport.negotiate(delivery, shared, streamed)

@@ -1,21 +1,16 @@
 """The radserve client: environments listed, sessions created, vector environments handed out."""
 
-import atexit
 import weakref
 from dataclasses import dataclass, field
 from typing import Any
 
-import grpc
 from gymnasium import spaces
 
 from . import _convert
-from ._security import TlsConfig, open_channel
 from ._proto import radserve_pb2 as pb
-from ._proto import radserve_pb2_grpc as pb_grpc
-from .errors import SharedMemoryError, from_rpc_error
-
-# Large batches of frames must fit; the server bounds them itself.
-_CHANNEL_OPTIONS = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
+from ._security import TlsConfig
+from ._transport import Transport, check_delivery, resolve
+from .errors import RadServeError
 
 
 @dataclass(frozen=True)
@@ -89,9 +84,11 @@ class SessionSummary:
     open_streams: int
     age_seconds: float
     idle_timeout_seconds: float
+    # The address of the server that holds it.
+    server: str = ""
 
     @staticmethod
-    def from_proto(message: "pb.SessionSummary", idle_timeout_seconds: float) -> "SessionSummary":
+    def from_proto(message: "pb.SessionSummary", idle_timeout_seconds: float, server: str = "") -> "SessionSummary":
         return SessionSummary(
             session_id=message.session_id,
             env_id=message.env_id,
@@ -102,24 +99,22 @@ class SessionSummary:
             open_streams=message.open_streams,
             age_seconds=message.age_seconds,
             idle_timeout_seconds=idle_timeout_seconds,
+            server=server,
         )
 
 
-# Clients not yet closed; at exit each closes the sessions it created (weak: no client is kept alive).
-_LIVE_CLIENTS: "weakref.WeakSet[Client]" = weakref.WeakSet()
-
-
-@atexit.register
-def _close_sessions_at_exit() -> None:
-    for client in list(_LIVE_CLIENTS):
-        client._close_open_sessions()
-
-
 class Client:
-    """A connection to one radserve server.
+    """A connection to one radserve server, or to several that serve one learner together.
 
     >>> client = radserve.Client("127.0.0.1:50051")
     >>> envs = client.make_vec("dmc/cheetah-run", num_envs=8, seed=1)
+
+    Several servers (a list, or `dns:///name:port` for every address a name resolves to, such as a
+    Kubernetes headless Service) make sharded sessions: `make_vec` spreads the envs over the servers
+    and `sample_batches` draws from every server's replay (see `radserve.ShardedVectorEnv`):
+
+    >>> client = radserve.Client(["radserve-0.radserve:50051", "radserve-1.radserve:50051"])
+    >>> client = radserve.Client("dns:///radserve.training.svc.cluster.local:50051")
 
     A server that requires them gets TLS and a bearer token:
 
@@ -128,35 +123,64 @@ class Client:
 
     `token` defaults to the RADSERVE_TOKEN environment variable; `tls` to TLS with the system's CA
     certificates for a `grpcs://` address and to none otherwise (`True`: TLS with the system's CAs).
+    `on_server_loss` is what a sharded session does when one of its servers stops answering:
+    "raise" (the default: `UnavailableError` naming the server) or "continue" (act and sample on the
+    others; see `ShardedVectorEnv`). `reconnect_backoff` is the first wait (s) before trying a lost
+    server again, doubled after each failed try up to `reconnect_backoff_max`.
     """
 
-    def __init__(self, address: str, *, token: "str | None" = None, tls: "TlsConfig | bool | None" = None,
-                 wait_ready: float = 10.0):
-        self.address = address
-        self._raw_channel, self._channel = open_channel(address, tls, token, _CHANNEL_OPTIONS)
-        self._stub = pb_grpc.RadServeStub(self._channel)
-        # Sessions this client created and has not closed: closed when the process exits normally,
-        # so that they do not wait on the server for their lease to expire.
-        self._open_sessions: "set[str]" = set()
-        _LIVE_CLIENTS.add(self)
-        if wait_ready:
-            try:
-                grpc.channel_ready_future(self._raw_channel).result(timeout=wait_ready)
-            except grpc.FutureTimeoutError:
-                self._raw_channel.close()
-                from .errors import UnavailableError
+    def __init__(self, address: "str | list[str]", *, token: "str | None" = None,
+                 tls: "TlsConfig | bool | None" = None, wait_ready: float = 10.0, on_server_loss: str = "raise",
+                 reconnect_backoff: float = 1.0, reconnect_backoff_max: float = 30.0):
+        from .sharded import SERVER_LOSS
 
-                raise UnavailableError(f"no radserve server answered at {address} within {wait_ready} s") from None
-
-    def _call(self, method: str, request, **kwargs):
+        if on_server_loss not in SERVER_LOSS:
+            raise ValueError(f"on_server_loss must be one of {SERVER_LOSS}, got {on_server_loss!r}")
+        self.addresses = resolve(address)
+        if len(set(self.addresses)) != len(self.addresses):
+            raise ValueError(f"each server is named once, got {self.addresses}")
+        self.address = address if isinstance(address, str) else self.addresses[0]
+        self.on_server_loss = on_server_loss
+        self.reconnect_backoff = (float(reconnect_backoff), float(reconnect_backoff_max))
+        several = len(self.addresses) > 1
+        self._transports: "list[Transport]" = []
         try:
-            return getattr(self._stub, method)(request, **kwargs)
-        except grpc.RpcError as error:
-            raise from_rpc_error(error) from None
+            for server in self.addresses:
+                self._transports.append(Transport(server, token=token, tls=tls, wait_ready=wait_ready,
+                                                  name_in_errors=several))
+        except BaseException:
+            self.close()
+            raise
+        # Sharded sessions of this client by id (weak: a sharded env no one holds is gone).
+        self._sharded: "weakref.WeakValueDictionary[str, Any]" = weakref.WeakValueDictionary()
+
+    @property
+    def transports(self) -> "list[Transport]":
+        """One per server, in the order given (resolved)."""
+        return list(self._transports)
+
+    @property
+    def _transport(self) -> Transport:
+        return self._transports[0]
+
+    def _for_session(self, session_id: str) -> Transport:
+        """The server that holds a (plain) session: the one that created it here, else the first
+        that knows it."""
+        for transport in self._transports:
+            if session_id in transport.open_sessions:
+                return transport
+        if len(self._transports) > 1:
+            for transport in self._transports:
+                try:
+                    transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id))
+                    return transport
+                except RadServeError:
+                    continue
+        return self._transport
 
     def list_envs(self, prefix: str = "") -> "list[EnvInfo]":
         """Every environment id the server hosts (optionally those starting with `prefix`)."""
-        response = self._call("ListEnvs", pb.ListEnvsRequest(prefix=prefix))
+        response = self._transport.call("ListEnvs", pb.ListEnvsRequest(prefix=prefix))
         return [
             EnvInfo(
                 id=env.id,
@@ -205,7 +229,7 @@ class Client:
         `channels_last=True` returns image observations as `[H, W, C]` (gymnasium's pixel layout, which
         `gymnasium.wrappers.vector.GrayscaleObservation` needs) instead of the server's `[C, H, W]`.
         """
-        from .vector import RemoteVectorEnv
+        from .vector import open_vector_env
 
         request = pb.CreateSessionRequest(
             env_id=env_id,
@@ -217,14 +241,15 @@ class Client:
             else None,
             observation_view=observation_view,
         )
-        info = SessionInfo.from_proto(self._call("CreateSession", request))
-        self._open_sessions.add(info.session_id)
-        try:
-            return RemoteVectorEnv(self, info, stream=stream, delivery=delivery, autoreset_mode=autoreset_mode,
-                                   channels_last=channels_last)
-        except BaseException:
-            self.close_session(info.session_id)  # the session would otherwise outlive the failed env
-            raise
+        settings = dict(stream=stream, delivery=delivery, autoreset_mode=autoreset_mode, channels_last=channels_last)
+        check_delivery(delivery)
+        if len(self._transports) > 1:
+            from .sharded import ShardedVectorEnv
+
+            envs = ShardedVectorEnv(self, request, **settings)
+            self._sharded[envs.session_id] = envs
+            return envs
+        return open_vector_env(self._transport, request, **settings)
 
     def sample_batches(
         self,
@@ -269,11 +294,9 @@ class Client:
         Errors in the request are raised before the first batch. `close()` the stream (or use it in a
         `with` block) to stop it early.
         """
-        from .batches import SHARING, BatchStream, SharedBatchStream
+        from .batches import SHARING, open_batch_stream
 
-        deliveries = ("grpc", "shared_memory", "auto")
-        if delivery not in deliveries:
-            raise ValueError(f"delivery must be one of {deliveries}, got {delivery!r}")
+        check_delivery(delivery)
         if sharing not in SHARING:
             raise ValueError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
         sources = {"replay": pb.SOURCE_REPLAY, "rollout": pb.SOURCE_ROLLOUT}
@@ -297,59 +320,41 @@ class Client:
             include_next_obs=include_next_obs,
             repeat_first_batch=repeat_first_batch,
         )
-        if delivery != "grpc":
-            shared = self._channel.stream_stream(
-                "/radserve.v1.RadServe/SampleBatchesShared",
-                request_serializer=pb.SharedSampleRequest.SerializeToString,
-                response_deserializer=pb.SharedSampleResponse.FromString,
-            )
-            try:
-                return SharedBatchStream(shared, request)
-            except SharedMemoryError:
-                if delivery == "shared_memory":
-                    raise
-        method = self._channel.unary_stream(
-            "/radserve.v1.RadServe/SampleBatches",
-            request_serializer=pb.SampleBatchesRequest.SerializeToString,
-            response_deserializer=None,  # raw bytes: radserve.batches parses them without copies
-        )
-        call = method(request)
-        # The server checks the whole request before its stream starts: a refusal arrives instead of
-        # the response headers, and ends the call at once.
-        call.initial_metadata()
-        if call.done() and call.code() != grpc.StatusCode.OK:
-            raise from_rpc_error(call) from None
-        return BatchStream(call)
+        sharded = self._sharded.get(session_id)
+        if sharded is not None:
+            from .sharded import ShardedBatchStream
+
+            return ShardedBatchStream(sharded, request, delivery)
+        return open_batch_stream(self._for_session(session_id), request, delivery)
 
     def describe_session(self, session_id: str) -> SessionInfo:
-        return SessionInfo.from_proto(self._call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id)))
+        transport = self._for_session(session_id)
+        return SessionInfo.from_proto(
+            transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id)))
 
     def close_session(self, session_id: str) -> None:
-        self._open_sessions.discard(session_id)
-        self._call("CloseSession", pb.CloseSessionRequest(session_id=session_id))
+        """Closes a session (a sharded one: its session on every server)."""
+        sharded = self._sharded.pop(session_id, None)
+        if sharded is not None:
+            sharded.close()
+            return
+        self._for_session(session_id).close_session(session_id)
 
     def list_sessions(self) -> "list[SessionSummary]":
-        """Every session open on the server (all clients'), oldest first: what each holds and how
-        long it has been idle. The server closes a session idle for longer than its
-        `limits.session_idle_timeout_s` (`SessionSummary.idle_timeout_seconds`)."""
-        response = self._call("ListSessions", pb.ListSessionsRequest())
-        return [SessionSummary.from_proto(s, response.idle_timeout_seconds) for s in response.sessions]
-
-    def _close_open_sessions(self, timeout: float = 2.0) -> None:
-        for session_id in list(self._open_sessions):
-            self._open_sessions.discard(session_id)
-            try:
-                self._stub.CloseSession(pb.CloseSessionRequest(session_id=session_id), timeout=timeout)
-            except grpc.RpcError as error:
-                # NOT_FOUND: already gone (closed, reaped). A server that is gone or does not answer
-                # frees the sessions itself (shutdown, leases): do not wait on it once per session.
-                if error.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
-                    self._open_sessions.clear()
-                    return
+        """Every session open on the server (all clients'; with several servers, every server's in
+        the order of the servers), oldest first: what each holds and how long it has been idle. The
+        server closes a session idle for longer than its `limits.session_idle_timeout_s`
+        (`SessionSummary.idle_timeout_seconds`)."""
+        sessions = []
+        for transport in self._transports:
+            response = transport.call("ListSessions", pb.ListSessionsRequest())
+            sessions += [SessionSummary.from_proto(s, response.idle_timeout_seconds, transport.address)
+                         for s in response.sessions]
+        return sessions
 
     def close(self) -> None:
-        _LIVE_CLIENTS.discard(self)
-        self._raw_channel.close()
+        for transport in self._transports:
+            transport.close()
 
     def __enter__(self) -> "Client":
         return self

@@ -4,12 +4,14 @@ import grpc
 
 
 class RadServeError(Exception):
-    """A call to a radserve server failed. `code` is the gRPC status code, `details` its message."""
+    """A call to a radserve server failed. `code` is the gRPC status code, `details` its message,
+    `server` the address of the server that answered (or did not)."""
 
-    def __init__(self, message: str, code: "grpc.StatusCode | None" = None):
+    def __init__(self, message: str, code: "grpc.StatusCode | None" = None, *, server: "str | None" = None):
         super().__init__(message)
         self.code = code
         self.details = message
+        self.server = server
 
 
 class NotFoundError(RadServeError):
@@ -29,7 +31,8 @@ class ResourceExhaustedError(RadServeError):
 
 
 class UnavailableError(RadServeError):
-    """The server or its simulator workers cannot be reached, or it is shutting down."""
+    """The server or its simulator workers cannot be reached, or it is shutting down. With several
+    servers, `server` names the one lost."""
 
 
 class InternalError(RadServeError):

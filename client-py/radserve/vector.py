@@ -13,9 +13,8 @@ from gymnasium.vector.utils import batch_space
 from . import _convert
 from ._acting import SharedActing
 from ._proto import radserve_pb2 as pb
-from .errors import FailedPreconditionError, InvalidArgumentError, RadServeError, SharedMemoryError, from_rpc_error
-
-DELIVERIES = ("grpc", "shared_memory", "auto")
+from ._transport import Transport, check_delivery
+from .errors import FailedPreconditionError, InvalidArgumentError, RadServeError
 
 
 class _Step(NamedTuple):
@@ -85,10 +84,9 @@ class RemoteVectorEnv(VectorEnv):
     Observations are this env's own writable arrays (gymnasium's `copy=True`), whichever delivery.
     """
 
-    def __init__(self, client, info, *, stream: bool = False, delivery: str = "grpc",
+    def __init__(self, transport: Transport, info, *, stream: bool = False, delivery: str = "grpc",
                  autoreset_mode: "AutoresetMode | str" = AutoresetMode.SAME_STEP, channels_last: bool = False):
-        if delivery not in DELIVERIES:
-            raise ValueError(f"delivery must be one of {DELIVERIES}, got {delivery!r}")
+        check_delivery(delivery)
         try:
             self.autoreset_mode = AutoresetMode(autoreset_mode)
         except ValueError:
@@ -96,7 +94,7 @@ class RemoteVectorEnv(VectorEnv):
                 f"autoreset_mode must be a gymnasium.vector.AutoresetMode or one of "
                 f"{[mode.value for mode in AutoresetMode]}, got {autoreset_mode!r}") from None
         self.metadata = {"autoreset_mode": self.autoreset_mode}
-        self._client = client
+        self._transport = transport
         self.info = info
         self.session_id = info.session_id
         self.num_envs = info.num_envs
@@ -127,27 +125,24 @@ class RemoteVectorEnv(VectorEnv):
         # Reset infos of envs the server reset in the step that ended their episode, until this env
         # returns them (NEXT_STEP: in the next step; DISABLED: in their reset).
         self._held_reset_infos: "dict[int, str | None]" = {}
-        if delivery != "grpc":
-            channel = client._call("ShareActing", pb.ShareActingRequest(session_id=self.session_id))
+
+        def shared() -> SharedActing:
+            channel = transport.call("ShareActing", pb.ShareActingRequest(session_id=self.session_id))
             action_shape = () if info.action_space.shape == () else info.action_space.shape
-            try:
-                self._shared = SharedActing(
-                    channel, self.num_envs, info.observation_space, self._action_dtype, action_shape,
-                    explain_loss=self._session_error,
-                )
-            except SharedMemoryError:
-                if delivery == "shared_memory":
-                    raise
+            return SharedActing(channel, self.num_envs, info.observation_space, self._action_dtype, action_shape,
+                                explain_loss=self._session_error)
+
+        self._shared = transport.negotiate(delivery, shared, lambda: None)
         self.delivery = "grpc" if self._shared is None else "shared_memory"
         if stream and self._shared is None:
             self._requests = queue.Queue()
-            self._responses = client._stub.Act(iter(self._requests.get, None))
+            self._responses = transport.stub.Act(iter(self._requests.get, None))
         self.closed = False
 
     def _session_error(self) -> "Exception | None":
         """What the server says of this session now (NotFoundError once it is closed), or None."""
         try:
-            self._client._call("DescribeSession", pb.DescribeSessionRequest(session_id=self.session_id))
+            self._transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=self.session_id))
         except RadServeError as error:
             return error
         return None
@@ -155,12 +150,12 @@ class RemoteVectorEnv(VectorEnv):
     def _act(self, request: "pb.ActRequest", kind: str):
         if self._requests is None:
             method = "Reset" if kind == "reset" else "Step"
-            return self._client._call(method, getattr(request, kind))
+            return self._transport.call(method, getattr(request, kind))
         self._requests.put(request)
         try:
             return getattr(next(self._responses), kind)
         except grpc.RpcError as error:
-            raise from_rpc_error(error) from None
+            raise self._transport.error(error) from None
 
     def reset(self, *, seed: "int | list[int | None] | None" = None, options: "dict[str, Any] | None" = None):
         """Resets every environment, or those `options["reset_mask"]` marks (a bool array of
@@ -285,7 +280,7 @@ class RemoteVectorEnv(VectorEnv):
             return
         request = self._step_request(actions, skip)
         if self._requests is None:
-            self._pending = self._client._stub.Step.future(request)
+            self._pending = self._transport.future("Step", request)
         else:
             self._requests.put(pb.ActRequest(step=request))
             self._pending = self._responses
@@ -300,7 +295,7 @@ class RemoteVectorEnv(VectorEnv):
         try:
             response = pending.result() if self._requests is None else next(pending).step
         except grpc.RpcError as error:
-            raise from_rpc_error(error) from None
+            raise self._transport.error(error) from None
         return self._finish(self._unpack(response))
 
     def _check_idle(self, what: str) -> None:
@@ -403,9 +398,13 @@ class RemoteVectorEnv(VectorEnv):
 
     def describe(self):
         """The session as the server sees it (steps taken, episodes completed, options)."""
-        return self._client.describe_session(self.session_id)
+        from .client import SessionInfo
 
-    def close(self, **kwargs):
+        return SessionInfo.from_proto(
+            self._transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=self.session_id)))
+
+    def close(self, *, timeout: "float | None" = None, **kwargs):
+        """Closes the session on the server (waiting at most `timeout` s for it to answer)."""
         if self.closed:
             return
         self.closed = True
@@ -414,6 +413,18 @@ class RemoteVectorEnv(VectorEnv):
         if self._requests is not None:
             self._requests.put(None)
         try:
-            self._client.close_session(self.session_id)
+            self._transport.close_session(self.session_id, timeout=timeout)
         except Exception:  # the server may already be gone; closing must not raise
             pass
+
+
+def open_vector_env(transport: Transport, request: "pb.CreateSessionRequest", **settings) -> RemoteVectorEnv:
+    """A new session on one server, as a RemoteVectorEnv (`settings`: its keyword arguments)."""
+    from .client import SessionInfo
+
+    info = SessionInfo.from_proto(transport.create_session(request))
+    try:
+        return RemoteVectorEnv(transport, info, **settings)
+    except BaseException:
+        transport.close_session(info.session_id)  # the session would otherwise outlive the failed env
+        raise
