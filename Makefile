@@ -7,7 +7,7 @@ TORCH_STAMP := $(VENV)/.installed-torch
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build demo test test-rust test-python test-learners fuzz soak bench bench-sim bench-augment bench-replay bench-security bench-learning preview torch lock proto clean
+.PHONY: setup system-libs build demo test test-rust test-python test-learners test-cluster images images-local bench-cluster fuzz soak bench bench-sim bench-augment bench-replay bench-security bench-learning preview torch lock proto clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -51,7 +51,22 @@ test-rust:
 	cargo test --release --workspace
 
 test-python:
-	$(PYTHON) -m pytest -q tests client-py/tests --ignore=tests/test_learners.py --ignore=client-py/tests/test_torch_adapter.py
+	$(PYTHON) -m pytest -q tests client-py/tests --ignore=tests/test_learners.py --ignore=client-py/tests/test_torch_adapter.py \
+		--ignore=tests/cluster
+
+## images: the server and learner images (radserve:dev, radserve-learner:dev) on public base images;
+## images-local: the same on base images made here from Debian packages (no registry needed)
+images:
+	bash docker/build.sh
+
+images-local:
+	bash docker/build.sh --local-bases
+
+## test-cluster: the container tests (tests/cluster): three server containers and a learner container on
+## a private Docker network, one sharded session over them, a server killed, restarted and stopped;
+## Compose. Builds the images first (on local bases: nothing is pulled). Needs a Docker engine.
+test-cluster: setup images-local
+	$(PYTHON) -m pytest -q -s tests/cluster
 
 test-learners: torch
 	RADSERVE_REQUIRE_TORCH=1 $(PYTHON) -m pytest -q tests/test_learners.py client-py/tests/test_torch_adapter.py
@@ -83,6 +98,10 @@ $(TORCH_STAMP): requirements-torch.lock $(STAMP)
 ## bench: every benchmark table (simulator throughput, augmentation kernels vs PyTorch, replay streams,
 ## what tokens and TLS cost) (the learning checks take hours on two cores: make bench-learning runs them)
 bench: bench-sim bench-augment bench-replay bench-security
+
+## bench-cluster: steps/s and sharded batches/s over 1-3 server containers beside one local server
+bench-cluster: setup images-local
+	$(PYTHON) bench/cluster.py
 
 bench-security: setup
 	$(PYTHON) bench/security_overhead.py --rounds 6 --steps 6000 --batches 120
