@@ -1,0 +1,144 @@
+"""Sharding over server containers: steps/s of one sharded session and batches/s of sharded
+crop(84) 512x9x84x84 obs+next_obs batches over 1, 2 and 3 server containers, with one local
+radserve process (no containers) beside them, in alternating rounds; prints a Markdown table.
+
+    python bench/cluster.py [--rounds 3]        (make bench-cluster builds the images first)
+
+The learner runs in a learner container on the servers' private network (so the figures include
+Docker's bridge, not a port proxy); the local baseline runs the same measurement on this host
+against a server started here. Every server has one worker process. On a 2-core machine all the
+servers and the learner share the same two cores: the figures show what sharding costs, not how
+it scales (on a cluster each server has its own cores).
+"""
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+STATE_ENV, STATE_ENVS, STEPS = "gym/HalfCheetah-v5", 12, 1500
+PIXEL_ENV = "dmc/cartpole-balance"
+PIXEL_OPTIONS = {"height": 100, "width": 100, "frame_stack": 3, "render_profile": "fast"}
+BATCH, BATCHES = 512, 20
+
+
+def measure(addresses: str, delivery: str = "grpc") -> dict:
+    """One measurement against `addresses` (comma-separated): acting steps/s and batches/s."""
+    import radserve
+
+    client = radserve.Client(addresses)
+    envs = client.make_vec(STATE_ENV, num_envs=STATE_ENVS, seed=0, delivery=delivery)
+    envs.reset(seed=0)
+    actions = np.zeros((STATE_ENVS,) + envs.single_action_space.shape, dtype=np.float32)
+    for _ in range(50):
+        envs.step(actions)
+    start = time.perf_counter()
+    for _ in range(STEPS):
+        envs.step(actions)
+    steps_per_s = STEPS * STATE_ENVS / (time.perf_counter() - start)
+    envs.close()
+
+    pixels = client.make_vec(PIXEL_ENV, num_envs=6, seed=0, replay_capacity=3000, delivery=delivery, **PIXEL_OPTIONS)
+    pixels.reset(seed=0)
+    for _ in range(120):
+        pixels.step(pixels.action_space.sample())
+    with client.sample_batches(pixels.session_id, BATCH, augment="crop(84)", min_size=BATCH, prefetch=2,
+                               delivery=delivery) as stream:
+        batch = next(stream)
+        assert batch.obs.shape == (BATCH, 9, 84, 84) and batch.next_obs.shape == (BATCH, 9, 84, 84)
+        start = time.perf_counter()
+        for _ in range(BATCHES):
+            next(stream)
+        batches_per_s = BATCHES / (time.perf_counter() - start)
+    pixels.close()
+    client.close()
+    return {"steps_per_s": steps_per_s, "batches_per_s": batches_per_s, "delivery": envs.delivery}
+
+
+def docker(*args: str, check: bool = True) -> str:
+    result = subprocess.run(["docker", *args], capture_output=True, text=True)
+    if check and result.returncode != 0:
+        raise SystemExit(f"docker {' '.join(args)}: {result.stderr.strip()}")
+    return result.stdout.strip()
+
+
+def wait_healthy(name: str, timeout: float = 240) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if docker("inspect", "-f", "{{.State.Health.Status}}", name) == "healthy":
+            return
+        time.sleep(1)
+    raise SystemExit(f"{name} not healthy within {timeout} s")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--tag", default="dev")
+    parser.add_argument("--measure", help=argparse.SUPPRESS)  # inside the learner container
+    args = parser.parse_args()
+    if args.measure:
+        print(json.dumps(measure(args.measure)))
+        return
+
+    import radserve
+
+    prefix = f"radserve-bench-{uuid.uuid4().hex[:6]}"
+    network = f"{prefix}-net"
+    names = [f"radserve-{i}" for i in range(3)]
+    results: "dict[str, list[dict]]" = {}
+    docker("network", "create", "--internal", network)
+    try:
+        for name in names:
+            docker("run", "-d", "--name", f"{prefix}-{name}", "--network", network, "--network-alias", name,
+                   "-e", "RADSERVE__SIM__WORKERS=1", f"radserve:{args.tag}", "serve", "--insecure")
+        for name in names:
+            wait_healthy(f"{prefix}-{name}")
+        with radserve.LocalServer(workers=1) as local:
+            for round_ in range(args.rounds):
+                for count in ("shm", 0, 1, 2, 3):
+                    if count == "shm":
+                        label, result = "one local process, shared memory", measure(local.address, "shared_memory")
+                    elif count == 0:
+                        label, result = "one local process (no container)", measure(local.address)
+                    else:
+                        label = f"{count} server container{'s' if count > 1 else ''}"
+                        addresses = ",".join(f"{name}:50051" for name in names[:count])
+                        output = docker("run", "--rm", "--network", network, "-v", f"{ROOT / 'bench'}:/bench:ro",
+                                        f"radserve-learner:{args.tag}", "/bench/cluster.py", "--measure", addresses)
+                        result = json.loads(output.splitlines()[-1])
+                    results.setdefault(label, []).append(result)
+                    print(f"round {round_ + 1}: {label}: {result['steps_per_s']:,.0f} steps/s, "
+                          f"{result['batches_per_s']:.1f} batches/s ({result['delivery']})", file=sys.stderr)
+    finally:
+        containers = docker("ps", "-aq", "--filter", f"name={prefix}", check=False).split()
+        if containers:
+            docker("rm", "-f", *containers, check=False)
+        docker("network", "rm", network, check=False)
+
+    def cell(values: "list[float]", digits: int) -> str:
+        return f"{statistics.median(values):,.{digits}f} ({min(values):,.{digits}f}-{max(values):,.{digits}f})"
+
+    baseline = results["one local process (no container)"]
+    base_steps = statistics.median(r["steps_per_s"] for r in baseline)
+    base_batches = statistics.median(r["batches_per_s"] for r in baseline)
+    print(f"\n{STATE_ENV} x{STATE_ENVS} acting (zero actions) and crop(84) {BATCH}x9x84x84 obs+next_obs batches, "
+          f"median (range) of {args.rounds} alternating rounds, 1 worker per server, 2 cores in all\n")
+    print("| servers | steps/s | vs local | batches/s | vs local |")
+    print("|---|---:|---:|---:|---:|")
+    for label, runs in results.items():
+        steps = [r["steps_per_s"] for r in runs]
+        batches = [r["batches_per_s"] for r in runs]
+        print(f"| {label} | {cell(steps, 0)} | {statistics.median(steps) / base_steps:.2f} | {cell(batches, 1)} | "
+              f"{statistics.median(batches) / base_batches:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
