@@ -126,6 +126,10 @@ class ShardedVectorEnv(VectorEnv):
         self._settings = dict(stream=stream, delivery=delivery, autoreset_mode=autoreset_mode,
                               channels_last=channels_last)
         self.on_server_loss = client.on_server_loss
+        # Shards reconnected in this call (their rows are placeholders once more), and the losses
+        # step_async found (None while no step is outstanding).
+        self._returned_rows: "list[Shard]" = []
+        self._pending_losses: "list | None" = None
         self._backoff_first, self._backoff_max = client.reconnect_backoff
         self.num_envs = request.num_envs
         if self.num_envs < 1:
@@ -259,22 +263,25 @@ class ShardedVectorEnv(VectorEnv):
 
             raise InvalidArgumentError(f"actions must have one row per env ({self.num_envs}), got shape "
                                        f"{list(actions.shape)}")
-        if any(shard.pending for shard in self.shards):
+        if self._pending_losses is not None:
             raise RuntimeError("step_async() while a step_async() awaits its step_wait()")
-        self._returned = self._reconnect_due()
-        self._lost_now: "list[Shard]" = []
+        returned = self._reconnect_due()  # their rows hold their new sessions' first observations
+        self._pending_losses = []
         for shard in self.shards:
-            if shard.lost or shard in self._returned:
+            if shard.lost or shard in returned:
                 continue
             try:
                 shard.env.step_async(actions[shard.rows])
                 shard.pending = True
             except _LOSS as error:
-                self._lost_now.append(self._lose(shard, error))
+                self._pending_losses.append(self._lose(shard, error))
+            except BaseException:  # the caller's (a wrong action): no step stays outstanding anywhere
+                self._settle()
+                raise
 
     def step_wait(self):
         """What `step(actions)` returns, once every server has answered."""
-        if not hasattr(self, "_lost_now"):
+        if self._pending_losses is None:
             raise RuntimeError("step_wait() without a step_async() before it")
         n = self.num_envs
         rewards = np.zeros(n, dtype=np.float64)
@@ -282,8 +289,7 @@ class ShardedVectorEnv(VectorEnv):
         truncated = np.zeros(n, dtype=bool)
         parts = []
         failure: "Exception | None" = None
-        lost, returned = self._lost_now, self._returned
-        del self._lost_now
+        lost, self._pending_losses = self._pending_losses, None
         for shard in self.shards:
             if not shard.pending:
                 continue
@@ -318,6 +324,17 @@ class ShardedVectorEnv(VectorEnv):
         self._mark_inactive(infos, lost)
         return obs, rewards, terminated, truncated, infos
 
+    def _settle(self) -> None:
+        """Reads and drops the answers of the steps already sent."""
+        for shard in self.shards:
+            if shard.pending:
+                shard.pending = False
+                try:
+                    shard.last_obs = shard.env.step_wait()[0]
+                except RadServeError:
+                    pass
+        self._pending_losses = None
+
     def _gather(self) -> np.ndarray:
         return np.concatenate([shard.last_obs for shard in self.shards], axis=0)
 
@@ -335,9 +352,6 @@ class ShardedVectorEnv(VectorEnv):
                 lost_mask[shard.rows] = True
             infos["radserve_server_lost"] = lost_mask
             infos["_radserve_server_lost"] = lost_mask.copy()
-
-    _returned_rows: "list[Shard]" = []
-    _returned: "list[Shard]" = []
 
     def _lose(self, shard: Shard, error: RadServeError, raise_later: bool = False) -> "Shard | Exception":
         """Marks a shard lost (continue) or returns the error that names it (raise)."""
