@@ -29,6 +29,7 @@ class TensorBatch:
     step_index: torch.Tensor
     next_obs: "torch.Tensor | None" = None
     t: "torch.Tensor | None" = None
+    server: "torch.Tensor | None" = None
 
     def __len__(self) -> int:
         return len(self.reward)

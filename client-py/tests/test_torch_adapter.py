@@ -28,3 +28,9 @@ def test_batches_become_tensors_sharing_memory_on_cpu():
     tensors = radserve_torch.to_tensors(plain)
     plain.obs[0, 0] = 42
     assert tensors.obs[0, 0] == 42, "CPU tensors share the arrays' memory"
+
+
+def test_a_tensor_batch_has_every_field_of_a_batch():
+    from dataclasses import fields
+
+    assert [f.name for f in fields(radserve_torch.TensorBatch)] == [f.name for f in fields(radserve.Batch)]
