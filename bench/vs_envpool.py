@@ -1,0 +1,235 @@
+"""radserve against EnvPool on the same tasks, in one run: steps/s and CPU per env step.
+
+    .venv/bin/python bench/vs_envpool.py [--rounds 3] [--seconds 4] [--only TEXT]
+
+EnvPool (1.2.5, C++ dm_control / MuJoCo-gym / ProcGen ports with their own thread pool) is what a
+researcher would use instead of radserve for fast vectorized simulation. This script installs it
+into a virtualenv of its own (`.venv-envpool`, never the project's), then measures each workload in
+alternating rounds: radserve with 2 workers through shared-memory acting and through gRPC (a Python
+client in this process, one session), and EnvPool in-process with 2 threads in its synchronous mode
+(batch = every env) and its asynchronous one (send/recv of half the envs, EnvPool's fast path).
+Same task, same action repeat (EnvPool's frame_skip), same image size; random actions.
+
+CPU per env step adds every process's user+system time over the timed window (radserve: the client,
+the server and its workers; EnvPool: its one process) and divides by the steps.
+
+EnvPool's pixel path needs the system EGL library preloaded (LD_PRELOAD) and its ProcGen the Qt 5
+GUI library (Debian's libqt5gui5, installed here when missing).
+"""
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+VENV = ROOT / ".venv-envpool"
+ENVPOOL = "envpool==1.2.5"
+EGL = "/usr/lib/x86_64-linux-gnu/libEGL.so.1"
+TICKS = os.sysconf("SC_CLK_TCK")
+
+# label, radserve env id and options, EnvPool task id and make() keywords, envs
+WORKLOADS = [
+    ("dmc cheetah-run pixels 100x100", "dmc/cheetah-run",
+     {"pixels": True, "height": 100, "width": 100, "frame_stack": 1, "action_repeat": 4},
+     "CheetahRun-v1", {"from_pixels": True, "render_width": 100, "render_height": 100, "render_camera_id": 0,
+                       "frame_skip": 4}, 4),
+    ("dmc cheetah-run state", "dmc/cheetah-run", {"pixels": False, "action_repeat": 4},
+     "CheetahRun-v1", {"frame_skip": 4}, 16),
+    ("gym HalfCheetah-v5", "gym/HalfCheetah-v5", {}, "HalfCheetah-v5", {}, 16),
+    ("procgen bigfish", "procgen/bigfish", {"distribution_mode": "easy"}, "BigfishEasy-v0", {}, 64),
+]
+
+
+def cpu_seconds(pids) -> float:
+    total = 0.0
+    for pid in pids:
+        try:
+            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        except FileNotFoundError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / TICKS  # utime + stime
+    return total
+
+
+def descendants(pid: int) -> "list[int]":
+    found, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        found.append(current)
+        for task in os.listdir(f"/proc/{current}/task"):
+            try:
+                with open(f"/proc/{current}/task/{task}/children") as listing:
+                    todo += [int(child) for child in listing.read().split()]
+            except FileNotFoundError:
+                pass
+    return found
+
+
+def timed(step, envs_per_call: int, seconds: float, pids) -> "tuple[float, float]":
+    """(env steps per second, CPU seconds per env step) of calling `step` for `seconds`."""
+    for _ in range(3):
+        step()
+    cpu, calls, start = cpu_seconds(pids), 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        step()
+        calls += 1
+    elapsed = time.perf_counter() - start
+    steps = calls * envs_per_call
+    return steps / elapsed, (cpu_seconds(pids) - cpu) / steps
+
+
+# --- EnvPool, run in its own virtualenv (`--envpool-worker`) -------------------------------------
+
+def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds: float) -> dict:
+    import envpool
+
+    batch = num_envs if mode == "sync" else num_envs // 2
+    env = envpool.make(task, env_type="gymnasium", num_envs=num_envs, batch_size=batch, num_threads=2, seed=0,
+                       **options)
+    space = env.action_space
+    rng = np.random.default_rng(0)
+    if hasattr(space, "n"):
+        actions = [rng.integers(0, space.n, batch) for _ in range(64)]
+    else:
+        actions = [rng.uniform(space.low, space.high, (batch,) + space.shape) for _ in range(64)]
+    counter = iter(range(1 << 62))
+    if mode == "sync":
+        env.reset()
+
+        def step():
+            env.step(actions[next(counter) % 64])
+    else:
+        env.async_reset()
+
+        def step():  # EnvPool's own async loop: take the first ready half, send its actions
+            *_, info = env.recv()
+            env.send(actions[next(counter) % 64], info["env_id"])
+
+    rate, cpu = timed(step, batch, seconds, [os.getpid()])
+    first = env.reset()[0] if mode == "sync" else None
+    pixels = isinstance(first, np.ndarray) and first.dtype == np.uint8
+    return {"rate": rate, "cpu": cpu, "mean_pixel": float(np.mean(first)) if pixels else None}
+
+
+def ensure_envpool() -> None:
+    """EnvPool in its own virtualenv, and the system libraries its pixel and ProcGen paths load."""
+    stamp = VENV / ".installed"
+    if not stamp.exists() or stamp.read_text() != ENVPOOL:
+        subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True)
+        subprocess.run([str(VENV / "bin" / "pip"), "install", "-q", ENVPOOL], check=True)
+        stamp.write_text(ENVPOOL)
+    if subprocess.run("ldconfig -p | grep -q libQt5Gui.so.5", shell=True).returncode != 0:
+        sudo = [] if os.geteuid() == 0 else ["sudo"]
+        subprocess.run(sudo + ["apt-get", "update", "-qq"], check=True)
+        subprocess.run(sudo + ["apt-get", "install", "-y", "-qq", "--no-install-recommends", "libqt5gui5"], check=True,
+                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"}, stdout=subprocess.DEVNULL)
+
+
+def envpool_run(task: str, options: dict, num_envs: int, mode: str, seconds: float) -> dict:
+    env = {**os.environ, "MUJOCO_GL": "egl", "LD_PRELOAD": EGL}
+    output = subprocess.run(
+        [str(VENV / "bin" / "python"), __file__, "--envpool-worker",
+         json.dumps([task, options, num_envs, mode, seconds])],
+        capture_output=True, text=True, env=env, cwd="/tmp", check=False)
+    if output.returncode != 0:
+        raise RuntimeError(f"EnvPool {task} {mode}: {output.stderr[-2000:]}")
+    return json.loads(output.stdout.strip().splitlines()[-1])
+
+
+# --- radserve -------------------------------------------------------------------------------------
+
+def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int, delivery: str, seconds: float):
+    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, delivery=delivery, **options)
+    envs.reset()
+    space = envs.single_action_space
+    rng = np.random.default_rng(0)
+    if hasattr(space, "n"):
+        actions = [rng.integers(0, space.n, num_envs) for _ in range(64)]
+    else:
+        actions = [rng.uniform(space.low, space.high, (num_envs,) + space.shape).astype(np.float32) for _ in range(64)]
+    counter = iter(range(1 << 62))
+
+    def step():
+        envs.step(actions[next(counter) % 64])
+
+    rate, cpu = timed(step, num_envs, seconds, [os.getpid(), *server_pids()])
+    first = envs.reset()[0]
+    envs.close()
+    return {"rate": rate, "cpu": cpu, "mean_pixel": float(np.mean(first)) if first.dtype == np.uint8 else None}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--only", default="", help="only the workloads whose label contains this")
+    parser.add_argument("--envpool-worker", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.envpool_worker:
+        print(json.dumps(envpool_measure(*json.loads(args.envpool_worker))))
+        return
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    import radserve
+
+    ensure_envpool()
+    sides = ["radserve shm", "radserve grpc", "EnvPool sync", "EnvPool async"]
+    results: "dict[str, dict[str, list[dict]]]" = {}
+    workloads = [w for w in WORKLOADS if args.only in w[0]]
+    with radserve.LocalServer(workers=2) as server:
+        client = radserve.Client(server.address)
+        client.list_envs()  # the catalog is built
+        pids = lambda: descendants(server.process.pid)  # noqa: E731 (workers are restarted at times)
+        for round_ in range(args.rounds):
+            for label, env_id, options, task, envpool_options, num_envs in workloads:
+                row = results.setdefault(label, {side: [] for side in sides})
+                for side in sides:
+                    if side.startswith("radserve"):
+                        delivery = "shared_memory" if side.endswith("shm") else "grpc"
+                        result = radserve_run(client, pids, env_id, options, num_envs, delivery, args.seconds)
+                    else:
+                        result = envpool_run(task, envpool_options, num_envs, side.split()[1], args.seconds)
+                    row[side].append(result)
+                    print(f"round {round_ + 1} {label} x{num_envs}: {side} {result['rate']:,.0f} steps/s, "
+                          f"{result['cpu'] * 1e6:,.0f} us CPU/step", file=sys.stderr)
+        client.close()
+
+    def med(runs, key="rate"):
+        return statistics.median(r[key] for r in runs)
+
+    print(f"\nradserve (2 workers) vs EnvPool 1.2.5 (2 threads), 2 cores, median (range) of {args.rounds} "
+          f"alternating rounds of {args.seconds:g} s\n")
+    print("| workload | envs | radserve shm | radserve gRPC | EnvPool sync | EnvPool async | shm / EnvPool best | "
+          "gRPC / EnvPool best | CPU us/step shm, gRPC, EnvPool best |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for label, env_id, options, task, envpool_options, num_envs in workloads:
+        row = results[label]
+        best = max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
+
+        def cell(side):
+            rates = [r["rate"] for r in row[side]]
+            return f"{statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f})"
+
+        def ratio(side):
+            values = [a["rate"] / b["rate"] for a, b in zip(row[side], row[best])]
+            return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})"
+
+        cpu = ", ".join(f"{med(row[side], 'cpu') * 1e6:,.0f}" for side in ("radserve shm", "radserve grpc", best))
+        print(f"| {label} | {num_envs} | {cell('radserve shm')} | {cell('radserve grpc')} | {cell('EnvPool sync')} | "
+              f"{cell('EnvPool async')} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {cpu} ({best.split()[1]}) |")
+    pixels = [label for label, *_ in workloads if "pixels" in label]
+    for label in pixels:
+        row = results[label]
+        print(f"\n{label}: mean pixel of the first observations, radserve {med(row['radserve shm'], 'mean_pixel'):.1f}, "
+              f"EnvPool {med(row['EnvPool sync'], 'mean_pixel'):.1f}")
+
+
+if __name__ == "__main__":
+    main()
