@@ -3,12 +3,14 @@
     .venv/bin/python bench/vs_envpool.py [--rounds 3] [--seconds 4] [--only TEXT]
 
 EnvPool (1.2.5, C++ dm_control / MuJoCo-gym / ProcGen ports with their own thread pool) is what a
-researcher would use instead of radserve for fast vectorized simulation. This script installs it
-into a virtualenv of its own (`.venv-envpool`, never the project's), then measures each workload in
-alternating rounds: radserve with 2 workers through shared-memory acting and through gRPC (a Python
-client in this process, one session), and EnvPool in-process with 2 threads in its synchronous mode
-(batch = every env) and its asynchronous one (send/recv of half the envs, EnvPool's fast path).
-Same task, same action repeat (EnvPool's frame_skip), same image size; random actions.
+researcher would use instead of radserve for fast vectorized simulation. This script runs it from a
+virtualenv of its own (`.venv-envpool`, installed here, never the project's: the baseline is EnvPool
+as its users install it), then measures each workload in alternating rounds: radserve with 2
+workers through shared-memory acting and through gRPC (a Python client in this process, one
+session), with its native engine (the simulators' own Python packages) and with engine="envpool"
+(EnvPool's ports inside radserve's workers; state rows only), and EnvPool in-process with 2 threads
+in its synchronous mode (batch = every env) and its asynchronous one (send/recv of half the envs,
+EnvPool's fast path). Same task, same physics per env step, same image size; random actions.
 
 CPU per env step adds every process's user+system time over the timed window (radserve: the client,
 the server and its workers; EnvPool: its one process) and divides by the steps.
@@ -40,8 +42,11 @@ WORKLOADS = [
      {"pixels": True, "height": 100, "width": 100, "frame_stack": 1, "action_repeat": 4},
      "CheetahRun-v1", {"from_pixels": True, "render_width": 100, "render_height": 100, "render_camera_id": 0,
                        "frame_skip": 4}, 4),
+    # EnvPool's dm_control frame_skip multiplies the physics substeps of one control step (the reward
+    # is the last control step's, not a sum): the same physics per env step as action repeat 4, and
+    # with max_episode_steps 250 the same episode length, for less per-step work than a true repeat.
     ("dmc cheetah-run state", "dmc/cheetah-run", {"pixels": False, "action_repeat": 4},
-     "CheetahRun-v1", {"frame_skip": 4}, 16),
+     "CheetahRun-v1", {"frame_skip": 4, "max_episode_steps": 250}, 16),
     ("gym HalfCheetah-v5", "gym/HalfCheetah-v5", {}, "HalfCheetah-v5", {}, 16),
     ("procgen bigfish", "procgen/bigfish", {"distribution_mode": "easy"}, "BigfishEasy-v0", {}, 64),
 ]
@@ -145,8 +150,9 @@ def envpool_run(task: str, options: dict, num_envs: int, mode: str, seconds: flo
 
 # --- radserve -------------------------------------------------------------------------------------
 
-def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int, delivery: str, seconds: float):
-    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, delivery=delivery, **options)
+def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int, delivery: str, seconds: float,
+                 engine: str = "native"):
+    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, delivery=delivery, engine=engine, **options)
     envs.reset()
     space = envs.single_action_space
     rng = np.random.default_rng(0)
@@ -180,7 +186,8 @@ def main() -> None:
     import radserve
 
     ensure_envpool()
-    sides = ["radserve shm", "radserve grpc", "EnvPool sync", "EnvPool async"]
+    sides = ["radserve shm", "radserve grpc", "radserve+EnvPool shm", "radserve+EnvPool grpc", "EnvPool sync",
+             "EnvPool async"]
     results: "dict[str, dict[str, list[dict]]]" = {}
     workloads = [w for w in WORKLOADS if args.only in w[0]]
     with radserve.LocalServer(workers=2) as server:
@@ -193,7 +200,10 @@ def main() -> None:
                 for side in sides:
                     if side.startswith("radserve"):
                         delivery = "shared_memory" if side.endswith("shm") else "grpc"
-                        result = radserve_run(client, pids, env_id, options, num_envs, delivery, args.seconds)
+                        engine = "envpool" if "EnvPool" in side else "native"
+                        if engine == "envpool" and options.get("pixels"):
+                            continue  # the envpool engine hosts state observations; radserve renders pixels
+                        result = radserve_run(client, pids, env_id, options, num_envs, delivery, args.seconds, engine)
                     else:
                         result = envpool_run(task, envpool_options, num_envs, side.split()[1], args.seconds)
                     row[side].append(result)
@@ -204,26 +214,39 @@ def main() -> None:
     def med(runs, key="rate"):
         return statistics.median(r[key] for r in runs)
 
-    print(f"\nradserve (2 workers) vs EnvPool 1.2.5 (2 threads), 2 cores, median (range) of {args.rounds} "
-          f"alternating rounds of {args.seconds:g} s\n")
-    print("| workload | envs | radserve shm | radserve gRPC | EnvPool sync | EnvPool async | shm / EnvPool best | "
-          "gRPC / EnvPool best | CPU us/step shm, gRPC, EnvPool best |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print(f"\nradserve (2 workers; engine native, and engine envpool for the state rows) vs EnvPool 1.2.5 "
+          f"(2 threads), 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s\n")
+    print("env steps/s:\n")
+    print("| workload | envs | radserve shm | radserve gRPC | radserve+EnvPool shm | radserve+EnvPool gRPC | "
+          "EnvPool sync | EnvPool async |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for label, env_id, options, task, envpool_options, num_envs in workloads:
+        row = results[label]
+
+        def cell(side):
+            rates = [r["rate"] for r in row[side]]
+            if not rates:
+                return "-"
+            return f"{statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f})"
+
+        print(f"| {label} | {num_envs} | " + " | ".join(cell(side) for side in sides) + " |")
+    print("\nagainst EnvPool's best mode (ratio of each round's rates), and CPU per env step (us, every process):\n")
+    print("| workload | shm | gRPC | +EnvPool shm | +EnvPool gRPC | CPU shm, +EnvPool shm, EnvPool best |")
+    print("|---|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
         best = max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
 
-        def cell(side):
-            rates = [r["rate"] for r in row[side]]
-            return f"{statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f})"
-
         def ratio(side):
             values = [a["rate"] / b["rate"] for a, b in zip(row[side], row[best])]
+            if not values:
+                return "-"
             return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})"
 
-        cpu = ", ".join(f"{med(row[side], 'cpu') * 1e6:,.0f}" for side in ("radserve shm", "radserve grpc", best))
-        print(f"| {label} | {num_envs} | {cell('radserve shm')} | {cell('radserve grpc')} | {cell('EnvPool sync')} | "
-              f"{cell('EnvPool async')} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {cpu} ({best.split()[1]}) |")
+        cpu = ", ".join(f"{med(row[side], 'cpu') * 1e6:,.0f}" if row[side] else "-"
+                        for side in ("radserve shm", "radserve+EnvPool shm", best))
+        print(f"| {label} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {ratio('radserve+EnvPool shm')} | "
+              f"{ratio('radserve+EnvPool grpc')} | {cpu} ({best.split()[1]}) |")
     pixels = [label for label, *_ in workloads if "pixels" in label]
     for label in pixels:
         row = results[label]

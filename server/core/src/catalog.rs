@@ -133,6 +133,12 @@ pub fn paper_action_repeat(dmc_name: &str) -> i64 {
 }
 
 const RENDER_PROFILES: &[&str] = &["default", "fast"];
+/// The option naming what steps a session's envs.
+pub const ENGINE: &str = "engine";
+/// "native": the simulators' own Python packages (dm_control, gymnasium, procgen), results equal to
+/// theirs; "envpool": EnvPool's C++ ports of the same tasks (dm_control state tasks, MuJoCo-gym and
+/// classic control, ProcGen), faster per step, results EnvPool's (radserve_worker.py, EnvpoolGroup).
+const ENGINES: &[&str] = &["native", "envpool"];
 const DISTRIBUTION_MODES: &[&str] = &["easy", "hard", "extreme", "memory", "exploration"];
 
 fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
@@ -148,6 +154,7 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
                 option("action_repeat", Int(paper_action_repeat(&env.name)), Rule::IntRange(1, 1000)),
                 option("render_profile", Str("default".into()), Rule::OneOf(RENDER_PROFILES)),
                 option(FRAME_STACK, Int(if pixels { 3 } else { 1 }), Rule::IntRange(1, MAX_FRAME_STACK)),
+                option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)),
             ]
         }
         Family::Gym => vec![
@@ -155,6 +162,7 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
             // 0 keeps the time limit gymnasium registers for the task.
             option("max_episode_steps", Int(0), Rule::IntRange(0, 1 << 40)),
             option(FRAME_STACK, Int(1), Rule::IntRange(1, MAX_FRAME_STACK)),
+            option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)),
         ],
         Family::Procgen => vec![
             option("num_levels", Int(0), Rule::IntRange(0, i32::MAX as i64)),
@@ -171,6 +179,7 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
             // procgen's 4) steps them on the worker's thread (radserve_worker.py).
             option("num_threads", Int(0), Rule::IntRange(0, 64)),
             option(FRAME_STACK, Int(1), Rule::IntRange(1, MAX_FRAME_STACK)),
+            option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)),
         ],
     }
 }
@@ -213,6 +222,16 @@ pub fn resolve_options(env: &EnvId, overrides: &Options) -> Result<Options, Core
             Some(given) => check_value(env, entry, given)?,
         };
         resolved.insert(entry.name.to_string(), value);
+    }
+    if env.family == Family::Dmc
+        && resolved[ENGINE] == OptionValue::Str("envpool".into())
+        && resolved["pixels"] == OptionValue::Bool(true)
+    {
+        return Err(CoreError::InvalidOption(format!(
+            "option 'engine' of {} is 'envpool', which hosts dm_control's state observations only: give \
+             pixels=false, or engine 'native' for pixels (radserve renders them itself)",
+            env.full()
+        )));
     }
     Ok(resolved)
 }
@@ -344,6 +363,23 @@ mod tests {
         let cheetah = EnvId { family: Family::Dmc, name: "cheetah-run".into() };
         let state = resolve_options(&cheetah, &Options::from([("pixels".into(), OptionValue::Bool(false))])).unwrap();
         assert_eq!(state[FRAME_STACK], OptionValue::Int(1));
+    }
+
+    #[test]
+    fn the_envpool_engine_is_for_state_observations() {
+        let cheetah = EnvId { family: Family::Dmc, name: "cheetah-run".into() };
+        assert_eq!(default_options(&cheetah)[ENGINE], OptionValue::Str("native".into()));
+        let envpool = |pixels: bool| {
+            resolve_options(&cheetah, &Options::from([
+                (ENGINE.into(), OptionValue::Str("envpool".into())),
+                ("pixels".into(), OptionValue::Bool(pixels)),
+            ]))
+        };
+        assert!(envpool(false).is_ok());
+        let refused = envpool(true).unwrap_err().to_string();
+        assert!(refused.contains("pixels=false"), "{refused}");
+        let unknown = resolve_options(&cheetah, &Options::from([(ENGINE.into(), OptionValue::Str("mjx".into()))]));
+        assert!(unknown.unwrap_err().to_string().contains("one of native, envpool"));
     }
 
     #[test]

@@ -34,8 +34,8 @@ PROCGEN_GAMES = [
     "heist", "jumper", "leaper", "maze", "miner", "ninja", "plunder", "starpilot",
 ]
 
-# Options the server consumes itself; adapters never see them.
-SERVER_OPTIONS = {"frame_stack"}
+# Options the server consumes itself, and the engine choice (make_group's); adapters never see them.
+SERVER_OPTIONS = {"frame_stack", "engine"}
 
 
 def _quiet_absl():
@@ -247,6 +247,12 @@ def list_names():
 
 
 def spec(family, name, options):
+    if options.get("engine") == "envpool":
+        group = EnvpoolGroup(family, name, options, [0])
+        try:
+            return group.spec()
+        finally:
+            group.close()
     env = ADAPTERS[family](name, options, 0)
     try:
         return env.spec()
@@ -256,6 +262,8 @@ def spec(family, name, options):
 
 def make_group(family, name, options, seeds):
     """The group the worker hosts for one session's envs in this worker (called from worker.rs)."""
+    if options.get("engine") == "envpool":
+        return EnvpoolGroup(family, name, options, seeds)
     if family == "procgen":
         return ProcgenGroup(name, options, seeds)
     return Group(family, name, options, seeds)
@@ -455,6 +463,207 @@ class ProcgenGroup(Group):
         if self.vec is not None:
             self.vec.close()
         self.vec = None
+        self.current = self.final = None
+
+
+def _import_envpool():
+    try:
+        import envpool
+        from envpool.python import data
+    except ImportError as exc:
+        raise ValueError(f"engine 'envpool' needs EnvPool in the server's Python environment ({exc})") from None
+    if not getattr(data, "_radserve_patched", False):
+        # EnvPool 1.2.5 asks of every one-element bound whether it is a small integer with
+        # np.isclose(bound, int(bound)); for an unbounded float spec (dm_control walker's `height`,
+        # +-1.8e308) int() is a 309-digit Python int that numpy 1.x (procgen pins numpy<2) cannot
+        # convert, and building the space raises TypeError. Such a bound is no small integer: answer
+        # None, which is what the function returns for every other non-integer bound.
+        original = data._maybe_scalar_int
+
+        def maybe_scalar_int(value):
+            try:
+                return original(value)
+            except (TypeError, OverflowError):
+                return None
+
+        data._maybe_scalar_int = maybe_scalar_int
+        data._radserve_patched = True
+    return envpool
+
+
+def envpool_task(family, name, options):
+    """EnvPool's task id and make() keywords for a radserve env id and its options (engine="envpool")."""
+    envpool = _import_envpool()
+
+    if family == "dmc":
+        if options["pixels"]:
+            raise ValueError("engine 'envpool' hosts dm_control's state observations (pixels=false); "
+                             "radserve renders pixels itself")
+        # cheetah-run -> CheetahRun-v1, ball_in_cup-catch -> BallInCupCatch-v1
+        task = "".join(part[:1].upper() + part[1:] for part in name.replace("_", "-").split("-")) + "-v1"
+        kwargs = {}
+    elif family == "gym":
+        task = name
+        kwargs = {"max_episode_steps": options["max_episode_steps"]} if options["max_episode_steps"] > 0 else {}
+    else:
+        task = f"{name.capitalize()}{options['distribution_mode'].capitalize()}-v0"
+        kwargs = {key: options[key] for key in (
+            "num_levels", "start_level", "restrict_themes", "use_backgrounds", "use_monochrome_assets",
+            "center_agent", "use_sequential_levels", "paint_vel_info", "use_generated_assets")}
+    known = envpool.list_all_envs()
+    if task not in known:
+        raise ValueError(f"engine 'envpool' has no port of {family}/{name} (EnvPool task {task}); "
+                         f"use engine 'native' for it")
+    return task, kwargs
+
+
+class EnvpoolGroup:
+    """A session's envs in this worker stepped by EnvPool's C++ ports (option engine="envpool"):
+    dm_control state tasks, gymnasium's MuJoCo and classic-control tasks, ProcGen games.
+
+    One EnvPool in synchronous mode (batch = the group) with one stepping thread: the worker thread
+    hands it the group's actions and waits, as it waits for its own Python stepping otherwise.
+    EnvPool's sync mode also takes a subset of envs (env_id), which gives radserve's contract:
+    - same-step autoreset: envs whose episode ended are reset right after the step (one more EnvPool
+      call, only on steps where an episode ends), their last observation kept as the final one;
+    - action repeat as radserve does it for the native engine: the action is sent `action_repeat`
+      times, rewards summed, an env leaving the repeat when its episode ends. (EnvPool's own
+      `frame_skip` is not this: for dm_control it multiplies the physics substeps of one control
+      step and scores only the last, for MuJoCo-gym it is the model's frame skip.);
+    - seeds: env i gets its own seed through EnvPool's `env_seed`; a seeded reset rebuilds the pool.
+    Results follow EnvPool's ports, not dm_control's or gymnasium's Python (docs/performance.md,
+    "EnvPool engine"); envs' info dicts are not sent (EnvPool's are its bookkeeping: env_id,
+    elapsed_step, players).
+    """
+
+    def __init__(self, family, name, options, seeds):
+        self.family, self.name = family, name
+        self.task, self.kwargs = envpool_task(family, name, options)
+        self.repeat = int(options.get("action_repeat", 1))
+        self.threads = max(1, int(options.get("num_threads", 1)))
+        self.seeds = [int(seed) for seed in seeds]
+        self.n = len(self.seeds)
+        self.ids = np.arange(self.n, dtype=np.int32)
+        self.pool = self._build()
+        self.fresh = True  # built and not stepped since: a reset with its own seeds need not rebuild
+        obs_space, act_space = self.pool.observation_space, self.pool.action_space
+        if hasattr(obs_space, "spaces"):  # dm_control: a dict of arrays, flattened as the native engine does
+            self.keys = self._dmc_keys(obs_space)
+            size = sum(int(np.prod(obs_space.spaces[key].shape)) for key in self.keys)
+            observation = box(np.float32, (size,), -np.inf, np.inf)
+        else:
+            self.keys = None
+            if obs_space.dtype == np.uint8:
+                observation = box(np.uint8, obs_space.shape, 0, 255)
+            else:
+                observation = box(np.float32, obs_space.shape, obs_space.low, obs_space.high)
+        if hasattr(act_space, "n"):
+            action = discrete(act_space.n)
+            self.action_dtype, self.action_shape, self.send_dtype = np.dtype(np.int64), (), np.int32
+        else:
+            action = box(np.float32, act_space.shape, act_space.low, act_space.high)
+            self.action_dtype, self.action_shape = np.dtype(np.float32), tuple(act_space.shape)
+            self.send_dtype = act_space.dtype
+        self._spec = {"observation": observation, "action": action}
+        self.current = self.final = None
+
+    def _dmc_keys(self, obs_space):
+        """dm_control's observation names for the task, in its order. EnvPool's dict holds every
+        observation of the domain (finger-spin has finger-turn's target too), so the names come from
+        dm_control's own spec: the same vector as the native engine's."""
+        from dm_control import suite
+
+        domain, task = self.name.split("-", 1)
+        env = suite.load(domain, task)
+        try:
+            keys = list(env.observation_spec())
+        finally:
+            env.close()
+        missing = [key for key in keys if key not in obs_space.spaces]
+        if missing:
+            raise ValueError(f"EnvPool's {self.task} lacks dm_control's observations {missing}")
+        return keys
+
+    def _build(self):
+        return _import_envpool().make(self.task, env_type="gymnasium", num_envs=self.n, batch_size=self.n,
+                            num_threads=self.threads, env_seed=self.seeds, **self.kwargs)
+
+    def spec(self):
+        return self._spec
+
+    def attach(self, frames):
+        Group.attach(self, frames)
+
+    def _write(self, target, obs, env_ids):
+        if self.keys is None:
+            target[env_ids] = obs
+            return
+        start = 0
+        for key in self.keys:
+            part = obs[key].reshape(len(env_ids), -1)
+            target[env_ids, start:start + part.shape[1]] = part
+            start += part.shape[1]
+
+    def reset(self, seeds, mask=None):
+        partial = mask is not None and not all(mask)
+        if seeds is not None and not (self.fresh and [int(seed) for seed in seeds] == self.seeds):
+            if partial:
+                raise ValueError("engine 'envpool' re-seeds the envs of a worker together: a seeded reset "
+                                 "must reset every env (EnvPool seeds envs when it builds them)")
+            self.seeds = [int(seed) for seed in seeds]
+            self.pool.close()
+            self.pool = self._build()
+        self.fresh = False
+        ids = self.ids if not partial else self.ids[np.asarray(mask, dtype=bool)]
+        if len(ids):
+            obs, info = self.pool.reset(ids)
+            self._write(self.current, obs, info["env_id"])
+        return []
+
+    def step(self, actions, skip=None):
+        self.fresh = False
+        actions = np.frombuffer(actions, dtype=self.action_dtype).reshape((self.n,) + self.action_shape)
+        actions = actions.astype(self.send_dtype)
+        rewards = np.zeros(self.n)
+        terminated = np.zeros(self.n, dtype=bool)
+        truncated = np.zeros(self.n, dtype=bool)
+        active = self.ids if skip is None else self.ids[~np.asarray(skip, dtype=bool)]
+        if not len(active):
+            return rewards.tolist(), terminated.tolist(), truncated.tolist(), [], []
+        try:
+            for _ in range(self.repeat):
+                obs, reward, term, trunc, info = self.pool.step(
+                    actions if len(active) == self.n else actions[active], active)
+                env_ids = info["env_id"]
+                rewards[env_ids] += reward
+                terminated[env_ids] = term
+                truncated[env_ids] = trunc
+                self._write(self.current, obs, env_ids)
+                ended = term | trunc
+                if ended.any():
+                    active = env_ids[~ended]
+                    if not len(active):
+                        break
+            ended = np.flatnonzero(terminated | truncated)
+            if len(ended):
+                # Same-step autoreset: keep the last observation, start the next episode now.
+                self.final[ended] = self.current[ended]
+                obs, info = self.pool.reset(ended.astype(np.int32))
+                self._write(self.current, obs, info["env_id"])
+        except Exception as exc:  # EnvPool raised: which env is unknown, so every episode ends
+            message = f"{type(exc).__name__}: {exc}"
+            self.final[:] = self.current
+            self.pool.close()
+            self.pool = self._build()
+            obs, info = self.pool.reset(self.ids)
+            self._write(self.current, obs, info["env_id"])
+            return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)], []
+        return rewards.tolist(), terminated.tolist(), truncated.tolist(), [], []
+
+    def close(self):
+        if self.pool is not None:
+            self.pool.close()
+        self.pool = None
         self.current = self.final = None
 
 

@@ -1,0 +1,183 @@
+"""Sessions stepped by EnvPool's C++ ports (option engine="envpool"), through the real server: the same
+contract as the native engine (spaces, per-env seeds, same-step autoreset with final observations,
+action repeat, partial resets and skipped envs), and errors for what EnvPool cannot host."""
+
+import numpy as np
+import pytest
+
+import radserve
+
+
+def run(envs, actions, steps):
+    """(observations, rewards, terminated, truncated, infos) of `steps` steps with the given actions."""
+    record = []
+    for t in range(steps):
+        record.append(envs.step(actions[t % len(actions)]))
+    return record
+
+
+def random_actions(space, num_envs, count=32, seed=0):
+    rng = np.random.default_rng(seed)
+    if hasattr(space, "n"):
+        return [rng.integers(0, space.n, num_envs) for _ in range(count)]
+    return [rng.uniform(space.low, space.high, (num_envs,) + space.shape).astype(np.float32) for _ in range(count)]
+
+
+def test_spaces_match_the_native_engine(client):
+    for env_id, options in [("dmc/cheetah-run", {"pixels": False}), ("gym/HalfCheetah-v5", {}),
+                            ("gym/CartPole-v1", {}), ("procgen/bigfish", {})]:
+        native = client.make_vec(env_id, num_envs=1, **options)
+        envpool = client.make_vec(env_id, num_envs=1, engine="envpool", **options)
+        try:
+            assert envpool.single_observation_space == native.single_observation_space, env_id
+            assert envpool.single_action_space == native.single_action_space, env_id
+            assert envpool.describe().options["engine"] == "envpool"
+        finally:
+            native.close()
+            envpool.close()
+
+
+def test_a_dm_control_episode_lasts_as_long_as_dm_controls(client):
+    # cheetah-run: 1000 control steps; action repeat 4 (the paper's) makes 250 agent steps.
+    envs = client.make_vec("dmc/cheetah-run", num_envs=2, seed=1, engine="envpool", pixels=False)
+    try:
+        envs.reset()
+        actions = random_actions(envs.single_action_space, 2)
+        for t in range(250):
+            obs, reward, terminated, truncated, infos = envs.step(actions[t % 32])
+            assert np.all(reward >= 0) and np.all(reward <= 4), "4 control steps of a reward in [0, 1]"
+            if t < 249:
+                assert not truncated.any() and not terminated.any(), t
+        assert truncated.all() and not terminated.any()
+        # Same-step autoreset: the episode's last observation in the infos, the next episode's first in obs.
+        assert infos["_final_obs"].all()
+        assert not np.array_equal(np.stack(infos["final_obs"]), obs)
+        np.testing.assert_array_equal(infos["radserve_episode"]["l"], [250, 250])
+    finally:
+        envs.close()
+
+
+def test_action_repeat_sums_the_rewards_of_repeated_steps(client):
+    one = client.make_vec("dmc/cartpole-balance", num_envs=2, seed=3, engine="envpool", pixels=False, action_repeat=1)
+    three = client.make_vec("dmc/cartpole-balance", num_envs=2, seed=3, engine="envpool", pixels=False,
+                            action_repeat=3)
+    try:
+        np.testing.assert_array_equal(one.reset()[0], three.reset()[0])
+        for action in random_actions(one.single_action_space, 2, count=10, seed=4):
+            total = np.zeros(2)
+            for _ in range(3):
+                obs_one, reward, *_ = one.step(action)
+                total += reward
+            obs_three, reward_three, *_ = three.step(action)
+            np.testing.assert_array_equal(obs_one, obs_three)
+            np.testing.assert_allclose(reward_three, total, rtol=1e-6)
+    finally:
+        one.close()
+        three.close()
+
+
+def test_env_i_of_seed_s_is_env_0_of_seed_s_plus_i(client):
+    # The native engine's contract: a session seeded s seeds env i with s + i, in whichever worker.
+    for env_id, options in [("dmc/walker-walk", {"pixels": False}), ("gym/Hopper-v5", {}), ("procgen/coinrun", {})]:
+        four = client.make_vec(env_id, num_envs=4, seed=10, engine="envpool", **options)
+        single = client.make_vec(env_id, num_envs=1, seed=13, engine="envpool", **options)
+        try:
+            actions = random_actions(four.single_action_space, 4, count=20)
+            first4, first1 = four.reset()[0], single.reset()[0]
+            np.testing.assert_array_equal(first4[3], first1[0])
+            for action in actions:
+                obs4 = four.step(action)[0]
+                obs1 = single.step(action[3:])[0]
+                np.testing.assert_array_equal(obs4[3], obs1[0])
+        finally:
+            four.close()
+            single.close()
+
+
+def test_procgen_options_reach_envpools_procgen(client):
+    # One level (num_levels=1 from start_level 5): every env starts the same level whatever its seed,
+    # and for these games EnvPool's level is the native engine's (procgen's own C++ generates both;
+    # the levels of a seed differ, EnvPool deriving level seeds its own way).
+    for game, as_native in (("coinrun", False), ("bigfish", True), ("starpilot", True)):
+        options = {"num_levels": 1, "start_level": 5}
+        envpool = client.make_vec(f"procgen/{game}", num_envs=2, seed=21, engine="envpool", **options)
+        native = client.make_vec(f"procgen/{game}", num_envs=1, seed=3, **options)
+        try:
+            first = envpool.reset()[0]
+            np.testing.assert_array_equal(first[0], first[1])
+            if as_native:
+                np.testing.assert_array_equal(first[0], native.reset()[0][0])
+        finally:
+            envpool.close()
+            native.close()
+
+
+def test_sessions_and_seeded_resets_are_reproducible(client):
+    runs = []
+    for _ in range(2):
+        envs = client.make_vec("gym/CartPole-v1", num_envs=3, seed=5, engine="envpool")
+        try:
+            actions = random_actions(envs.single_action_space, 3, seed=9)
+            first = envs.reset(seed=40)[0]
+            record = run(envs, actions, 120)
+            again = envs.reset(seed=40)[0]  # the same seed after steps: the same start
+            np.testing.assert_array_equal(first, again)
+            runs.append((first, record))
+        finally:
+            envs.close()
+    (first_a, record_a), (first_b, record_b) = runs
+    np.testing.assert_array_equal(first_a, first_b)
+    ended = 0
+    for (obs_a, rew_a, term_a, trunc_a, info_a), (obs_b, rew_b, term_b, trunc_b, _) in zip(record_a, record_b):
+        np.testing.assert_array_equal(obs_a, obs_b)
+        np.testing.assert_array_equal(rew_a, rew_b)
+        np.testing.assert_array_equal(term_a, term_b)
+        np.testing.assert_array_equal(trunc_a, trunc_b)
+        ended += int((term_a | trunc_a).sum())
+        for i in np.flatnonzero(term_a | trunc_a):
+            assert info_a["_final_obs"][i]
+    assert ended >= 3, "CartPole's random episodes end within 120 steps: the comparison crossed autoresets"
+
+
+def test_next_step_autoreset_and_partial_resets(client):
+    envs = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0, engine="envpool", autoreset_mode="NextStep")
+    try:
+        envs.reset()
+        left = np.zeros(2, dtype=np.int64)
+        for _ in range(100):
+            obs, reward, terminated, truncated, _ = envs.step(left)
+            if (terminated | truncated).any():
+                break
+        ended = terminated | truncated
+        assert ended.any()
+        # gymnasium's NEXT_STEP: the ended env's next step is its reset: reward 0, no flag, a fresh start.
+        obs, reward, terminated, truncated, _ = envs.step(left)
+        assert np.all(reward[ended] == 0) and not terminated[ended].any()
+        assert np.all(np.abs(obs[ended]) <= 0.05), "CartPole starts within +-0.05"
+        # A partial reset resets only the envs it marks.
+        before = envs.step(left)[0]
+        after, _ = envs.reset(options={"reset_mask": np.array([True, False])})
+        np.testing.assert_array_equal(after[1], before[1])
+        assert np.all(np.abs(after[0]) <= 0.05)
+    finally:
+        envs.close()
+
+
+def test_what_envpool_cannot_host_is_refused_with_the_reason(client):
+    with pytest.raises(radserve.InvalidArgumentError, match="pixels=false"):
+        client.make_vec("dmc/cheetah-run", num_envs=1, engine="envpool")
+    with pytest.raises(radserve.InvalidArgumentError, match="one of native, envpool"):
+        client.make_vec("gym/CartPole-v1", num_envs=1, engine="brax")
+    with pytest.raises(radserve.RadServeError, match="no port of procgen/bigfish"):
+        client.make_vec("procgen/bigfish", num_envs=1, engine="envpool", distribution_mode="memory")
+    # 4 envs on the fixture's 2 workers: envs 0-1 in one, 2-3 in the other.
+    envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, engine="envpool")
+    try:
+        envs.reset()
+        with pytest.raises(radserve.RadServeError, match="seeded reset must reset every env"):
+            envs.reset(seed=3, options={"reset_mask": np.array([True, False, True, True])})
+        # A worker's envs re-seeded together are fine, and the session still steps.
+        envs.reset(seed=3, options={"reset_mask": np.array([False, False, True, True])})
+        envs.step(np.zeros(4, dtype=np.int64))
+    finally:
+        envs.close()
