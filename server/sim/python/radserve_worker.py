@@ -148,7 +148,7 @@ def info_json(info):
     anything JSON cannot hold travels as its repr."""
     if not info:
         return None
-    return json.dumps(info, default=_tagged)
+    return _ENCODER.encode(info)
 
 
 def _tagged(value):
@@ -157,6 +157,10 @@ def _tagged(value):
     if isinstance(value, np.generic):
         return {"__numpy__": value.dtype.str, "value": value.item()}
     return {"__repr__": repr(value)}
+
+
+# One encoder for every info: json.dumps with `default` builds a new JSONEncoder per call.
+_ENCODER = json.JSONEncoder(default=_tagged)
 
 
 class GymEnv:
