@@ -48,6 +48,8 @@ WORKLOADS = [
     ("dmc cheetah-run state", "dmc/cheetah-run", {"pixels": False, "action_repeat": 4},
      "CheetahRun-v1", {"frame_skip": 4, "max_episode_steps": 250}, 16),
     ("gym HalfCheetah-v5", "gym/HalfCheetah-v5", {}, "HalfCheetah-v5", {}, 16),
+    # The same with 4x the envs: how much of the gap is radserve's fixed cost per step.
+    ("gym HalfCheetah-v5, 64 envs", "gym/HalfCheetah-v5", {}, "HalfCheetah-v5", {}, 64),
     ("procgen bigfish", "procgen/bigfish", {"distribution_mode": "easy"}, "BigfishEasy-v0", {}, 64),
 ]
 
