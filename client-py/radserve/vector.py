@@ -405,7 +405,7 @@ class RemoteVectorEnv(VectorEnv):
         texts = [text for pair in step.infos.values() for text in pair if text]
         decoded = dict(zip(texts, _DECODER.decode("[" + ",".join(texts) + "]"))) if texts else {}
 
-        def _info(text: "str | None") -> dict:
+        def info_of(text: "str | None") -> dict:
             if not text:
                 return {}
             found = decoded.get(text)
@@ -433,16 +433,16 @@ class RemoteVectorEnv(VectorEnv):
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
                 if i in rows:
                     # gymnasium 1.x: the ended episode's last observation and info, then the reset's info.
-                    final = {"final_obs": self._present(step.final_rows[rows[i]]), "final_info": _info(step_info)}
+                    final = {"final_obs": self._present(step.final_rows[rows[i]]), "final_info": info_of(step_info)}
                     infos = add(infos, final, i)
-                    infos = add(infos, _info(reset_info), i)
+                    infos = add(infos, info_of(reset_info), i)
                 else:
-                    infos = add_step_info(infos, _info(step_info), i)
+                    infos = add_step_info(infos, info_of(step_info), i)
             elif self._ended[i]:
                 # NEXT_STEP's reset step: the info of the reset the server made a step ago.
-                infos = add(infos, _info(self._held_reset_infos.pop(i, None)), i)
+                infos = add(infos, info_of(self._held_reset_infos.pop(i, None)), i)
             else:
-                infos = add_step_info(infos, _info(step_info), i)
+                infos = add_step_info(infos, info_of(step_info), i)
                 if i in rows:
                     self._held_reset_infos[i] = reset_info
         if run:

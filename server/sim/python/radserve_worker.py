@@ -521,7 +521,7 @@ def envpool_task(family, name, options):
     return task, kwargs
 
 
-class EnvpoolGroup:
+class EnvpoolGroup(Group):
     """A session's envs in this worker stepped by EnvPool's C++ ports (option engine="envpool"):
     dm_control state tasks, gymnasium's MuJoCo and classic-control tasks, ProcGen games.
 
@@ -594,9 +594,6 @@ class EnvpoolGroup:
 
     def spec(self):
         return self._spec
-
-    def attach(self, frames):
-        Group.attach(self, frames)
 
     def _write(self, target, obs, env_ids):
         if self.keys is None:
