@@ -544,7 +544,10 @@ class EnvpoolGroup(Group):
         self.family, self.name = family, name
         self.task, self.kwargs = envpool_task(family, name, options)
         self.repeat = int(options.get("action_repeat", 1))
-        self.threads = max(1, int(options.get("num_threads", 1)))
+        # EnvPool's stepping threads: ProcGen's num_threads when given, else one per worker process of the
+        # server (groups.rs puts an envpool session's envs in one worker and says how many).
+        threads = int(options.get("num_threads", 0)) if family == "procgen" else 0
+        self.threads = threads if threads > 0 else max(1, int(options.get("envpool_threads", 1)))
         self.seeds = [int(seed) for seed in seeds]
         self.n = len(self.seeds)
         self.ids = np.arange(self.n, dtype=np.int32)
@@ -609,7 +612,7 @@ class EnvpoolGroup(Group):
         partial = mask is not None and not all(mask)
         if seeds is not None and not (self.fresh and [int(seed) for seed in seeds] == self.seeds):
             if partial:
-                raise ValueError("engine 'envpool' re-seeds the envs of a worker together: a seeded reset "
+                raise ValueError("engine 'envpool' re-seeds a session's envs together: a seeded reset "
                                  "must reset every env (EnvPool seeds envs when it builds them)")
             self.seeds = [int(seed) for seed in seeds]
             self.pool.close()
