@@ -143,7 +143,7 @@ const DISTRIBUTION_MODES: &[&str] = &["easy", "hard", "extreme", "memory", "expl
 
 fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
     use OptionValue::{Bool, Int, Str};
-    match env.family {
+    let mut options = match env.family {
         Family::Dmc => {
             let camera = if env.name.starts_with("quadruped-") { 2 } else { 0 };
             vec![
@@ -154,7 +154,6 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
                 option("action_repeat", Int(paper_action_repeat(&env.name)), Rule::IntRange(1, 1000)),
                 option("render_profile", Str("default".into()), Rule::OneOf(RENDER_PROFILES)),
                 option(FRAME_STACK, Int(if pixels { 3 } else { 1 }), Rule::IntRange(1, MAX_FRAME_STACK)),
-                option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)),
             ]
         }
         Family::Gym => vec![
@@ -162,7 +161,6 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
             // 0 keeps the time limit gymnasium registers for the task.
             option("max_episode_steps", Int(0), Rule::IntRange(0, 1 << 40)),
             option(FRAME_STACK, Int(1), Rule::IntRange(1, MAX_FRAME_STACK)),
-            option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)),
         ],
         Family::Procgen => vec![
             option("num_levels", Int(0), Rule::IntRange(0, i32::MAX as i64)),
@@ -179,9 +177,10 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
             // procgen's 4) steps them on the worker's thread (radserve_worker.py).
             option("num_threads", Int(0), Rule::IntRange(0, 64)),
             option(FRAME_STACK, Int(1), Rule::IntRange(1, MAX_FRAME_STACK)),
-            option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)),
         ],
-    }
+    };
+    options.push(option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)));
+    options
 }
 
 /// The default options of an id: what `resolve_options` gives with no overrides.
