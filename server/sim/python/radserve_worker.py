@@ -499,10 +499,7 @@ def envpool_task(family, name, options):
     """EnvPool's task id and make() keywords for a radserve env id and its options (engine="envpool")."""
     envpool = _import_envpool()
 
-    if family == "dmc":
-        if options["pixels"]:
-            raise ValueError("engine 'envpool' hosts dm_control's state observations (pixels=false); "
-                             "radserve renders pixels itself")
+    if family == "dmc":  # state only: the server refuses engine "envpool" with pixels (catalog.rs)
         # cheetah-run -> CheetahRun-v1, ball_in_cup-catch -> BallInCupCatch-v1
         task = "".join(part[:1].upper() + part[1:] for part in name.replace("_", "-").split("-")) + "-v1"
         kwargs = {}
@@ -525,8 +522,9 @@ class EnvpoolGroup(Group):
     """A session's envs in this worker stepped by EnvPool's C++ ports (option engine="envpool"):
     dm_control state tasks, gymnasium's MuJoCo and classic-control tasks, ProcGen games.
 
-    One EnvPool in synchronous mode (batch = the group) with one stepping thread: the worker thread
-    hands it the group's actions and waits, as it waits for its own Python stepping otherwise.
+    One EnvPool in synchronous mode (batch = the group) with its own stepping threads (the server puts
+    the whole session in one worker and passes `envpool_threads`): the worker thread hands it the
+    group's actions and waits, as it waits for its own Python stepping otherwise.
     EnvPool's sync mode also takes a subset of envs (env_id), which gives radserve's contract:
     - same-step autoreset: envs whose episode ended are reset right after the step (one more EnvPool
       call, only on steps where an episode ends), their last observation kept as the final one;
@@ -595,6 +593,10 @@ class EnvpoolGroup(Group):
         return _import_envpool().make(self.task, env_type="gymnasium", num_envs=self.n, batch_size=self.n,
                             num_threads=self.threads, env_seed=self.seeds, **self.kwargs)
 
+    def _rebuild(self):
+        self.pool.close()
+        self.pool = self._build()
+
     def spec(self):
         return self._spec
 
@@ -615,8 +617,7 @@ class EnvpoolGroup(Group):
                 raise ValueError("engine 'envpool' re-seeds a session's envs together: a seeded reset "
                                  "must reset every env (EnvPool seeds envs when it builds them)")
             self.seeds = [int(seed) for seed in seeds]
-            self.pool.close()
-            self.pool = self._build()
+            self._rebuild()
         self.fresh = False
         ids = self.ids if not partial else self.ids[np.asarray(mask, dtype=bool)]
         if len(ids):
@@ -657,8 +658,7 @@ class EnvpoolGroup(Group):
         except Exception as exc:  # EnvPool raised: which env is unknown, so every episode ends
             message = f"{type(exc).__name__}: {exc}"
             self.final[:] = self.current
-            self.pool.close()
-            self.pool = self._build()
+            self._rebuild()
             obs, info = self.pool.reset(self.ids)
             self._write(self.current, obs, info["env_id"])
             return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)], []

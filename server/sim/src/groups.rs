@@ -141,7 +141,7 @@ impl Simulators for WorkerPool {
     ) -> Result<(EnvSpec, Vec<Box<dyn EnvGroup>>), SimulatorError> {
         // engine="envpool": one worker hosts the session and EnvPool's own threads, one per worker process
         // of the pool, step its envs in parallel (radserve_worker.py reads `envpool_threads`). One pipe
-        // round trip per step instead of one per worker: HalfCheetah x16 ran 20-30% faster so than split
+        // round trip per step instead of one per worker: HalfCheetah x16 ran 20-30% faster than split
         // over two workers of one EnvPool thread each (docs/performance.md, "The EnvPool engine").
         let envpool = options.get(ENGINE) == Some(&OptionValue::Str("envpool".into()));
         let mut options = options.clone();
