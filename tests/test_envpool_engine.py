@@ -215,3 +215,67 @@ def test_what_envpool_cannot_host_is_refused_with_the_reason(client):
         envs.step(np.zeros(4, dtype=np.int64))
     finally:
         envs.close()
+
+
+def _worker_module():
+    """The worker's adapters (server/sim/python/radserve_worker.py), imported as the worker imports them."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "server" / "sim" / "python" / "radserve_worker.py"
+    spec = importlib.util.spec_from_file_location("radserve_worker_under_test", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+PROCGEN_DEFAULTS = {"num_levels": 0, "start_level": 0, "distribution_mode": "easy", "restrict_themes": False,
+                    "use_backgrounds": True, "use_monochrome_assets": False, "center_agent": True,
+                    "use_sequential_levels": False, "paint_vel_info": False, "use_generated_assets": False}
+
+
+@pytest.mark.parametrize("family, name, options, steps", [
+    ("dmc", "cheetah-run", {"action_repeat": 4}, 255),
+    ("dmc", "cartpole-balance", {"action_repeat": 3}, 340),  # episodes end inside a repeat (1000 % 3)
+    ("gym", "CartPole-v1", {"max_episode_steps": 0}, 200),  # terminations, same-step resets
+    ("gym", "HalfCheetah-v5", {"max_episode_steps": 25}, 60),  # truncations
+    ("procgen", "bigfish", PROCGEN_DEFAULTS, 150),
+])
+def test_raw_envpool_calls_give_what_its_public_interface_gives(family, name, options, steps):
+    # The worker steps EnvPool through its raw _send/_recv (EnvpoolGroup._call), not its Python
+    # wrapper: the same seeds and actions must give the same frames, final frames, rewards and flags
+    # as the wrapper's step() and reset(), partial steps (skipped envs) included.
+    worker = _worker_module()
+    groups = []
+    for raw in (True, False):
+        group = worker.make_group(family, name, {"engine": "envpool", "envpool_threads": 1, **options}, [7, 8, 9])
+        assert (group.state_index is not None) is True, "EnvPool 1.2.5 has the raw interface"
+        if not raw:
+            group.state_index = None
+        observation = group.spec()["observation"]
+        size = 2 * 3 * int(np.prod(observation["shape"])) * np.dtype(observation["dtype"]).itemsize
+        group.attach(memoryview(bytearray(size)))
+        group.reset(None)
+        groups.append(group)
+    try:
+        raw, public = groups
+        np.testing.assert_array_equal(raw.current, public.current)
+        rng = np.random.default_rng(0)
+        space = raw.spec()["action"]
+        ended = 0
+        for t in range(steps):
+            if space["kind"] == "discrete":
+                actions = rng.integers(0, space["n"], 3)
+            else:
+                actions = rng.uniform(space["low"], space["high"], (3,) + tuple(space["shape"]))
+            actions = actions.astype(raw.action_dtype).tobytes()
+            skip = [t % 5 == 4, False, False]
+            a, b = raw.step(actions, skip), public.step(actions, skip)
+            assert a == b, t
+            ended += sum(a[1]) + sum(a[2])
+            np.testing.assert_array_equal(raw.current, public.current)
+            np.testing.assert_array_equal(raw.final, public.final)
+        assert ended > 0, "the run covers episode ends"
+    finally:
+        for group in groups:
+            group.close()
