@@ -576,7 +576,7 @@ class EnvpoolGroup(Group):
     def _index_state(self):
         """Positions, in EnvPool's raw state list (`_recv()`), of what a step needs, or None when this
         EnvPool lacks the raw interface. The raw calls skip its Python wrapper (action conversion, the
-        state tree, the info dict), ~40 us of the worker's time per call on a 2-core host
+        state tree, the info dict), 60-70 us of the worker's time per call on this 2-core VM
         (bench/envpool_calls.py); tests/test_envpool_engine.py checks they give what `step` gives."""
         pool = self.pool
         names = list(getattr(pool, "_state_keys", ()))
