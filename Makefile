@@ -47,14 +47,18 @@ demo: setup torch
 ## learners' extra is installed, so the server's tests never wait for torch) the learners' smoke tests
 test: setup test-rust test-python test-learners
 
-# clippy first: its findings (warnings are errors) are cheaper to read than a failing test run.
+# clippy first: its findings (warnings are errors) are cheaper to read than a failing test run. The test
+# runs are bounded (scripts/bounded.sh): one that hangs ends the run with every process's stacks printed.
+# Usually: Rust ~5 min, Python ~5 min on 2 cores.
+TEST_BOUND_S ?= 1500
 test-rust:
 	cargo clippy --release --workspace --all-targets -- -D warnings
-	cargo test --release --workspace
+	cargo test --release --workspace --no-run
+	bash scripts/bounded.sh $(TEST_BOUND_S) cargo test --release --workspace
 
 test-python:
-	$(PYTHON) -m pytest -q tests client-py/tests --ignore=tests/test_learners.py --ignore=client-py/tests/test_torch_adapter.py \
-		--ignore=tests/cluster
+	bash scripts/bounded.sh $(TEST_BOUND_S) $(PYTHON) -m pytest -q tests client-py/tests --ignore=tests/test_learners.py \
+		--ignore=client-py/tests/test_torch_adapter.py --ignore=tests/cluster
 
 ## images: the server and learner images (radserve:dev, radserve-learner:dev) on public base images;
 ## images-local: the same on base images made here from Debian packages (no registry needed)
@@ -71,7 +75,8 @@ test-cluster: setup images-local
 	$(PYTHON) -m pytest -q -s tests/cluster
 
 test-learners: torch
-	RADSERVE_REQUIRE_TORCH=1 $(PYTHON) -m pytest -q tests/test_learners.py client-py/tests/test_torch_adapter.py
+	RADSERVE_REQUIRE_TORCH=1 bash scripts/bounded.sh $(TEST_BOUND_S) $(PYTHON) -m pytest -q tests/test_learners.py \
+		client-py/tests/test_torch_adapter.py
 
 ## fuzz: the fuzzing properties of `make test` with many more cases: the pipeline parser and plans,
 ## the worker protocol's decoder, every RPC of a real server (request sequences and raw bytes), and
