@@ -62,6 +62,8 @@ struct Faults {
     raise_in: Vec<usize>,
     fail_next_step: Option<String>,
     groups_alive: usize,
+    /// create_groups calls that reached the simulators (refused ones included).
+    creates: usize,
     steps: u64,
 }
 
@@ -106,6 +108,11 @@ impl FakeSimulators {
         self.faults().groups_alive
     }
 
+    /// How often the core asked the simulators to build envs (refused requests included).
+    pub fn creates(&self) -> usize {
+        self.faults().creates
+    }
+
     /// Group steps taken so far.
     pub fn steps(&self) -> u64 {
         self.faults().steps
@@ -137,6 +144,7 @@ impl Simulators for FakeSimulators {
         _options: &Options,
         seeds: Vec<u64>,
     ) -> Result<(EnvSpec, Vec<Box<dyn EnvGroup>>), SimulatorError> {
+        self.faults().creates += 1;
         if let Some(message) = self.faults().refuse_create.take() {
             return Err(SimulatorError::Refused(message));
         }

@@ -296,11 +296,13 @@ async fn the_memory_budget_refuses_what_would_not_fit() {
     let extras = |capacity| SessionExtras { buffer: Some(BufferRequest::Replay { capacity }), observation_view: None };
     // 16 fake envs at 2 MiB each take half of the 64 MiB budget.
     let first = manager.create_session(&local(), FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(100_000)).await.unwrap();
+    let creates = simulators.creates();
     let envs_refused = manager.create_session(&local(), FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(10)).await.unwrap_err();
     assert!(
         matches!(&envs_refused, CoreError::OutOfMemory(m) if m.contains("16 envs of gym/Fake-v0") && m.contains("limits.memory_bytes")),
         "{envs_refused}"
     );
+    assert_eq!(simulators.creates(), creates, "envs that do not fit are refused before the simulators are asked");
     // These envs fit; their replay buffer, known only once they are built, does not.
     let replay_refused = manager.create_session(&local(), FAKE_ENV, 8, 0, &fake::fake_options(1), &extras(1_000_000)).await.unwrap_err();
     assert!(

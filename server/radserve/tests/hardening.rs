@@ -329,14 +329,13 @@ async fn idle_connections_are_bounded_and_closed_while_live_clients_stay() {
 async fn every_allocation_is_charged_to_one_memory_budget() {
     let server = start_server(Limits { memory_bytes: 700 << 20, ..Limits::default() }).await;
     let mut client = RadServeClient::new(connect(&server.address).await);
-    // 1024 dmc pixel envs were allowed at ~90 MiB each: here 16 are refused before any is built.
-    let started = Instant::now();
+    // 1024 dmc pixel envs were allowed at ~90 MiB each: here 16 are refused (before the simulators are
+    // asked to build any: the_memory_budget_refuses_what_would_not_fit in radserve-core counts that).
     let request = proto::CreateSessionRequest { env_id: "dmc/cheetah-run".into(), num_envs: 16, ..Default::default() };
     let status = client.create_session(request).await.unwrap_err();
     assert_eq!(status.code(), Code::ResourceExhausted);
     assert!(status.message().starts_with("16 envs of dmc/cheetah-run (~96.5 MiB each) needs 1.51 GiB of memory"), "{}", status.message());
     assert!(status.message().contains("memory budget of 700.0 MiB"), "{}", status.message());
-    assert!(started.elapsed() < Duration::from_secs(10));
     // Streams that are never read: each holds (prefetch + 2) batches; the second no longer fits.
     let request = proto::CreateSessionRequest {
         env_id: "procgen/bigfish".into(),
