@@ -279,3 +279,104 @@ def test_raw_envpool_calls_give_what_its_public_interface_gives(family, name, op
     finally:
         for group in groups:
             group.close()
+
+
+def _group(worker, family, name, options, seeds, batch_size=0):
+    group = worker.make_group(family, name, {"engine": "envpool", "envpool_threads": 2, "batch_size": batch_size,
+                                             **options}, seeds)
+    observation = group.spec()["observation"]
+    size = 2 * len(seeds) * int(np.prod(observation["shape"])) * np.dtype(observation["dtype"]).itemsize
+    group.attach(memoryview(bytearray(size)))
+    return group
+
+
+@pytest.mark.parametrize("family, name, options, steps", [
+    ("dmc", "cartpole-balance", {"action_repeat": 3}, 340),  # episodes end inside a repeat (1000 % 3)
+    ("gym", "CartPole-v1", {"max_episode_steps": 0, "action_repeat": 2}, 150),  # terminations
+    ("gym", "HalfCheetah-v5", {"max_episode_steps": 25}, 60),  # truncations
+    ("procgen", "bigfish", PROCGEN_DEFAULTS, 120),
+])
+def test_envpool_async_gives_each_env_the_trajectory_the_synchronous_mode_gives(family, name, options, steps):
+    # EnvPool's asynchronous mode (send/recv of `batch_size` envs): envs come back in whatever order
+    # EnvPool's threads finish them, but each env's own sequence (observations, final observations,
+    # rewards over the repeats, flags) is the one the synchronous mode gives for the same seeds and
+    # per-env actions.
+    worker = _worker_module()
+    seeds, n = [11, 12, 13, 14, 15, 16], 6
+    sync = _group(worker, family, name, options, seeds)
+    asyn = _group(worker, family, name, options, seeds, batch_size=2)
+    try:
+        assert asyn.batch == 2 and sync.batch == n
+        space = sync.spec()["action"]
+        rng = np.random.default_rng(1)
+        if space["kind"] == "discrete":
+            table = rng.integers(0, space["n"], (n, steps))
+        else:
+            table = rng.uniform(space["low"], space["high"], (n, steps) + tuple(space["shape"]))
+        table = table.astype(sync.action_dtype)
+
+        def record(group, env):
+            return group.current[env].copy()
+
+        expected = [[] for _ in range(n)]  # per env: (obs, reward, terminated, truncated, final or None)
+        sync.reset(None)
+        for env in range(n):
+            expected[env].append((record(sync, env), 0.0, False, False, None))
+        for t in range(steps):
+            rewards, terminated, truncated, errors, _ = sync.step(table[:, t].tobytes())
+            assert not errors
+            for env in range(n):
+                ended = terminated[env] or truncated[env]
+                expected[env].append((record(sync, env), rewards[env], terminated[env], truncated[env],
+                                      sync.final[env].copy() if ended else None))
+
+        got = [[] for _ in range(n)]
+        asyn.async_reset()
+        with pytest.raises(ValueError, match="before recv returned"):
+            asyn.send(table[:1, 0].tobytes(), [0])
+        order = []
+        while min(len(g) for g in got) < steps + 1:
+            env_ids, rewards, terminated, truncated = asyn.recv()
+            assert len(env_ids) == 2
+            order.extend(env_ids.tolist())
+            for j, env in enumerate(env_ids):
+                ended = terminated[j] or truncated[j]
+                got[env].append((record(asyn, env), rewards[j], terminated[j], truncated[j],
+                                 asyn.final[env].copy() if ended else None))
+            sending = [env for env in env_ids if len(got[env]) <= steps]
+            if len(sending) < len(env_ids):  # an env at the end of the table: keep the others going
+                break
+            asyn.send(table[sending, [len(got[env]) - 1 for env in sending]].tobytes(), sending)
+        ends = 0
+        for env in range(n):
+            for t, (a, b) in enumerate(zip(got[env], expected[env])):
+                np.testing.assert_array_equal(a[0], b[0], err_msg=f"env {env} step {t}")
+                assert a[1] == pytest.approx(b[1], rel=1e-6) and a[2:4] == b[2:4], (env, t, a[1:4], b[1:4])
+                assert (a[4] is None) == (b[4] is None), (env, t)
+                if a[4] is not None:
+                    np.testing.assert_array_equal(a[4], b[4], err_msg=f"env {env} step {t} final")
+                    ends += 1
+            assert len(got[env]) > steps // 2, env
+        assert ends > 0, "the run covers episode ends"
+        # Fewer envs in EnvPool than a batch: recv refuses instead of waiting forever.
+        while True:
+            try:
+                asyn.recv()
+            except ValueError as error:
+                assert "send actions to more envs first" in str(error)
+                break
+        with pytest.raises(ValueError, match="async_reset/send/recv, not step"):
+            asyn.step(table[:, 0].tobytes())
+        # A seeded async reset, with results still in flight, starts the seeds' episodes again.
+        asyn.async_reset(seeds)
+        first = {}
+        for _ in range(n // 2):
+            env_ids, rewards, terminated, truncated = asyn.recv()
+            assert not rewards.any() and not terminated.any() and not truncated.any()
+            first.update({int(env): record(asyn, env) for env in env_ids})
+        assert sorted(first) == list(range(n))
+        for env in range(n):
+            np.testing.assert_array_equal(first[env], expected[env][0][0], err_msg=f"env {env}")
+    finally:
+        sync.close()
+        asyn.close()

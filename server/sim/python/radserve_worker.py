@@ -549,6 +549,10 @@ class EnvpoolGroup(Group):
         self.seeds = [int(seed) for seed in seeds]
         self.n = len(self.seeds)
         self.ids = np.arange(self.n, dtype=np.int32)
+        # EnvPool's asynchronous mode (send/recv, below) when below num_envs: results come back `batch`
+        # envs at a time.
+        batch = int(options.get("batch_size", 0))
+        self.batch = batch if 0 < batch < self.n else self.n
         self.pool = self._build()
         self.fresh = True  # built and not stepped since: a reset with its own seeds need not rebuild
         obs_space, act_space = self.pool.observation_space, self.pool.action_space
@@ -572,6 +576,16 @@ class EnvpoolGroup(Group):
         self._spec = {"observation": observation, "action": action}
         self.state_index = self._index_state()
         self.current = self.final = None
+        if self.batch < self.n and self.state_index is None:
+            self.pool.close()
+            raise ValueError("engine 'envpool' with batch_size below num_envs needs EnvPool's raw interface "
+                             "(_send/_recv), which this EnvPool lacks")
+        self.phase = np.full(self.n, _IDLE, dtype=np.int8)
+        self.left = np.zeros(self.n, dtype=np.int64)  # repeats still to send, per stepping env
+        self.sent = None  # each env's action of its current agent step (EnvPool's dtype)
+        self.acc = np.zeros(self.n)  # reward summed over the repeats so far
+        self.ended = np.zeros((self.n, 2), dtype=bool)  # terminated, truncated of the current agent step
+        self.ready = []  # env ids whose agent step is complete and not yet returned by recv, in order
 
     def _index_state(self):
         """Positions, in EnvPool's raw state list (`_recv()`), of what a step needs, or None when this
@@ -606,7 +620,7 @@ class EnvpoolGroup(Group):
         return keys
 
     def _build(self):
-        return _import_envpool().make(self.task, env_type="gymnasium", num_envs=self.n, batch_size=self.n,
+        return _import_envpool().make(self.task, env_type="gymnasium", num_envs=self.n, batch_size=self.batch,
                                       num_threads=self.threads, env_seed=self.seeds, **self.kwargs)
 
     def _rebuild(self):
@@ -649,7 +663,13 @@ class EnvpoolGroup(Group):
             target[env_ids, start:start + part.shape[1]] = part
             start += part.shape[1]
 
+    def _synchronous(self, what):
+        if self.batch < self.n:
+            raise ValueError(f"a group of batch_size {self.batch} below its {self.n} envs is stepped with "
+                             f"async_reset/send/recv, not {what}")
+
     def reset(self, seeds, mask=None):
+        self._synchronous("reset")
         partial = mask is not None and not all(mask)
         if seeds is not None and not (self.fresh and [int(seed) for seed in seeds] == self.seeds):
             if partial:
@@ -665,6 +685,7 @@ class EnvpoolGroup(Group):
         return []
 
     def step(self, actions, skip=None):
+        self._synchronous("step")
         self.fresh = False
         actions = np.frombuffer(actions, dtype=self.action_dtype).reshape((self.n,) + self.action_shape)
         actions = actions.astype(self.send_dtype)
@@ -705,11 +726,121 @@ class EnvpoolGroup(Group):
             return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)], []
         return rewards.tolist(), terminated.tolist(), truncated.tolist(), [], []
 
+    # EnvPool's asynchronous mode (batch_size < num_envs), the interface EnvPool's users step with:
+    # send(actions, env_ids) hands envs their next action and returns at once, recv() waits for the first
+    # `batch` envs whose agent step is complete, so the learner picks actions for those while EnvPool
+    # steps the others. (EnvPool's documentation, "Asynchronous API"; its C++ ports are stepped through
+    # the same raw _send/_recv/_reset as the synchronous mode here.) radserve's contract is kept per env:
+    # action repeat (the worker re-sends an env's action as its results come back, summing the rewards)
+    # and same-step autoreset (an env whose episode ended is reset at once; its result is complete
+    # with the next episode's first observation, the last one in `final`). Each env is in one phase:
+    # idle (its result was returned; it waits for an action), stepping, resetting, or ready.
+
+    def async_reset(self, seeds=None):
+        """Resets every env; their first observations come back through recv(), `batch` at a time."""
+        if self.batch == self.n:
+            raise ValueError("async_reset needs a session whose batch_size is below its num_envs")
+        seeded = seeds is not None and not (self.fresh and [int(seed) for seed in seeds] == self.seeds)
+        if seeded:  # EnvPool seeds envs when it builds them, as in reset()
+            self.seeds = [int(seed) for seed in seeds]
+        # Results still in flight would come back mixed with the new episodes' first observations.
+        if seeded or (self.phase != _IDLE).any():
+            self._rebuild()
+        self.fresh = False
+        self.ready = []
+        self.acc[:] = 0
+        self.ended[:] = False
+        self.phase[:] = _RESETTING
+        self.pool._reset(self.ids)
+
+    def send(self, actions, env_ids):
+        """Starts the next agent step of envs `env_ids` (each idle: its last result was returned by recv)
+        with `actions` (raw bytes, one action per env id, in that order)."""
+        env_ids = np.asarray(env_ids, dtype=np.int32)
+        if len(env_ids) == 0:
+            return
+        listed = env_ids.tolist()
+        if min(listed) < 0 or max(listed) >= self.n or len(set(listed)) != len(listed):
+            raise ValueError(f"send takes distinct env ids in [0, {self.n}), got {listed}")
+        waiting = env_ids[self.phase[env_ids] != _IDLE]
+        if len(waiting):
+            raise ValueError(f"envs {waiting.tolist()} were sent an action before recv returned their last result")
+        actions = np.frombuffer(actions, dtype=self.action_dtype).reshape((len(env_ids),) + self.action_shape)
+        if self.sent is None:
+            self.sent = np.zeros((self.n,) + self.action_shape, dtype=self.send_dtype)
+        self.fresh = False
+        self.sent[env_ids] = actions
+        self.acc[env_ids] = 0
+        self.ended[env_ids] = False
+        self.left[env_ids] = self.repeat - 1
+        self.phase[env_ids] = _STEPPING
+        self.pool._send([env_ids, env_ids, self.sent[env_ids]])
+
+    def recv(self):
+        """Waits until `batch` envs have completed their agent step and returns them: (env ids, rewards,
+        terminated, truncated), the envs' observations in `current`, ended ones' last in `final`."""
+        index = self.state_index
+        while len(self.ready) < self.batch:
+            # EnvPool's recv waits for `batch` results: with fewer envs in it, it would wait forever.
+            in_flight = int(np.count_nonzero((self.phase == _STEPPING) | (self.phase == _RESETTING)))
+            if in_flight < self.batch:
+                raise ValueError(f"recv returns {self.batch} envs at a time; {len(self.ready)} are complete and "
+                                 f"{in_flight} still stepping: send actions to more envs first")
+            state = self.pool._recv()
+            env_ids = state[index[0]]
+            parts = [state[i] for i in index[4:]]
+            resetting = self.phase[env_ids] == _RESETTING
+            if self.repeat == 1 and not resetting.any() and not (state[index[2]] | state[index[3]]).any():
+                # The common case, kept short (its numpy calls are the worker's cost per recv): every env
+                # stepped once, none ended, each agent step complete.
+                self.acc[env_ids] = state[index[1]]
+                self._write(self.current, parts, None, env_ids)
+                self.phase[env_ids] = _READY
+                self.ready.extend(env_ids.tolist())
+                continue
+            if resetting.any():  # the next episode's first observation: the agent step is complete
+                self._write(self.current, parts, resetting, env_ids[resetting])
+                self.phase[env_ids[resetting]] = _READY
+                self.ready.extend(env_ids[resetting].tolist())
+            stepping = ~resetting
+            if not stepping.any():
+                continue
+            rows, ids = np.flatnonzero(stepping), env_ids[stepping]
+            done, trunc = state[index[2]][rows], state[index[3]][rows]
+            self.acc[ids] += state[index[1]][rows]
+            ended = done | trunc
+            self.ended[ids, 0] = done & ~trunc
+            self.ended[ids, 1] = trunc
+            last = ended | (self.left[ids] == 0)
+            if ended.any():  # same-step autoreset: the last observation is the final one, reset now
+                self._write(self.final, parts, rows[ended], ids[ended])
+                self.phase[ids[ended]] = _RESETTING
+                self.pool._reset(ids[ended])
+            complete = last & ~ended
+            if complete.any():
+                self._write(self.current, parts, rows[complete], ids[complete])
+                self.phase[ids[complete]] = _READY
+                self.ready.extend(ids[complete].tolist())
+            again = ~last
+            if again.any():  # the next repeat of the same action
+                self.left[ids[again]] -= 1
+                self.pool._send([ids[again], ids[again], self.sent[ids[again]]])
+        done_ids = np.array(self.ready[:self.batch], dtype=np.int64)
+        del self.ready[:self.batch]
+        self.phase[done_ids] = _IDLE
+        rewards = self.acc[done_ids].copy()
+        self.acc[done_ids] = 0
+        return done_ids, rewards, self.ended[done_ids, 0].copy(), self.ended[done_ids, 1].copy()
+
     def close(self):
         if self.pool is not None:
             self.pool.close()
         self.pool = None
         self.current = self.final = None
+
+
+# An env's phase in EnvpoolGroup's asynchronous mode.
+_IDLE, _STEPPING, _RESETTING, _READY = 0, 1, 2, 3
 
 
 def configure():
