@@ -135,6 +135,8 @@ pub fn paper_action_repeat(dmc_name: &str) -> i64 {
 const RENDER_PROFILES: &[&str] = &["default", "fast"];
 /// The option naming what steps a session's envs.
 pub const ENGINE: &str = "engine";
+/// A session option: the envs a `recv` returns, below `num_envs` for EnvPool's asynchronous mode.
+pub const BATCH_SIZE: &str = "batch_size";
 /// "native": the simulators' own Python packages (dm_control, gymnasium, procgen), results equal to
 /// theirs; "envpool": EnvPool's C++ ports of the same tasks (dm_control state tasks, MuJoCo-gym and
 /// classic control, ProcGen), faster per step, results EnvPool's (radserve_worker.py, EnvpoolGroup).

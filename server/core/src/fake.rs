@@ -141,9 +141,13 @@ impl Simulators for FakeSimulators {
     async fn create_groups(
         &self,
         _env: &EnvId,
-        _options: &Options,
+        options: &Options,
         seeds: Vec<u64>,
     ) -> Result<(EnvSpec, Vec<Box<dyn EnvGroup>>), SimulatorError> {
+        let batch = match options.get(crate::catalog::BATCH_SIZE) {
+            Some(&crate::catalog::OptionValue::Int(batch)) if batch > 0 && (batch as usize) < seeds.len() => batch as usize,
+            _ => 0,
+        };
         self.faults().creates += 1;
         if let Some(message) = self.faults().refuse_create.take() {
             return Err(SimulatorError::Refused(message));
@@ -155,7 +159,7 @@ impl Simulators for FakeSimulators {
         for part in 0..parts {
             let envs = start..start + base + usize::from(part < extra);
             start = envs.end;
-            groups.push(Box::new(FakeGroup::new(envs.clone(), seeds[envs].to_vec(), self.faults.clone())));
+            groups.push(Box::new(FakeGroup::new(envs.clone(), seeds[envs].to_vec(), self.faults.clone(), batch)));
         }
         self.faults().groups_alive += groups.len();
         Ok((spec(), groups))
@@ -180,10 +184,14 @@ struct FakeGroup {
     /// Lost since its last reset: steps are refused until the core resets it.
     lost: bool,
     faults: Arc<Mutex<Faults>>,
+    /// Asynchronous mode (option batch_size below the envs; 0: synchronous): envs a recv returns.
+    batch: usize,
+    /// Asynchronous mode: envs reset (None) or sent an action, in order; recv takes from the front.
+    in_flight: Vec<(usize, Option<i64>)>,
 }
 
 impl FakeGroup {
-    fn new(envs: Range<usize>, seeds: Vec<u64>, faults: Arc<Mutex<Faults>>) -> FakeGroup {
+    fn new(envs: Range<usize>, seeds: Vec<u64>, faults: Arc<Mutex<Faults>>, batch: usize) -> FakeGroup {
         let layout = FrameLayout { frame_bytes: FRAME_BYTES };
         FakeGroup {
             frames: vec![0; layout.memory_len(envs.len())],
@@ -192,12 +200,34 @@ impl FakeGroup {
             layout,
             lost: false,
             faults,
+            batch,
+            in_flight: Vec::new(),
         }
     }
 
     fn write(&mut self, local: usize, final_frame: bool, bytes: [u8; FRAME_BYTES]) {
         let range = if final_frame { self.layout.final_frame(local) } else { self.layout.frame(local) };
         self.frames[range].copy_from_slice(&bytes);
+    }
+
+    /// Env `local` takes a step with `action`: reward action + 1, its episode ends at its seed's
+    /// length (the last frame in the final slot, the next episode's first in the current one).
+    fn step_env(&mut self, local: usize, action: i64, result: &mut StepResult) {
+        result.rewards[local] = action as f64 + 1.0;
+        self.state[local].t += 1;
+        let env = self.state[local];
+        let mut info = GroupInfo { env: local as u32, step: Some(fake_info("t", env.t)), reset: None };
+        if env.t == episode_length(env.seed) {
+            result.terminated[local] = ends_terminated(env.episode);
+            result.truncated[local] = !ends_terminated(env.episode);
+            let last = self.current(local);
+            self.write(local, true, last);
+            self.state[local] = FakeEnv { episode: env.episode + 1, t: 0, ..env };
+            info.reset = Some(fake_info("episode", env.episode + 1));
+        }
+        result.infos.push(info);
+        let current = self.current(local);
+        self.write(local, false, current);
     }
 
     fn current(&self, local: usize) -> [u8; FRAME_BYTES] {
@@ -283,23 +313,43 @@ impl EnvGroup for FakeGroup {
                 self.write(local, false, first);
                 continue;
             }
-            result.rewards[local] = action as f64 + 1.0;
-            self.state[local].t += 1;
-            let env = self.state[local];
-            let mut info = GroupInfo { env: local as u32, step: Some(fake_info("t", env.t)), reset: None };
-            if env.t == episode_length(env.seed) {
-                result.terminated[local] = ends_terminated(env.episode);
-                result.truncated[local] = !ends_terminated(env.episode);
-                let last = self.current(local);
-                self.write(local, true, last);
-                self.state[local] = FakeEnv { episode: env.episode + 1, t: 0, ..env };
-                info.reset = Some(fake_info("episode", env.episode + 1));
-            }
-            result.infos.push(info);
-            let current = self.current(local);
-            self.write(local, false, current);
+            self.step_env(local, action, &mut result);
         }
         Ok(result)
+    }
+
+    async fn async_reset(&mut self, seeds: Option<Vec<u64>>) -> Result<(), SimulatorError> {
+        if self.batch == 0 {
+            return Err(SimulatorError::Refused("this fake group steps synchronously".into()));
+        }
+        self.reset(seeds, None).await?;
+        // The first frames are written now and returned by recv, last env first.
+        self.in_flight = (0..self.state.len()).rev().map(|local| (local, None)).collect();
+        Ok(())
+    }
+
+    async fn send(&mut self, actions: Vec<u8>, sent: Vec<bool>) -> Result<(), SimulatorError> {
+        for (local, _) in sent.iter().enumerate().filter(|(_, &sent)| sent) {
+            let action = i64::from_le_bytes(actions[local * 8..][..8].try_into().expect("8 bytes"));
+            self.in_flight.push((local, Some(action)));
+        }
+        Ok(())
+    }
+
+    async fn recv(&mut self) -> Result<(Vec<bool>, StepResult), SimulatorError> {
+        let n = self.state.len();
+        let mut ready = vec![false; n];
+        let mut result =
+            StepResult { rewards: vec![0.0; n], terminated: vec![false; n], truncated: vec![false; n], ..StepResult::default() };
+        // First sent, first done; after an async reset the last env first: envs come back in another
+        // order than the session's, as EnvPool's do.
+        for (local, action) in self.in_flight.drain(..self.batch.min(self.in_flight.len())).collect::<Vec<_>>() {
+            ready[local] = true;
+            if let Some(action) = action {
+                self.step_env(local, action, &mut result);
+            }
+        }
+        Ok((ready, result))
     }
 
     async fn close(&mut self) {

@@ -537,6 +537,14 @@ impl SessionManager {
         buffer: BufferRequest,
         quota: Option<&Arc<MemoryBudget>>,
     ) -> Result<Reservation, CoreError> {
+        if let Some(batch) = session.async_batch() {
+            // Transitions would be recorded per recv, in the order envs come back: not built yet.
+            return Err(CoreError::InvalidSession(format!(
+                "a session with batch_size {batch} below num_envs {} (EnvPool's asynchronous mode) keeps no replay or \
+                 rollout buffer",
+                session.num_envs()
+            )));
+        }
         let frame = &session.frame_spec.observation;
         if !matches!(frame.dtype(), DType::Uint8 | DType::Float32) {
             return Err(CoreError::InvalidSession(format!(

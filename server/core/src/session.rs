@@ -12,7 +12,7 @@ use futures_util::future::join_all;
 use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline};
 use radserve_replay::{RecordedStep, ReplayBuffer};
 
-use crate::catalog::{EnvId, Options};
+use crate::catalog::{EnvId, OptionValue, Options, BATCH_SIZE};
 use crate::error::CoreError;
 use crate::metrics::CoreMetrics;
 use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
@@ -132,6 +132,10 @@ pub struct Session {
     reset_infos: Vec<(usize, String)>,
     /// Where its steps and resets are counted (the manager's, shared by every session).
     metrics: Arc<CoreMetrics>,
+    /// Asynchronous mode: envs sent an action (or reset) whose result `recv` has not returned yet.
+    in_flight: Vec<bool>,
+    /// Asynchronous mode: envs whose next result is a reset's first frame, not a step.
+    resetting: Vec<bool>,
 }
 
 impl Session {
@@ -150,7 +154,18 @@ impl Session {
                 | SimulatorError::OutOfResources(_)) => other.into(),
             })?;
         let layout = FrameLayout { frame_bytes: frame_spec.observation.num_bytes() };
-        let config_seed = config.seed;
+        let (config_seed, config_num_envs) = (config.seed, config.num_envs);
+        if async_batch(&config).is_some() && groups.len() != 1 {
+            let mut groups = groups;
+            for group in &mut groups {
+                group.close().await;
+            }
+            return Err(CoreError::InvalidSession(format!(
+                "a session with a batch_size below num_envs must be hosted by one simulator process; {} hosts it in {}",
+                config.env.full(),
+                groups.len()
+            )));
+        }
         Ok(Session {
             observation_space: frame_spec.observation.stacked(config.frame_stack),
             stacks: vec![0; config.num_envs * config.frame_stack * layout.frame_bytes],
@@ -170,6 +185,8 @@ impl Session {
             view: None,
             reset_infos: Vec::new(),
             metrics: Arc::default(),
+            in_flight: vec![false; config_num_envs],
+            resetting: vec![false; config_num_envs],
         })
     }
 
@@ -285,6 +302,7 @@ impl Session {
     /// Resets the envs `spec` names (all, or a mask), seeded as it says, and returns every env's
     /// stacked observation (those reset: their first frame repeated `frame_stack` times).
     pub async fn reset_with(&mut self, spec: &ResetSpec) -> Result<Vec<u8>, CoreError> {
+        self.require_sync("reset")?;
         let num_envs = self.num_envs();
         if let Some(mask) = &spec.mask {
             check_mask(mask, num_envs, "reset_mask")?;
@@ -417,6 +435,7 @@ impl Session {
         actions: &[u8],
         skip: Option<&[bool]>,
     ) -> Result<StepOutcome, CoreError> {
+        self.require_sync("step")?;
         if self.needs_reset {
             return Err(CoreError::NotReset);
         }
@@ -517,31 +536,8 @@ impl Session {
                 }
             }
             for (local, env) in group_envs.enumerate() {
-                if skipped(env) {
-                    continue;
-                }
-                let (reward, terminated, truncated) =
-                    (result.rewards[local], result.terminated[local], result.truncated[local]);
-                outcome.rewards[env] = reward;
-                outcome.terminated[env] = terminated;
-                outcome.truncated[env] = truncated;
-                self.episode_returns[env] += reward;
-                self.episode_lengths[env] += 1;
-                let group = &self.groups[index];
-                let frame = &group.frames()[self.layout.frame(local)];
-                let stack = &mut self.stacks[env * self.config.frame_stack * self.layout.frame_bytes..]
-                    [..self.config.frame_stack * self.layout.frame_bytes];
-                if terminated || truncated {
-                    let final_frame = &group.frames()[self.layout.final_frame(local)];
-                    push_frame(stack, final_frame);
-                    outcome.final_obs.extend_from_slice(stack);
-                    for slot in stack.chunks_exact_mut(frame.len()) {
-                        slot.copy_from_slice(frame);
-                    }
-                    let error = result.errors.iter().find(|(j, _)| *j as usize == local).map(|(_, m)| m.clone());
-                    outcome.episodes.push(self.end_episode(env, terminated, truncated, error));
-                } else {
-                    push_frame(stack, frame);
+                if !skipped(env) {
+                    self.advance(index, local, env, &result, &mut outcome);
                 }
             }
         }
@@ -555,6 +551,191 @@ impl Session {
         outcome.obs = self.viewed(&self.stacks);
         outcome.final_obs = self.viewed(&outcome.final_obs);
         Ok(outcome)
+    }
+
+    /// The envs a `recv` returns at most, for a session in EnvPool's asynchronous mode (option
+    /// `batch_size` below `num_envs`); None for a synchronous one.
+    pub fn async_batch(&self) -> Option<usize> {
+        async_batch(&self.config)
+    }
+
+    fn require_async(&self, what: &str) -> Result<usize, CoreError> {
+        self.async_batch().ok_or_else(|| {
+            CoreError::InvalidSession(format!(
+                "{what} is for sessions whose batch_size is below num_envs (EnvPool's asynchronous mode); this one \
+                 steps every env at once (reset/step)"
+            ))
+        })
+    }
+
+    fn require_sync(&self, what: &str) -> Result<(), CoreError> {
+        match self.async_batch() {
+            Some(batch) => Err(CoreError::InvalidSession(format!(
+                "this session returns {batch} of its {} envs at a time (batch_size): it is reset with async_reset and \
+                 stepped with send/recv, not {what}",
+                self.num_envs()
+            ))),
+            None => Ok(()),
+        }
+    }
+
+    /// EnvPool's asynchronous mode: resets every env (env i re-seeded with seed + i when a seed is given);
+    /// their first observations come back through `recv`, `batch_size` envs at a time.
+    pub async fn async_reset(&mut self, seed: Option<u64>) -> Result<(), CoreError> {
+        self.require_async("async_reset")?;
+        let num_envs = self.num_envs();
+        if let Some(seed) = seed {
+            check_seed(seed, num_envs)?;
+            self.seeds = (0..num_envs as u64).map(|i| seed + i).collect();
+            self.config.seed = seed;
+            self.stats.seed.store(seed, Ordering::Relaxed);
+        }
+        let seeds = seed.map(|_| self.group_seeds(0));
+        if let Err(error) = self.groups[0].async_reset(seeds).await {
+            self.needs_reset = true;
+            return Err(error.into());
+        }
+        self.in_flight.fill(true);
+        self.resetting.fill(true);
+        self.episode_returns.fill(0.0);
+        self.episode_lengths.fill(0);
+        self.needs_reset = false;
+        self.metrics.record_reset();
+        Ok(())
+    }
+
+    /// EnvPool's asynchronous mode: starts the next step of the envs `sent` marks (`num_envs` entries;
+    /// each one whose last result `recv` returned) with their rows of `actions` (every env's row, as
+    /// in `step`; the others are checked and ignored), without waiting for it.
+    pub async fn send(&mut self, dtype: DType, shape: &[usize], actions: &[u8], sent: &[bool]) -> Result<(), CoreError> {
+        self.require_async("send")?;
+        if self.needs_reset {
+            return Err(CoreError::NotReset);
+        }
+        validate_actions(&self.frame_spec.action, self.num_envs(), dtype, shape, actions)?;
+        check_mask(sent, self.num_envs(), "the mask of envs sent")?;
+        if !sent.contains(&true) {
+            return Err(CoreError::InvalidMask("send names no env: mark at least one".into()));
+        }
+        let waiting: Vec<usize> = (0..self.num_envs()).filter(|&env| sent[env] && self.in_flight[env]).collect();
+        if !waiting.is_empty() {
+            return Err(CoreError::InvalidMask(format!(
+                "envs {waiting:?} are still stepping: send an env its next action after recv returned its last result"
+            )));
+        }
+        if let Err(error) = self.groups[0].send(actions.to_vec(), sent.to_vec()).await {
+            self.needs_reset = true;
+            return Err(error.into());
+        }
+        for (env, &sent) in sent.iter().enumerate() {
+            self.in_flight[env] |= sent;
+        }
+        Ok(())
+    }
+
+    /// EnvPool's asynchronous mode: waits for the next `batch_size` envs whose step (or reset) is
+    /// complete and returns which (`ready`) with the step's outcome laid out as `step`'s: every env's
+    /// observation, the ready envs' rewards, flags, ended episodes and final observations (others:
+    /// zero). Needs at least `batch_size` envs stepping; returns fewer only when some of those were
+    /// already complete.
+    pub async fn recv(&mut self) -> Result<(Vec<bool>, StepOutcome), CoreError> {
+        let batch = self.require_async("recv")?;
+        if self.needs_reset {
+            return Err(CoreError::NotReset);
+        }
+        let num_envs = self.num_envs();
+        let stepping = self.in_flight.iter().filter(|&&env| env).count();
+        if stepping < batch {
+            return Err(CoreError::InvalidMask(format!(
+                "recv returns {batch} envs at a time and {stepping} are stepping: send actions to at least {} more",
+                batch - stepping
+            )));
+        }
+        let started = std::time::Instant::now();
+        let (ready, result) = match self.groups[0].recv().await {
+            Ok((ready, result))
+                if ready.len() == num_envs
+                    && result.fits(num_envs)
+                    && ready.iter().zip(&self.in_flight).all(|(&ready, &stepping)| stepping || !ready) =>
+            {
+                (ready, result)
+            }
+            Ok((ready, _)) => {
+                self.needs_reset = true;
+                return Err(CoreError::Simulator(format!(
+                    "worker answered a recv with {} of {num_envs} envs ready, or an env that was not stepping",
+                    ready.len()
+                )));
+            }
+            Err(error) => {
+                self.needs_reset = true;
+                return Err(error.into());
+            }
+        };
+        let mut outcome = StepOutcome {
+            rewards: vec![0.0; num_envs],
+            terminated: vec![false; num_envs],
+            truncated: vec![false; num_envs],
+            ..StepOutcome::default()
+        };
+        outcome.infos.extend(result.infos.iter().filter(|info| ready[info.env as usize]).map(|info| EnvInfo {
+            env_index: info.env as usize,
+            step: info.step.clone(),
+            reset: info.reset.clone(),
+        }));
+        let mut stepped = 0;
+        for env in (0..num_envs).filter(|&env| ready[env]) {
+            self.in_flight[env] = false;
+            if std::mem::take(&mut self.resetting[env]) {
+                // A reset's first frame: the stack starts from it.
+                let stack_bytes = self.stack_bytes();
+                let frame = &self.groups[0].frames()[self.layout.frame(env)];
+                for slot in self.stacks[env * stack_bytes..][..stack_bytes].chunks_exact_mut(frame.len()) {
+                    slot.copy_from_slice(frame);
+                }
+                continue;
+            }
+            stepped += 1;
+            self.advance(0, env, env, &result, &mut outcome);
+        }
+        self.total_env_steps += stepped;
+        let errors = outcome.episodes.iter().filter(|episode| episode.error.is_some()).count() as u64;
+        self.metrics.record_step(self.config.env.family, stepped, started.elapsed(), outcome.episodes.len() as u64, errors);
+        self.stats.total_env_steps.store(self.total_env_steps, Ordering::Relaxed);
+        self.stats.episodes_completed.store(self.episodes_completed, Ordering::Relaxed);
+        self.step_calls += 1;
+        outcome.obs = self.viewed(&self.stacks);
+        outcome.final_obs = self.viewed(&outcome.final_obs);
+        Ok((ready, outcome))
+    }
+
+    /// Env `env` (group `index`'s env `local`) took a step with `result`'s entry `local`: its reward and
+    /// flags go into `outcome`, its stack moves on to its new frame, and when its episode ended the
+    /// episode's last stacked observation goes into `outcome.final_obs` and the stack restarts from
+    /// the next episode's first frame (same-step autoreset).
+    fn advance(&mut self, index: usize, local: usize, env: usize, result: &StepResult, outcome: &mut StepOutcome) {
+        let (reward, terminated, truncated) = (result.rewards[local], result.terminated[local], result.truncated[local]);
+        outcome.rewards[env] = reward;
+        outcome.terminated[env] = terminated;
+        outcome.truncated[env] = truncated;
+        self.episode_returns[env] += reward;
+        self.episode_lengths[env] += 1;
+        let stack_bytes = self.stack_bytes();
+        let group = &self.groups[index];
+        let frame = &group.frames()[self.layout.frame(local)];
+        let stack = &mut self.stacks[env * stack_bytes..][..stack_bytes];
+        if terminated || truncated {
+            let final_frame = &group.frames()[self.layout.final_frame(local)];
+            push_frame(stack, final_frame);
+            outcome.final_obs.extend_from_slice(stack);
+            for slot in stack.chunks_exact_mut(frame.len()) {
+                slot.copy_from_slice(frame);
+            }
+            let error = result.errors.iter().find(|(j, _)| *j as usize == local).map(|(_, m)| m.clone());
+            outcome.episodes.push(self.end_episode(env, terminated, truncated, error));
+        } else {
+            push_frame(stack, frame);
+        }
     }
 
     /// After a group's process was lost mid-step: its envs' episodes end as truncated with the error,
@@ -611,6 +792,14 @@ impl Session {
         for mut group in self.groups.drain(..) {
             group.close().await;
         }
+    }
+}
+
+/// `batch_size` when the session's options put it in EnvPool's asynchronous mode (below `num_envs`).
+fn async_batch(config: &SessionConfig) -> Option<usize> {
+    match config.options.get(BATCH_SIZE) {
+        Some(&OptionValue::Int(batch)) if batch > 0 && (batch as usize) < config.num_envs => Some(batch as usize),
+        _ => None,
     }
 }
 

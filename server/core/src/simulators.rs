@@ -121,6 +121,27 @@ pub trait EnvGroup: Send + Sync {
     /// keep their frame and report reward 0 and no episode end.
     async fn step(&mut self, actions: Vec<u8>, skip: Option<Vec<bool>>) -> Result<StepResult, SimulatorError>;
 
+    /// EnvPool's asynchronous mode, for a group built with a `batch_size` below its envs: resets every
+    /// env (reseeding env j with `seeds[j]` when given); their first frames come back through `recv`.
+    async fn async_reset(&mut self, seeds: Option<Vec<u64>>) -> Result<(), SimulatorError> {
+        let _ = seeds;
+        Err(SimulatorError::Refused("these simulators have no asynchronous mode".into()))
+    }
+
+    /// Starts the next step of the envs `sent` marks (one entry per env of the group) with their rows of
+    /// `actions` (every env's row, as in `step`; the others are ignored), and returns without waiting.
+    async fn send(&mut self, actions: Vec<u8>, sent: Vec<bool>) -> Result<(), SimulatorError> {
+        let _ = (actions, sent);
+        Err(SimulatorError::Refused("these simulators have no asynchronous mode".into()))
+    }
+
+    /// Waits for the next batch of envs whose step (or reset) is complete: which envs (`ready`, one
+    /// entry per env of the group) and their results, laid out as `step`'s (the other envs' entries
+    /// are zero). A ready env whose episode ended has its last frame in the final-frame slot.
+    async fn recv(&mut self) -> Result<(Vec<bool>, StepResult), SimulatorError> {
+        Err(SimulatorError::Refused("these simulators have no asynchronous mode".into()))
+    }
+
     /// Releases the envs. The group is not used afterwards.
     async fn close(&mut self);
 }

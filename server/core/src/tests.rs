@@ -12,7 +12,7 @@ use crate::error::CoreError;
 use crate::fake::{self, FakeSimulators, FAKE_ENV, FRAME_BYTES};
 use crate::manager::{BufferRequest, Limits, SessionExtras, SessionManager};
 use crate::principal::{Principal, PrincipalLimits, Role};
-use crate::session::{ResetSpec, StepOutcome};
+use crate::session::{ResetSpec, Session, SessionConfig, StepOutcome};
 use crate::space::DType;
 
 /// A small memory budget, so that budget tests need few sessions (the fake's envs cost 2 MiB each).
@@ -453,4 +453,107 @@ async fn the_envs_info_dicts_travel_with_their_env_index() {
     assert_eq!(outcome.infos.iter().map(|info| info.env_index).collect::<Vec<_>>(), vec![0, 2]);
     session.reset_with(&ResetSpec { mask: Some(vec![false, true, false]), ..ResetSpec::default() }).await.unwrap();
     assert_eq!(session.reset_infos().iter().map(|(env, _)| *env).collect::<Vec<_>>(), vec![1]);
+}
+
+/// An async session (option batch_size) of `num_envs` fake envs, built directly (the catalog does not
+/// offer the option yet).
+async fn async_session(simulators: &FakeSimulators, num_envs: usize, batch: i64, frame_stack: i64) -> Result<Session, CoreError> {
+    use crate::catalog::{EnvId, Family, OptionValue, BATCH_SIZE};
+    let mut options = fake::fake_options(frame_stack);
+    options.insert(BATCH_SIZE.to_string(), OptionValue::Int(batch));
+    let config = SessionConfig {
+        env: EnvId { family: Family::Gym, name: "Fake-v0".into() },
+        num_envs,
+        seed: 10,
+        options,
+        frame_stack: frame_stack as usize,
+    };
+    Session::create(simulators, config).await
+}
+
+#[tokio::test]
+async fn an_async_session_gives_each_env_its_own_episodes_in_the_order_envs_come_back() {
+    // EnvPool's asynchronous mode: recv returns batch_size envs at a time, in whatever order they
+    // complete; each env's stack, rewards, episode ends and final observations are still its own.
+    let (k, n, batch) = (2usize, 6usize, 2usize);
+    let simulators = FakeSimulators::new(1);
+    let mut session = async_session(&simulators, n, batch as i64, k as i64).await.unwrap();
+    assert_eq!(session.async_batch(), Some(batch));
+    let frame_bytes = k * FRAME_BYTES;
+    let sent = |envs: &[usize]| (0..n).map(|env| envs.contains(&env)).collect::<Vec<bool>>();
+    let all_actions = |value: i64| actions(&vec![value; n]);
+    // Before async_reset nothing steps; the synchronous calls are refused with what to use instead.
+    assert!(matches!(session.send(DType::Int64, &[n], &all_actions(0), &sent(&[0])).await, Err(CoreError::NotReset)));
+    let refused = session.step(DType::Int64, &[n], &all_actions(0)).await.unwrap_err();
+    assert!(refused.to_string().contains("async_reset and stepped with send/recv"), "{refused}");
+    session.async_reset(None).await.unwrap();
+    let mut models: Vec<EnvModel> = (0..n as u64).map(|i| EnvModel::new(10 + i)).collect();
+    let mut first_seen = vec![false; n];
+    let mut pending = vec![0i64; n];
+    let mut order = Vec::new();
+    let mut ends = 0;
+    for round in 0..40 {
+        let (ready, outcome) = session.recv().await.unwrap();
+        let envs: Vec<usize> = (0..n).filter(|&env| ready[env]).collect();
+        assert_eq!(envs.len(), batch, "round {round}");
+        order.extend(envs.iter().copied());
+        let mut final_rows = outcome.final_obs.chunks_exact(frame_bytes);
+        for &env in &envs {
+            if !std::mem::replace(&mut first_seen[env], true) {
+                // Its reset's first frame, stacked k times; no reward, no episode end.
+                assert_eq!(outcome.rewards[env], 0.0);
+                assert!(!outcome.terminated[env] && !outcome.truncated[env]);
+            } else {
+                let (reward, terminated, truncated, ended) = models[env].step(pending[env], k);
+                assert_eq!((outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]), (reward, terminated, truncated));
+                if let Some((final_stack, _, _)) = ended {
+                    assert_eq!(final_rows.next().unwrap(), final_stack.as_slice(), "env {env} round {round}");
+                    ends += 1;
+                }
+            }
+            assert_eq!(&outcome.obs[env * frame_bytes..][..frame_bytes], EnvModel::stack(&models[env].frames, k).as_slice());
+        }
+        assert!(final_rows.next().is_none(), "one final observation per ended episode");
+        let mut values = vec![0i64; n];
+        for &env in &envs {
+            pending[env] = (env as i64 + round) % 3;
+            values[env] = pending[env];
+        }
+        session.send(DType::Int64, &[n], &actions(&values), &sent(&envs)).await.unwrap();
+        // An env already stepping cannot be sent another action.
+        let busy = session.send(DType::Int64, &[n], &all_actions(0), &sent(&envs[..1])).await.unwrap_err();
+        assert!(busy.to_string().contains("still stepping"), "{busy}");
+    }
+    assert!(ends > 0, "the run covers episode ends");
+    assert_ne!(order[..n].to_vec(), (0..n).collect::<Vec<_>>(), "envs come back in another order than sent");
+    assert_eq!(session.total_env_steps, 40 * batch as u64 - n as u64);
+    session.close().await;
+}
+
+#[tokio::test]
+async fn an_async_session_refuses_what_would_wait_forever_and_what_it_cannot_keep() {
+    let simulators = FakeSimulators::new(1);
+    let mut session = async_session(&simulators, 4, 2, 1).await.unwrap();
+    session.async_reset(Some(3)).await.unwrap();
+    session.recv().await.unwrap();
+    session.recv().await.unwrap();
+    // Nothing stepping: a recv would wait forever; it is refused with what to do.
+    let refused = session.recv().await.unwrap_err();
+    assert!(refused.to_string().contains("send actions to at least 2 more"), "{refused}");
+    let one = (0..4).map(|env| env == 1).collect::<Vec<_>>();
+    session.send(DType::Int64, &[4], &actions(&[0, 1, 0, 0]), &one).await.unwrap();
+    assert!(session.recv().await.unwrap_err().to_string().contains("at least 1 more"));
+    assert!(session.send(DType::Int64, &[4], &actions(&[0; 4]), &[false; 4]).await.unwrap_err().to_string().contains("names no env"));
+    // Bad actions are refused before anything is sent, as in step.
+    assert!(matches!(session.send(DType::Int64, &[4], &actions(&[0, 9, 0, 0]), &one).await, Err(CoreError::InvalidActions(_))));
+    session.close().await;
+    // A synchronous session has no send/recv, and an async one needs one simulator process.
+    let (simulators, manager) = manager(1, limits());
+    let id = create(&manager, 2, 0, 1, SessionExtras::default()).await;
+    let sync = manager.get(&local(), &id).unwrap();
+    let refused = sync.lock().await.recv().await.unwrap_err();
+    assert!(refused.to_string().contains("steps every env at once"), "{refused}");
+    let split = async_session(&FakeSimulators::new(2), 4, 2, 1).await.err().expect("refused");
+    assert!(split.to_string().contains("one simulator process"), "{split}");
+    drop(simulators);
 }
