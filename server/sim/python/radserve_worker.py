@@ -777,15 +777,19 @@ class EnvpoolGroup(Group):
         self.pool._send([env_ids, env_ids, self.sent[env_ids]])
 
     def recv(self):
-        """Waits until `batch` envs have completed their agent step and returns them: (env ids, rewards,
-        terminated, truncated), the envs' observations in `current`, ended ones' last in `final`."""
+        """Waits until `batch` envs have completed their agent step and returns them (fewer when fewer are
+        left in EnvPool than a batch, and some are complete): (env ids, rewards, terminated, truncated),
+        the envs' observations in `current`, ended ones' last in `final`."""
         index = self.state_index
         while len(self.ready) < self.batch:
-            # EnvPool's recv waits for `batch` results: with fewer envs in it, it would wait forever.
+            # EnvPool's recv waits for `batch` results: with fewer envs in it, it would wait forever. Those
+            # already complete are returned instead (the session asks only with a batch's worth sent).
             in_flight = int(np.count_nonzero((self.phase == _STEPPING) | (self.phase == _RESETTING)))
             if in_flight < self.batch:
-                raise ValueError(f"recv returns {self.batch} envs at a time; {len(self.ready)} are complete and "
-                                 f"{in_flight} still stepping: send actions to more envs first")
+                if self.ready:
+                    break
+                raise ValueError(f"recv returns {self.batch} envs at a time and {in_flight} are stepping: "
+                                 f"send actions to more envs first")
             state = self.pool._recv()
             env_ids = state[index[0]]
             parts = [state[i] for i in index[4:]]

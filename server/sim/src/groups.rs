@@ -47,6 +47,32 @@ impl EnvGroup for WorkerGroup {
         }
     }
 
+    async fn async_reset(&mut self, seeds: Option<Vec<u64>>) -> Result<(), SimulatorError> {
+        match await_generation(self.worker.submit(Request::AsyncReset { group: self.id, seeds }).await).await {
+            Ok((Response::Sent, generation)) => {
+                self.generation = generation;
+                Ok(())
+            }
+            other => Err(unexpected(other)),
+        }
+    }
+
+    async fn send(&mut self, actions: Vec<u8>, sent: Vec<bool>) -> Result<(), SimulatorError> {
+        // A newer process rebuilt the group unreset: its envs' steps in flight are gone (lost group).
+        let request = Request::Send { group: self.id, actions, sent };
+        match await_generation(self.worker.submit_in(request, self.generation).await).await {
+            Ok((Response::Sent, _)) => Ok(()),
+            other => Err(unexpected(other)),
+        }
+    }
+
+    async fn recv(&mut self) -> Result<(Vec<bool>, StepResult), SimulatorError> {
+        match await_generation(self.worker.submit_in(Request::Recv { group: self.id }, self.generation).await).await {
+            Ok((Response::Received { ready, result }, _)) => Ok((ready, result)),
+            other => Err(unexpected(other)),
+        }
+    }
+
     async fn step(&mut self, actions: Vec<u8>, skip: Option<Vec<bool>>) -> Result<StepResult, SimulatorError> {
         // Refused by a newer process of the worker: the group was rebuilt there (another session's
         // step crashed it, or it was stuck), which the session sees as a lost group.

@@ -41,7 +41,13 @@ impl WorkerLauncher {
     fn timeout_for(&self, request: &Request) -> Duration {
         match request {
             Request::CreateGroup(_) | Request::ListNames | Request::Specs { .. } | Request::Attach { .. } => self.create_timeout,
-            Request::Reset { .. } | Request::Step { .. } | Request::CloseGroup { .. } | Request::Abort => self.call_timeout,
+            Request::Reset { .. }
+            | Request::AsyncReset { .. }
+            | Request::Step { .. }
+            | Request::Send { .. }
+            | Request::Recv { .. }
+            | Request::CloseGroup { .. }
+            | Request::Abort => self.call_timeout,
         }
     }
 }

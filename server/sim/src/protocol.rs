@@ -68,6 +68,14 @@ pub enum Request {
     /// Actions of every environment of the group, raw little-endian bytes of the action dtype.
     /// Envs that `skip` marks are not stepped (their actions are ignored).
     Step { group: u64, actions: Vec<u8>, skip: Option<Vec<bool>> },
+    /// EnvPool's asynchronous mode (a group built with `batch_size` below its envs): resets every env,
+    /// re-seeding env j with `seeds[j]` when given; their first frames come back through `Recv`.
+    AsyncReset { group: u64, seeds: Option<Vec<u64>> },
+    /// Starts the next step of the envs `sent` marks with their rows of `actions` (every env's row,
+    /// raw little-endian bytes of the action dtype) and answers without waiting for it.
+    Send { group: u64, actions: Vec<u8>, sent: Vec<bool> },
+    /// Waits for the group's next batch of envs whose step or reset is complete.
+    Recv { group: u64 },
     CloseGroup { group: u64 },
     /// Exit abruptly, as a crashing simulator would (used to test recovery).
     Abort,
@@ -82,6 +90,11 @@ pub enum Response {
     /// The reset infos of the envs reset (index within the group, JSON text).
     Reset(ResetInfos),
     Stepped(StepResult),
+    /// An `AsyncReset` or `Send` was handed to the envs.
+    Sent,
+    /// The envs a `Recv` returns (`ready`, one entry per env of the group) and their results, one
+    /// entry per env of the group (zero for the others).
+    Received { ready: Vec<bool>, result: StepResult },
     Closed,
     /// The request failed inside the worker; the worker itself is fine.
     Failed(String),

@@ -254,6 +254,41 @@ fn handle(
             let infos = infos.into_iter().map(|(env, step, reset)| GroupInfo { env, step, reset }).collect();
             Ok(Response::Stepped(StepResult { rewards, terminated, truncated, errors, infos }))
         }
+        Request::AsyncReset { group, seeds } => {
+            hosted_group(groups, group)?.object.bind(py).call_method1("async_reset", (seeds,))?;
+            Ok(Response::Sent)
+        }
+        Request::Send { group, actions, sent } => {
+            // The group takes the sent envs' ids and their actions in that order.
+            let row = actions.len().checked_div(sent.len()).filter(|row| row * sent.len() == actions.len());
+            let row = row.ok_or_else(|| PyValueError::new_err(format!("{} action bytes for {} envs", actions.len(), sent.len())))?;
+            let ids: Vec<u32> = (0..sent.len()).filter(|&env| sent[env]).map(|env| env as u32).collect();
+            let rows: Vec<u8> = ids.iter().flat_map(|&env| &actions[env as usize * row..][..row]).copied().collect();
+            hosted_group(groups, group)?.object.bind(py).call_method1("send", (PyBytes::new(py, &rows), ids))?;
+            Ok(Response::Sent)
+        }
+        Request::Recv { group } => {
+            let hosted = hosted_group(groups, group)?;
+            let n = hosted.object.bind(py).getattr("n")?.extract::<usize>()?;
+            let outcome = hosted.object.bind(py).call_method0("recv")?;
+            let list = |index: usize| outcome.get_item(index)?.call_method0("tolist");
+            let ids: Vec<usize> = list(0)?.extract()?;
+            let (rewards, terminated, truncated): (Vec<f64>, Vec<bool>, Vec<bool>) =
+                (list(1)?.extract()?, list(2)?.extract()?, list(3)?.extract()?);
+            let mut ready = vec![false; n];
+            let mut result =
+                StepResult { rewards: vec![0.0; n], terminated: vec![false; n], truncated: vec![false; n], ..StepResult::default() };
+            for (j, &env) in ids.iter().enumerate() {
+                if env >= n || j >= rewards.len().min(terminated.len()).min(truncated.len()) {
+                    return Err(PyValueError::new_err(format!("recv returned env {env} of a group of {n}")));
+                }
+                ready[env] = true;
+                result.rewards[env] = rewards[j];
+                result.terminated[env] = terminated[j];
+                result.truncated[env] = truncated[j];
+            }
+            Ok(Response::Received { ready, result })
+        }
         Request::CloseGroup { group } => {
             if let Some(hosted) = groups.remove(&group) {
                 close_group(py, hosted);

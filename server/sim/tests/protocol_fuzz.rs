@@ -52,6 +52,11 @@ fn request() -> impl Strategy<Value = Request> {
             .prop_map(|(group, seeds, mask)| Request::Reset { group, seeds, mask }),
         (any::<u64>(), prop::collection::vec(any::<u8>(), 0..64), prop::option::of(prop::collection::vec(any::<bool>(), 0..6)))
             .prop_map(|(group, actions, skip)| Request::Step { group, actions, skip }),
+        (any::<u64>(), prop::option::of(prop::collection::vec(any::<u64>(), 0..6)))
+            .prop_map(|(group, seeds)| Request::AsyncReset { group, seeds }),
+        (any::<u64>(), prop::collection::vec(any::<u8>(), 0..64), prop::collection::vec(any::<bool>(), 0..6))
+            .prop_map(|(group, actions, sent)| Request::Send { group, actions, sent }),
+        any::<u64>().prop_map(|group| Request::Recv { group }),
         any::<u64>().prop_map(|group| Request::CloseGroup { group }),
         Just(Request::Abort),
     ]
@@ -59,6 +64,21 @@ fn request() -> impl Strategy<Value = Request> {
 
 fn spec() -> impl Strategy<Value = EnvSpec> {
     (space(), space()).prop_map(|(observation, action)| EnvSpec { observation, action })
+}
+
+fn step_result() -> impl Strategy<Value = StepResult> {
+    (0usize..6)
+        .prop_flat_map(|n| (
+            prop::collection::vec(any::<f64>(), n),
+            prop::collection::vec(any::<bool>(), n),
+            prop::collection::vec(any::<bool>(), n),
+            prop::collection::vec((any::<u32>(), "\\PC{0,12}"), 0..2),
+            prop::collection::vec((any::<u32>(), prop::option::of("\\PC{0,12}"), prop::option::of("\\PC{0,12}")), 0..2),
+        ))
+        .prop_map(|(rewards, terminated, truncated, errors, infos)| {
+            let infos = infos.into_iter().map(|(env, step, reset)| GroupInfo { env, step, reset }).collect();
+            StepResult { rewards, terminated, truncated, errors, infos }
+        })
 }
 
 fn response() -> impl Strategy<Value = Response> {
@@ -69,18 +89,9 @@ fn response() -> impl Strategy<Value = Response> {
         spec().prop_map(Response::Created),
         Just(Response::Attached),
         prop::collection::vec((any::<u32>(), "\\PC{0,12}"), 0..2).prop_map(Response::Reset),
-        (0usize..6)
-            .prop_flat_map(|n| (
-                prop::collection::vec(any::<f64>(), n),
-                prop::collection::vec(any::<bool>(), n),
-                prop::collection::vec(any::<bool>(), n),
-                prop::collection::vec((any::<u32>(), "\\PC{0,12}"), 0..2),
-                prop::collection::vec((any::<u32>(), prop::option::of("\\PC{0,12}"), prop::option::of("\\PC{0,12}")), 0..2),
-            ))
-            .prop_map(|(rewards, terminated, truncated, errors, infos)| {
-                let infos = infos.into_iter().map(|(env, step, reset)| GroupInfo { env, step, reset }).collect();
-                Response::Stepped(StepResult { rewards, terminated, truncated, errors, infos })
-            }),
+        step_result().prop_map(Response::Stepped),
+        Just(Response::Sent),
+        (prop::collection::vec(any::<bool>(), 0..6), step_result()).prop_map(|(ready, result)| Response::Received { ready, result }),
         Just(Response::Closed),
         "\\PC{0,24}".prop_map(Response::Failed),
     ]
