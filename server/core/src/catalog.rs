@@ -137,6 +137,15 @@ const RENDER_PROFILES: &[&str] = &["default", "fast"];
 pub const ENGINE: &str = "engine";
 /// A session option: the envs a `recv` returns, below `num_envs` for EnvPool's asynchronous mode.
 pub const BATCH_SIZE: &str = "batch_size";
+
+/// `batch_size` when `options` put a session of `num_envs` envs in EnvPool's asynchronous mode (a batch
+/// below `num_envs`); None for a synchronous one.
+pub fn async_batch(options: &Options, num_envs: usize) -> Option<usize> {
+    match options.get(BATCH_SIZE) {
+        Some(&OptionValue::Int(batch)) if batch > 0 && (batch as usize) < num_envs => Some(batch as usize),
+        _ => None,
+    }
+}
 /// "native": the simulators' own Python packages (dm_control, gymnasium, procgen), results equal to
 /// theirs; "envpool": EnvPool's C++ ports of the same tasks (dm_control state tasks, MuJoCo-gym and
 /// classic control, ProcGen), faster per step, results EnvPool's (radserve_worker.py, EnvpoolGroup).

@@ -144,10 +144,7 @@ impl Simulators for FakeSimulators {
         options: &Options,
         seeds: Vec<u64>,
     ) -> Result<(EnvSpec, Vec<Box<dyn EnvGroup>>), SimulatorError> {
-        let batch = match options.get(crate::catalog::BATCH_SIZE) {
-            Some(&crate::catalog::OptionValue::Int(batch)) if batch > 0 && (batch as usize) < seeds.len() => batch as usize,
-            _ => 0,
-        };
+        let batch = crate::catalog::async_batch(options, seeds.len()).unwrap_or(0);
         self.faults().creates += 1;
         if let Some(message) = self.faults().refuse_create.take() {
             return Err(SimulatorError::Refused(message));

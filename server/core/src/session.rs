@@ -12,7 +12,7 @@ use futures_util::future::join_all;
 use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline};
 use radserve_replay::{RecordedStep, ReplayBuffer};
 
-use crate::catalog::{EnvId, OptionValue, Options, BATCH_SIZE};
+use crate::catalog::{async_batch, EnvId, Options};
 use crate::error::CoreError;
 use crate::metrics::CoreMetrics;
 use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
@@ -155,7 +155,7 @@ impl Session {
             })?;
         let layout = FrameLayout { frame_bytes: frame_spec.observation.num_bytes() };
         let (config_seed, config_num_envs) = (config.seed, config.num_envs);
-        if async_batch(&config).is_some() && groups.len() != 1 {
+        if async_batch(&config.options, config.num_envs).is_some() && groups.len() != 1 {
             let mut groups = groups;
             for group in &mut groups {
                 group.close().await;
@@ -556,7 +556,7 @@ impl Session {
     /// The envs a `recv` returns at most, for a session in EnvPool's asynchronous mode (option
     /// `batch_size` below `num_envs`); None for a synchronous one.
     pub fn async_batch(&self) -> Option<usize> {
-        async_batch(&self.config)
+        async_batch(&self.config.options, self.config.num_envs)
     }
 
     fn require_async(&self, what: &str) -> Result<usize, CoreError> {
@@ -792,14 +792,6 @@ impl Session {
         for mut group in self.groups.drain(..) {
             group.close().await;
         }
-    }
-}
-
-/// `batch_size` when the session's options put it in EnvPool's asynchronous mode (below `num_envs`).
-fn async_batch(config: &SessionConfig) -> Option<usize> {
-    match config.options.get(BATCH_SIZE) {
-        Some(&OptionValue::Int(batch)) if batch > 0 && (batch as usize) < config.num_envs => Some(batch as usize),
-        _ => None,
     }
 }
 
