@@ -12,18 +12,14 @@ EnvPool runs with 2 threads, as in a 2-worker server.
 """
 
 import argparse
-import importlib.util
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-PROCGEN = {"num_levels": 0, "start_level": 0, "distribution_mode": "easy", "restrict_themes": False,
-           "use_backgrounds": True, "use_monochrome_assets": False, "center_agent": True,
-           "use_sequential_levels": False, "paint_vel_info": False, "use_generated_assets": False}
+from envpool_calls import PROCGEN, worker_module  # the worker's module and ProcGen's option defaults
+
 # label, family, name, options, envs
 WORKLOADS = [
     ("dmc cheetah-run state, action repeat 4", "dmc", "cheetah-run", {"action_repeat": 4}, 16),
@@ -31,14 +27,6 @@ WORKLOADS = [
     ("gym HalfCheetah-v5", "gym", "HalfCheetah-v5", {"max_episode_steps": 0}, 64),
     ("procgen bigfish", "procgen", "bigfish", PROCGEN, 64),
 ]
-
-
-def worker_module():
-    path = ROOT / "server" / "sim" / "python" / "radserve_worker.py"
-    spec = importlib.util.spec_from_file_location("radserve_worker", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def group(worker, family, name, options, n, batch):

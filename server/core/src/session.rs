@@ -542,14 +542,7 @@ impl Session {
             }
         }
         let stepped = (0..num_envs).filter(|&env| !skipped(env)).count() as u64;
-        self.total_env_steps += stepped;
-        let errors = outcome.episodes.iter().filter(|episode| episode.error.is_some()).count() as u64;
-        self.metrics.record_step(self.config.env.family, stepped, started.elapsed(), outcome.episodes.len() as u64, errors);
-        self.stats.total_env_steps.store(self.total_env_steps, Ordering::Relaxed);
-        self.stats.episodes_completed.store(self.episodes_completed, Ordering::Relaxed);
-        self.step_calls += 1;
-        outcome.obs = self.viewed(&self.stacks);
-        outcome.final_obs = self.viewed(&outcome.final_obs);
+        self.finish_step(stepped, started, &mut outcome);
         Ok(outcome)
     }
 
@@ -698,6 +691,13 @@ impl Session {
             stepped += 1;
             self.advance(0, env, env, &result, &mut outcome);
         }
+        self.finish_step(stepped, started, &mut outcome);
+        Ok((ready, outcome))
+    }
+
+    /// After a step or recv that stepped `stepped` envs since `started`: the counters and metrics, and
+    /// the outcome's observations through the view.
+    fn finish_step(&mut self, stepped: u64, started: std::time::Instant, outcome: &mut StepOutcome) {
         self.total_env_steps += stepped;
         let errors = outcome.episodes.iter().filter(|episode| episode.error.is_some()).count() as u64;
         self.metrics.record_step(self.config.env.family, stepped, started.elapsed(), outcome.episodes.len() as u64, errors);
@@ -706,7 +706,6 @@ impl Session {
         self.step_calls += 1;
         outcome.obs = self.viewed(&self.stacks);
         outcome.final_obs = self.viewed(&outcome.final_obs);
-        Ok((ready, outcome))
     }
 
     /// Env `env` (group `index`'s env `local`) took a step with `result`'s entry `local`: its reward and
