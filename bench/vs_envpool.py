@@ -8,7 +8,9 @@ virtualenv of its own (`.venv-envpool`, installed here, never the project's: the
 as its users install it), then measures each workload in alternating rounds: radserve with 2
 workers through shared-memory acting and through gRPC (a Python client in this process, one
 session), with its native engine (the simulators' own Python packages) and with engine="envpool"
-(EnvPool's ports inside radserve's workers; state rows only), and EnvPool in-process with 2 threads
+(EnvPool's ports inside radserve's workers; state rows only) in its synchronous mode and in EnvPool's
+asynchronous one (option batch_size = half the envs: recv the first ready half, send its actions, one
+call per batch), and EnvPool in-process with 2 threads
 in its synchronous mode (batch = every env) and its asynchronous one (send/recv of half the envs,
 EnvPool's fast path). Same task, same physics per env step, same image size; random actions.
 
@@ -80,15 +82,15 @@ def descendants(pid: int) -> "list[int]":
 
 
 def timed(step, envs_per_call: int, seconds: float, pids) -> "tuple[float, float]":
-    """(env steps per second, CPU seconds per env step) of calling `step` for `seconds`."""
+    """(env steps per second, CPU seconds per env step) of calling `step` for `seconds`; a `step` that
+    returns a number says how many env steps it made (a recv may return fewer than its batch)."""
     for _ in range(3):
         step()
-    cpu, calls, start = cpu_seconds(pids), 0, time.perf_counter()
+    cpu, steps, start = cpu_seconds(pids), 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
-        step()
-        calls += 1
+        made = step()
+        steps += envs_per_call if made is None else made
     elapsed = time.perf_counter() - start
-    steps = calls * envs_per_call
     return steps / elapsed, (cpu_seconds(pids) - cpu) / steps
 
 
@@ -117,7 +119,8 @@ def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds:
 
         def step():  # EnvPool's own async loop: take the first ready half, send its actions
             *_, info = env.recv()
-            env.send(actions[next(counter) % 64], info["env_id"])
+            env.send(actions[next(counter) % 64][:len(info["env_id"])], info["env_id"])
+            return len(info["env_id"])
 
     rate, cpu = timed(step, batch, seconds, [os.getpid()])
     first = env.reset()[0] if mode == "sync" else None
@@ -153,24 +156,38 @@ def envpool_run(task: str, options: dict, num_envs: int, mode: str, seconds: flo
 # --- radserve -------------------------------------------------------------------------------------
 
 def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int, delivery: str, seconds: float,
-                 engine: str = "native"):
-    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, delivery=delivery, engine=engine, **options)
-    envs.reset()
+                 engine: str = "native", asynchronous: bool = False):
+    """radserve's steps/s and CPU per env step; `asynchronous`: EnvPool's async loop through the
+    session's send/recv (batch_size half the envs, as EnvPool's async side here), one call per batch."""
+    batch = num_envs // 2 if asynchronous else num_envs
+    extra = {"batch_size": batch} if asynchronous else {}
+    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, delivery=delivery, engine=engine, **options, **extra)
     space = envs.single_action_space
     rng = np.random.default_rng(0)
     if hasattr(space, "n"):
-        actions = [rng.integers(0, space.n, num_envs) for _ in range(64)]
+        actions = [rng.integers(0, space.n, batch) for _ in range(64)]
     else:
-        actions = [rng.uniform(space.low, space.high, (num_envs,) + space.shape).astype(np.float32) for _ in range(64)]
+        actions = [rng.uniform(space.low, space.high, (batch,) + space.shape).astype(np.float32) for _ in range(64)]
     counter = iter(range(1 << 62))
+    if asynchronous:
+        envs.async_reset()
+        ready = [envs.recv()[4]["env_id"]]
 
-    def step():
-        envs.step(actions[next(counter) % 64])
+        def step():  # recv the first ready half and send it its actions, in one call (step(action, env_id))
+            sent = ready[0]
+            ready[0] = envs.step(actions[next(counter) % 64][:len(sent)], sent)[4]["env_id"]
+            return len(sent)
+    else:
+        envs.reset()
 
-    rate, cpu = timed(step, num_envs, seconds, [os.getpid(), *server_pids()])
-    first = envs.reset()[0]
+        def step():
+            envs.step(actions[next(counter) % 64])
+
+    rate, cpu = timed(step, batch, seconds, [os.getpid(), *server_pids()])
+    first = None if asynchronous else envs.reset()[0]
     envs.close()
-    return {"rate": rate, "cpu": cpu, "mean_pixel": float(np.mean(first)) if first.dtype == np.uint8 else None}
+    pixels = first is not None and first.dtype == np.uint8
+    return {"rate": rate, "cpu": cpu, "mean_pixel": float(np.mean(first)) if pixels else None}
 
 
 def main() -> None:
@@ -188,8 +205,8 @@ def main() -> None:
     import radserve
 
     ensure_envpool()
-    sides = ["radserve shm", "radserve grpc", "radserve+EnvPool shm", "radserve+EnvPool grpc", "EnvPool sync",
-             "EnvPool async"]
+    sides = ["radserve shm", "radserve grpc", "radserve+EnvPool shm", "radserve+EnvPool grpc",
+             "radserve+EnvPool async shm", "radserve+EnvPool async grpc", "EnvPool sync", "EnvPool async"]
     results: "dict[str, dict[str, list[dict]]]" = {}
     workloads = [w for w in WORKLOADS if args.only in w[0]]
     with radserve.LocalServer(workers=2) as server:
@@ -205,7 +222,8 @@ def main() -> None:
                         engine = "envpool" if "EnvPool" in side else "native"
                         if engine == "envpool" and options.get("pixels"):
                             continue  # the envpool engine hosts state observations; radserve renders pixels
-                        result = radserve_run(client, pids, env_id, options, num_envs, delivery, args.seconds, engine)
+                        result = radserve_run(client, pids, env_id, options, num_envs, delivery, args.seconds, engine,
+                                              asynchronous="async" in side)
                     else:
                         result = envpool_run(task, envpool_options, num_envs, side.split()[1], args.seconds)
                     row[side].append(result)
@@ -220,8 +238,8 @@ def main() -> None:
           f"(2 threads), 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s\n")
     print("env steps/s:\n")
     print("| workload | envs | radserve shm | radserve gRPC | radserve+EnvPool shm | radserve+EnvPool gRPC | "
-          "EnvPool sync | EnvPool async |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+          "radserve+EnvPool async shm | radserve+EnvPool async gRPC | EnvPool sync | EnvPool async |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
 
@@ -233,8 +251,9 @@ def main() -> None:
 
         print(f"| {label} | {num_envs} | " + " | ".join(cell(side) for side in sides) + " |")
     print("\nagainst EnvPool's best mode (ratio of each round's rates), and CPU per env step (us, every process):\n")
-    print("| workload | shm | gRPC | +EnvPool shm | +EnvPool gRPC | CPU shm, +EnvPool shm, EnvPool best |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| workload | shm | gRPC | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | +EnvPool async gRPC | "
+          "CPU shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
         best = max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
@@ -246,9 +265,10 @@ def main() -> None:
             return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})"
 
         cpu = ", ".join(f"{med(row[side], 'cpu') * 1e6:,.0f}" if row[side] else "-"
-                        for side in ("radserve shm", "radserve+EnvPool shm", best))
+                        for side in ("radserve shm", "radserve+EnvPool shm", "radserve+EnvPool async shm", best))
         print(f"| {label} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {ratio('radserve+EnvPool shm')} | "
-              f"{ratio('radserve+EnvPool grpc')} | {cpu} ({best.split()[1]}) |")
+              f"{ratio('radserve+EnvPool grpc')} | {ratio('radserve+EnvPool async shm')} | "
+              f"{ratio('radserve+EnvPool async grpc')} | {cpu} ({best.split()[1]}) |")
     pixels = [label for label, *_ in workloads if "pixels" in label]
     for label in pixels:
         row = results[label]

@@ -380,3 +380,106 @@ def test_envpool_async_gives_each_env_the_trajectory_the_synchronous_mode_gives(
     finally:
         sync.close()
         asyn.close()
+
+
+# --- EnvPool's asynchronous mode through the server (option batch_size) ----------------------------
+
+def _action(env, t):
+    """A fixed action per env and step, so that each env's trajectory does not depend on the order
+    in which envs come back."""
+    return (env * 7 + t * 3 + t // 5) % 2
+
+
+def _sync_trajectories(client, num_envs, steps):
+    """Per env: its `steps` results (obs, reward, terminated, truncated, final obs or None) of a
+    synchronous session, the first being its reset."""
+    envs = client.make_vec("gym/CartPole-v1", num_envs=num_envs, seed=4, engine="envpool")
+    try:
+        obs, _ = envs.reset()
+        record = [[(obs[i], 0.0, False, False, None)] for i in range(num_envs)]
+        for t in range(steps - 1):
+            obs, rewards, terminated, truncated, infos = envs.step(np.array([_action(i, t) for i in range(num_envs)]))
+            for i in range(num_envs):
+                final = infos["final_obs"][i] if infos.get("_final_obs", np.zeros(num_envs, bool))[i] else None
+                record[i].append((obs[i], rewards[i], terminated[i], truncated[i], final))
+        return record
+    finally:
+        envs.close()
+
+
+@pytest.mark.parametrize("delivery", ["shared_memory", "grpc"])
+def test_async_sessions_give_each_env_the_trajectory_a_synchronous_session_gives(client, delivery):
+    # EnvPool's own loop (recv the first ready batch, send it its actions), through the server: whatever
+    # order the envs come back in, each env's observations, rewards, ends and final observations are
+    # those of the same env of a synchronous session given the same actions.
+    num_envs, batch, steps = 6, 2, 40
+    expected = _sync_trajectories(client, num_envs, steps)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=num_envs, seed=4, engine="envpool", batch_size=batch,
+                           delivery=delivery)
+    try:
+        assert envs.delivery == delivery and envs.is_async and envs.batch_size == batch
+        envs.async_reset()
+        got = [[] for _ in range(num_envs)]
+        result = envs.recv()
+        for round_ in range(10 * steps):
+            obs, rewards, terminated, truncated, infos = result
+            ids = infos["env_id"]
+            assert len(ids) == batch and obs.shape == (batch, 4)
+            for row, env in enumerate(ids):
+                final = infos["final_obs"][row] if infos.get("_final_obs", np.zeros(batch, bool))[row] else None
+                got[env].append((obs[row], rewards[row], terminated[row], truncated[row], final))
+            if min(len(record) for record in got) >= steps:
+                break
+            actions = np.array([_action(env, len(got[env]) - 1) for env in ids])
+            if round_ % 2:  # EnvPool's step(action, env_id): send and recv in one call
+                result = envs.step(actions, ids)
+            else:
+                envs.send(actions, ids)
+                result = envs.recv()
+        ended = 0
+        for env in range(num_envs):
+            for t, ((obs, reward, term, trunc, final), want) in enumerate(zip(got[env], expected[env])):
+                where = f"env {env} step {t}"
+                np.testing.assert_array_equal(obs, want[0], err_msg=where)
+                assert (reward, term, trunc) == tuple(want[1:4]), where
+                assert (final is None) == (want[4] is None), where
+                if final is not None:
+                    np.testing.assert_array_equal(final, want[4], err_msg=where)
+                    ended += 1
+        assert ended >= num_envs, "CartPole's episodes end within 40 steps of these actions"
+        assert envs.describe().total_env_steps > 0
+    finally:
+        envs.close()
+
+
+def test_async_sessions_refuse_what_their_mode_does_not_do(client):
+    with pytest.raises(radserve.InvalidArgumentError, match="above num_envs 4"):
+        client.make_vec("gym/CartPole-v1", num_envs=4, engine="envpool", batch_size=5)
+    with pytest.raises(radserve.InvalidArgumentError, match="needs engine 'envpool'"):
+        client.make_vec("gym/CartPole-v1", num_envs=4, batch_size=2)
+    for delivery in ("shared_memory", "grpc"):
+        envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, engine="envpool", batch_size=2,
+                               delivery=delivery)
+        try:
+            with pytest.raises(radserve.RadServeError, match="async_reset and stepped with send/recv"):
+                envs.reset()
+            with pytest.raises(radserve.FailedPreconditionError, match="AsyncReset before Send/Recv"):
+                envs.recv()  # nothing was reset yet
+            envs.async_reset(seed=1)
+            first = envs.recv()[4]["env_id"]
+            with pytest.raises(radserve.RadServeError, match="still stepping"):
+                envs.send(np.zeros(1, dtype=np.int64), [int(({0, 1, 2, 3} - set(first.tolist())).pop())])
+            with pytest.raises(radserve.InvalidArgumentError, match="env_id must be in"):
+                envs.send(np.zeros(1, dtype=np.int64), [4])
+            with pytest.raises(radserve.RadServeError, match="outside"):
+                envs.send(np.full(2, 7, dtype=np.int64), first)
+            envs.send(np.zeros(2, dtype=np.int64), first)  # refused sends changed nothing
+            assert len(envs.recv()[4]["env_id"]) == 2
+        finally:
+            envs.close()
+    sync = client.make_vec("gym/CartPole-v1", num_envs=2, engine="envpool")
+    try:
+        with pytest.raises(radserve.FailedPreconditionError, match="steps with reset"):
+            sync.recv()
+    finally:
+        sync.close()

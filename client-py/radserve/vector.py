@@ -129,6 +129,10 @@ class RemoteVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self._action_dtype = np.dtype(np.int64) if info.action_space.shape == () else info.action_space.dtype
+        # EnvPool's asynchronous mode (option batch_size below num_envs): async_reset, send, recv.
+        batch_size = int(info.options.get("batch_size", 0) or 0)
+        self.batch_size = batch_size if 0 < batch_size < self.num_envs else self.num_envs
+        self.is_async = self.batch_size < self.num_envs
         self._requests: "queue.Queue | None" = None
         self._responses = None
         self._pending = None  # the step sent by step_async, until step_wait takes its reply
@@ -273,7 +277,15 @@ class RemoteVectorEnv(VectorEnv):
             return self._ended.copy()
         return None
 
-    def step(self, actions):
+    def step(self, actions, env_id=None):
+        """gymnasium's step. In EnvPool's asynchronous mode (`is_async`) EnvPool's instead:
+        `send(actions, env_id)` then `recv()`, in one round trip."""
+        if self.is_async:
+            return self._recv(*self._async_actions(actions, env_id))
+        if env_id is not None:
+            raise InvalidArgumentError(
+                "step(actions, env_id) is for sessions in EnvPool's asynchronous mode (batch_size below num_envs); "
+                "this one steps every env: step(actions)")
         self._check_idle("step")
         skip = self._skip()
         if self._shared is not None:
@@ -315,6 +327,134 @@ class RemoteVectorEnv(VectorEnv):
         except grpc.RpcError as error:
             raise self._transport.error(error) from None
         return self._finish(self._unpack(response))
+
+    # --- EnvPool's asynchronous mode ----------------------------------------------------------------
+    # A session created with batch_size below num_envs (engine="envpool") is stepped as EnvPool's
+    # users step theirs (envpool.readthedocs.io, "Asynchronous API"): async_reset() once, then
+    # recv() the first batch_size envs whose step is done and send() them their next actions, so
+    # the simulators never wait for the slowest env nor for the learner. Episodes reset in the step
+    # that ends them, as in the synchronous mode (infos["final_obs"]).
+
+    def async_reset(self, seed: "int | None" = None) -> None:
+        """Starts every env's reset (env i re-seeded with seed + i when `seed` is given); their first
+        observations come back through recv(), batch_size at a time (reward 0, no flags)."""
+        self._check_async("async_reset")
+        seed = None if seed is None else self._session_seed(seed)[0]
+        if self._shared is not None:
+            self._shared.send(b"A", seed)
+            self._shared.receive()
+        else:
+            self._transport.call("AsyncReset", pb.AsyncResetRequest(session_id=self.session_id, seed=seed))
+
+    def send(self, actions, env_id=None) -> None:
+        """Starts the next step of the envs `env_id` names (ints, one per row of `actions`; None: envs
+        0 to len(actions) - 1) without waiting for it. Each must be an env recv() returned last."""
+        rows, ids = self._async_actions(actions, env_id)
+        if self._shared is not None:
+            self._shared.send(b"E", mask=self._sent_mask(rows, ids))
+            self._shared.receive()
+        else:
+            self._transport.call("Send", pb.SendRequest(session_id=self.session_id, actions=_convert.to_tensor(rows),
+                                                        env_ids=ids.tolist()))
+
+    def recv(self):
+        """Waits for the next batch_size envs whose step (or reset) is done: (obs, rewards, terminated,
+        truncated, infos), row k for env infos["env_id"][k] (ascending). infos also holds, for the rows
+        whose episode ended, "final_obs" (with "_final_obs"), "radserve_episode" and "radserve_error"."""
+        return self._recv(None, None)
+
+    def _check_async(self, what: str) -> None:
+        if not self.is_async:
+            raise FailedPreconditionError(
+                f"{what}() is for sessions in EnvPool's asynchronous mode: create one with engine='envpool' and "
+                f"batch_size below num_envs; this one ({self.num_envs} envs) steps with reset()/step()")
+
+    def _async_actions(self, actions, env_id) -> "tuple[np.ndarray, np.ndarray]":
+        """`actions` in the action dtype and the env ids they go to, checked for shape here (values and
+        ids are the server's to check)."""
+        self._check_async("send")
+        rows = np.asarray(actions)
+        if rows.dtype != self._action_dtype and np.can_cast(rows.dtype, self._action_dtype, "same_kind"):
+            rows = rows.astype(self._action_dtype)
+        if env_id is None:
+            ids = np.arange(len(rows), dtype=np.int64)
+        else:
+            ids = np.asarray(env_id).reshape(-1)
+            if not np.issubdtype(ids.dtype, np.integer):
+                raise InvalidArgumentError(f"env_id must be integers, got {ids.dtype}")
+        shape = (len(ids),) + tuple(self.single_action_space.shape)
+        if rows.shape != shape or not 0 < len(ids) <= self.num_envs:
+            raise InvalidArgumentError(
+                f"actions must be of shape {list(shape)}: one row per env_id ({len(ids)}), each "
+                f"{self.single_action_space}; got {rows.dtype} of shape {list(rows.shape)}")
+        if ids.min() < 0 or ids.max() >= self.num_envs:
+            raise InvalidArgumentError(f"env_id must be in [0, {self.num_envs}), got {ids.tolist()}")
+        return rows, ids.astype(np.int64)
+
+    def _sent_mask(self, rows: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Writes `rows` at the envs' rows of the shared actions; the mask of those envs."""
+        mask = np.zeros(self.num_envs, dtype=bool)
+        mask[ids] = True
+        if mask.sum() != len(ids):
+            raise InvalidArgumentError(f"env_id names an env twice: {ids.tolist()}")
+        self._shared.actions[ids] = rows
+        return mask
+
+    def _recv(self, rows, ids):
+        """recv(), after a send of `rows` to envs `ids` when given (one round trip)."""
+        self._check_async("recv")
+        if self._shared is not None:
+            shared = self._shared
+            shared.send(b"V", mask=None if rows is None else self._sent_mask(rows, ids))
+            records = shared.receive()
+            ready = np.flatnonzero(shared.mask)
+            terminated, truncated = shared.terminated[ready], shared.truncated[ready]
+            ended = ready[terminated | truncated]
+            return self._batch(ready, shared.obs[ready], shared.reward[ready], terminated, truncated, ended,
+                               shared.final_obs[ended], shared.episode_return[ended], shared.episode_length[ended],
+                               records["error"])
+        request = pb.RecvRequest(session_id=self.session_id)
+        if rows is not None:
+            request.actions.CopyFrom(_convert.to_tensor(rows))
+            request.env_ids.extend(ids.tolist())
+        response = self._transport.call("Recv", request)
+        step, episodes = response.step, response.step.episodes
+        return self._batch(
+            np.array(response.env_ids, dtype=np.int64), _convert.to_numpy(step.obs).copy(),
+            _convert.to_numpy(step.reward), np.array(step.terminated, dtype=bool), np.array(step.truncated, dtype=bool),
+            np.array([episode.env_index for episode in episodes], dtype=np.int64),
+            _convert.to_numpy(step.final_obs) if episodes else None,
+            [episode.episode_return for episode in episodes], [episode.episode_length for episode in episodes],
+            {episode.env_index: episode.error for episode in episodes if episode.error})
+
+    def _batch(self, ids, obs, rewards, terminated, truncated, ended, final_rows, returns, lengths, errors):
+        """A recv's result as EnvPool returns it (rows in the order of `ids`), radserve's figures of the
+        ended episodes (`ended`: their env ids, in the order of `final_rows`) as batch-row infos."""
+        b = len(ids)
+        infos: dict = {"env_id": ids.astype(np.int32)}
+        if len(ended):
+            row_of = {int(env): row for row, env in enumerate(ids)}
+            rows = [row_of[int(env)] for env in ended]
+            mask = np.zeros(b, dtype=bool)
+            mask[rows] = True
+            final = np.full(b, None, dtype=object)
+            episode_returns, episode_lengths = np.zeros(b), np.zeros(b, dtype=np.int64)
+            for k, row in enumerate(rows):
+                final[row] = self._present(final_rows[k])
+                episode_returns[row], episode_lengths[row] = returns[k], lengths[k]
+            infos.update({"final_obs": final, "_final_obs": mask,
+                          "radserve_episode": {"r": episode_returns, "l": episode_lengths, "_r": mask.copy(),
+                                               "_l": mask.copy()},
+                          "_radserve_episode": mask.copy()})
+            if errors:
+                messages = np.full(b, None, dtype=object)
+                for env, message in errors.items():
+                    messages[row_of[int(env)]] = message
+                infos["radserve_error"] = messages
+                infos["_radserve_error"] = np.array([message is not None for message in messages])
+        if self._channels_last:
+            obs = np.ascontiguousarray(np.moveaxis(obs, -3, -1))
+        return obs, np.asarray(rewards, dtype=np.float64), terminated, truncated, infos
 
     def _check_idle(self, what: str) -> None:
         if self._pending is not None:

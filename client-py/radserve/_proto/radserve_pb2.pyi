@@ -333,6 +333,50 @@ class StepResponse(_message.Message):
     infos: _containers.RepeatedCompositeFieldContainer[InfoDicts]
     def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ..., reward: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Iterable[bool]] = ..., truncated: _Optional[_Iterable[bool]] = ..., episodes: _Optional[_Iterable[_Union[EpisodeEnd, _Mapping]]] = ..., final_obs: _Optional[_Union[Tensor, _Mapping]] = ..., infos: _Optional[_Iterable[_Union[InfoDicts, _Mapping]]] = ...) -> None: ...
 
+class AsyncResetRequest(_message.Message):
+    __slots__ = ("session_id", "seed")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    seed: int
+    def __init__(self, session_id: _Optional[str] = ..., seed: _Optional[int] = ...) -> None: ...
+
+class AsyncResetResponse(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class SendRequest(_message.Message):
+    __slots__ = ("session_id", "actions", "env_ids")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    ENV_IDS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    actions: Tensor
+    env_ids: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, session_id: _Optional[str] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., env_ids: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class SendResponse(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class RecvRequest(_message.Message):
+    __slots__ = ("session_id", "actions", "env_ids")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    ENV_IDS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    actions: Tensor
+    env_ids: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, session_id: _Optional[str] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., env_ids: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class RecvResponse(_message.Message):
+    __slots__ = ("env_ids", "step")
+    ENV_IDS_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    env_ids: _containers.RepeatedScalarFieldContainer[int]
+    step: StepResponse
+    def __init__(self, env_ids: _Optional[_Iterable[int]] = ..., step: _Optional[_Union[StepResponse, _Mapping]] = ...) -> None: ...
+
 class ActRequest(_message.Message):
     __slots__ = ("reset", "step")
     RESET_FIELD_NUMBER: _ClassVar[int]

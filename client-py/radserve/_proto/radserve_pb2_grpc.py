@@ -74,6 +74,21 @@ class RadServeStub:
                 request_serializer=radserve__pb2.ActRequest.SerializeToString,
                 response_deserializer=radserve__pb2.ActResponse.FromString,
                 _registered_method=True)
+        self.AsyncReset = channel.unary_unary(
+                '/radserve.v1.RadServe/AsyncReset',
+                request_serializer=radserve__pb2.AsyncResetRequest.SerializeToString,
+                response_deserializer=radserve__pb2.AsyncResetResponse.FromString,
+                _registered_method=True)
+        self.Send = channel.unary_unary(
+                '/radserve.v1.RadServe/Send',
+                request_serializer=radserve__pb2.SendRequest.SerializeToString,
+                response_deserializer=radserve__pb2.SendResponse.FromString,
+                _registered_method=True)
+        self.Recv = channel.unary_unary(
+                '/radserve.v1.RadServe/Recv',
+                request_serializer=radserve__pb2.RecvRequest.SerializeToString,
+                response_deserializer=radserve__pb2.RecvResponse.FromString,
+                _registered_method=True)
         self.ShareActing = channel.unary_unary(
                 '/radserve.v1.RadServe/ShareActing',
                 request_serializer=radserve__pb2.ShareActingRequest.SerializeToString,
@@ -146,6 +161,29 @@ class RadServeServicer:
     def Act(self, request_iterator, context):
         """Vectorized acting over one bidirectional stream: each request gets exactly one response, in order.
         """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def AsyncReset(self, request, context):
+        """EnvPool's asynchronous mode, for a session created with option `batch_size` below `num_envs`
+        (engine "envpool"): AsyncReset starts every env's reset, Send starts the next step of some envs,
+        and Recv waits until `batch_size` envs' steps (or resets) are complete and returns those. The
+        simulators never wait for the slowest env of a step, and the learner works on one batch while
+        the others step. Such a session is not stepped with Reset/Step, and keeps no replay buffer.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Send(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Recv(self, request, context):
+        """Missing associated documentation comment in .proto file."""
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
@@ -225,6 +263,21 @@ def add_RadServeServicer_to_server(servicer, server):
                     servicer.Act,
                     request_deserializer=radserve__pb2.ActRequest.FromString,
                     response_serializer=radserve__pb2.ActResponse.SerializeToString,
+            ),
+            'AsyncReset': grpc.unary_unary_rpc_method_handler(
+                    servicer.AsyncReset,
+                    request_deserializer=radserve__pb2.AsyncResetRequest.FromString,
+                    response_serializer=radserve__pb2.AsyncResetResponse.SerializeToString,
+            ),
+            'Send': grpc.unary_unary_rpc_method_handler(
+                    servicer.Send,
+                    request_deserializer=radserve__pb2.SendRequest.FromString,
+                    response_serializer=radserve__pb2.SendResponse.SerializeToString,
+            ),
+            'Recv': grpc.unary_unary_rpc_method_handler(
+                    servicer.Recv,
+                    request_deserializer=radserve__pb2.RecvRequest.FromString,
+                    response_serializer=radserve__pb2.RecvResponse.SerializeToString,
             ),
             'ShareActing': grpc.unary_unary_rpc_method_handler(
                     servicer.ShareActing,
@@ -458,6 +511,87 @@ class RadServe:
             '/radserve.v1.RadServe/Act',
             radserve__pb2.ActRequest.SerializeToString,
             radserve__pb2.ActResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AsyncReset(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/AsyncReset',
+            radserve__pb2.AsyncResetRequest.SerializeToString,
+            radserve__pb2.AsyncResetResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Send(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/Send',
+            radserve__pb2.SendRequest.SerializeToString,
+            radserve__pb2.SendResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Recv(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/Recv',
+            radserve__pb2.RecvRequest.SerializeToString,
+            radserve__pb2.RecvResponse.FromString,
             options,
             channel_credentials,
             insecure,

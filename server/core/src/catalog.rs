@@ -191,6 +191,10 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
         ],
     };
     options.push(option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)));
+    // EnvPool's `batch_size`: 0 (or num_envs) steps every env together; below num_envs the session is
+    // stepped by send/recv, `batch_size` envs per recv (engine "envpool" only; checked against num_envs
+    // at create).
+    options.push(option(BATCH_SIZE, Int(0), Rule::IntRange(0, i32::MAX as i64)));
     options
 }
 
@@ -241,6 +245,14 @@ pub fn resolve_options(env: &EnvId, overrides: &Options) -> Result<Options, Core
             "option 'engine' of {} is 'envpool', which hosts dm_control's state observations only: give \
              pixels=false, or engine 'native' for pixels (radserve renders them itself)",
             env.full()
+        )));
+    }
+    if resolved[BATCH_SIZE] != OptionValue::Int(0) && resolved[ENGINE] != OptionValue::Str("envpool".into()) {
+        return Err(CoreError::InvalidOption(format!(
+            "option 'batch_size' of {} is {}, which needs engine 'envpool' (EnvPool's asynchronous mode); give \
+             engine='envpool', or leave batch_size at 0",
+            env.full(),
+            resolved[BATCH_SIZE]
         )));
     }
     Ok(resolved)
@@ -390,6 +402,17 @@ mod tests {
         assert!(refused.contains("pixels=false"), "{refused}");
         let unknown = resolve_options(&cheetah, &Options::from([(ENGINE.into(), OptionValue::Str("mjx".into()))]));
         assert!(unknown.unwrap_err().to_string().contains("one of native, envpool"));
+        // EnvPool's asynchronous mode is the envpool engine's.
+        let batched = |engine: &str| {
+            resolve_options(&cheetah, &Options::from([
+                (ENGINE.into(), OptionValue::Str(engine.into())),
+                ("pixels".into(), OptionValue::Bool(false)),
+                (BATCH_SIZE.into(), OptionValue::Int(8)),
+            ]))
+        };
+        assert_eq!(batched("envpool").unwrap()[BATCH_SIZE], OptionValue::Int(8));
+        assert!(batched("native").unwrap_err().to_string().contains("needs engine 'envpool'"));
+        assert_eq!(default_options(&cheetah)[BATCH_SIZE], OptionValue::Int(0));
     }
 
     #[test]

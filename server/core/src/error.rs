@@ -46,7 +46,7 @@ pub enum CoreError {
     UnknownSession(String),
 
     /// Step before the first Reset, or after a step that failed.
-    #[error("call Reset on this session before Step")]
+    #[error("call Reset on this session before Step (AsyncReset before Send/Recv for a session in EnvPool's asynchronous mode)")]
     NotReset,
 
     /// A sample stream on a session without a buffer.

@@ -14,7 +14,7 @@ use tracing::info;
 
 use crate::bounds;
 use crate::budget::{self, MemoryBudget, Reservation};
-use crate::catalog::{self, EnvId, EnvNames, Options, FRAME_STACK};
+use crate::catalog::{self, EnvId, EnvNames, OptionValue, Options, FRAME_STACK};
 use crate::error::CoreError;
 use crate::metrics::CoreMetrics;
 use crate::principal::{log_id, Principal};
@@ -351,6 +351,7 @@ impl SessionManager {
         let env = self.names().await?.parse(env_id)?;
         let options = catalog::resolve_options(&env, overrides)?;
         let frame_stack = options[FRAME_STACK].as_int().unwrap_or(1) as usize;
+        check_batch_size(&options, num_envs, extras)?;
 
         // Before anything is built: the envs' own memory at their family's measured cost.
         let per_env = budget::env_cost_bytes(&env, &options);
@@ -537,14 +538,6 @@ impl SessionManager {
         buffer: BufferRequest,
         quota: Option<&Arc<MemoryBudget>>,
     ) -> Result<Reservation, CoreError> {
-        if let Some(batch) = session.async_batch() {
-            // Transitions would be recorded per recv, in the order envs come back: not built yet.
-            return Err(CoreError::InvalidSession(format!(
-                "a session with batch_size {batch} below num_envs {} (EnvPool's asynchronous mode) keeps no replay or \
-                 rollout buffer",
-                session.num_envs()
-            )));
-        }
         let frame = &session.frame_spec.observation;
         if !matches!(frame.dtype(), DType::Uint8 | DType::Float32) {
             return Err(CoreError::InvalidSession(format!(
@@ -893,4 +886,24 @@ fn check_observation_bytes(session: &Session) -> Result<(), CoreError> {
 
 fn gib(bytes: u64) -> f64 {
     bytes as f64 / (1u64 << 30) as f64
+}
+
+/// Refuses a `batch_size` above `num_envs`, and a buffer for a session in EnvPool's asynchronous mode,
+/// before anything is built.
+fn check_batch_size(options: &Options, num_envs: usize, extras: &SessionExtras) -> Result<(), CoreError> {
+    let batch = options.get(catalog::BATCH_SIZE).and_then(OptionValue::as_int).unwrap_or(0);
+    if batch as usize > num_envs {
+        return Err(CoreError::InvalidOption(format!(
+            "option 'batch_size' is {batch}, above num_envs {num_envs}: a recv returns at most every env; give \
+             batch_size in [1, {num_envs}] (below num_envs for EnvPool's asynchronous mode) or 0"
+        )));
+    }
+    if let (Some(batch), Some(_)) = (catalog::async_batch(options, num_envs), extras.buffer) {
+        // Transitions would be recorded per recv, in the order envs come back: not built.
+        return Err(CoreError::InvalidSession(format!(
+            "a session with batch_size {batch} below num_envs {num_envs} (EnvPool's asynchronous mode) keeps no replay \
+             or rollout buffer: create it without one, or with batch_size 0"
+        )));
+    }
+    Ok(())
 }

@@ -626,6 +626,43 @@ impl Session {
         Ok(())
     }
 
+    /// `send` with the actions of the envs `env_ids` names only (EnvPool's `send(action, env_id)`):
+    /// `actions` is [len(env_ids), *action shape], row k for env `env_ids[k]`.
+    pub async fn send_to(&mut self, dtype: DType, shape: &[usize], actions: &[u8], env_ids: &[u64]) -> Result<(), CoreError> {
+        self.require_async("send")?;
+        let num_envs = self.num_envs();
+        if env_ids.is_empty() || env_ids.len() > num_envs {
+            return Err(CoreError::InvalidMask(format!(
+                "send names {} envs; a session of {num_envs} envs takes 1 to {num_envs} env ids",
+                env_ids.len()
+            )));
+        }
+        let mut sent = vec![false; num_envs];
+        for &env in env_ids {
+            match sent.get_mut(env as usize) {
+                Some(seen) if !*seen => *seen = true,
+                Some(_) => return Err(CoreError::InvalidMask(format!("send names env {env} twice"))),
+                None => {
+                    return Err(CoreError::InvalidMask(format!(
+                        "send names env {env}; this session's env ids are 0 to {}",
+                        num_envs - 1
+                    )))
+                }
+            }
+        }
+        validate_actions(&self.frame_spec.action, env_ids.len(), dtype, shape, actions)?;
+        // Every env's row, as `send` takes them: the unsent envs' rows repeat the first sent one (a
+        // valid action), and are ignored.
+        let row = self.frame_spec.action.num_bytes();
+        let mut rows = actions[..row].repeat(num_envs);
+        for (k, &env) in env_ids.iter().enumerate() {
+            rows[env as usize * row..][..row].copy_from_slice(&actions[k * row..][..row]);
+        }
+        let mut full_shape = shape.to_vec();
+        full_shape[0] = num_envs;
+        self.send(dtype, &full_shape, &rows, &sent).await
+    }
+
     /// EnvPool's asynchronous mode: waits for the next `batch_size` envs whose step (or reset) is
     /// complete and returns which (`ready`) with the step's outcome laid out as `step`'s: every env's
     /// observation, the ready envs' rewards, flags, ended episodes and final observations (others:

@@ -455,8 +455,8 @@ async fn the_envs_info_dicts_travel_with_their_env_index() {
     assert_eq!(session.reset_infos().iter().map(|(env, _)| *env).collect::<Vec<_>>(), vec![1]);
 }
 
-/// An async session (option batch_size) of `num_envs` fake envs, built directly (the catalog does not
-/// offer the option yet).
+/// An async session (option batch_size) of `num_envs` fake envs, built directly (so that a session
+/// split over processes can be tried).
 async fn async_session(simulators: &FakeSimulators, num_envs: usize, batch: i64, frame_stack: i64) -> Result<Session, CoreError> {
     use crate::catalog::{EnvId, Family, OptionValue, BATCH_SIZE};
     let mut options = fake::fake_options(frame_stack);
@@ -556,4 +556,44 @@ async fn an_async_session_refuses_what_would_wait_forever_and_what_it_cannot_kee
     let split = async_session(&FakeSimulators::new(2), 4, 2, 1).await.err().expect("refused");
     assert!(split.to_string().contains("one simulator process"), "{split}");
     drop(simulators);
+}
+
+#[tokio::test]
+async fn batch_size_is_checked_at_create_before_anything_is_built() {
+    use crate::catalog::{OptionValue, BATCH_SIZE, ENGINE};
+    let (simulators, manager) = manager(1, limits());
+    let options = |engine: &str, batch: i64| {
+        let mut options = fake::fake_options(1);
+        options.insert(ENGINE.to_string(), OptionValue::Str(engine.into()));
+        options.insert(BATCH_SIZE.to_string(), OptionValue::Int(batch));
+        options
+    };
+    let create_with = |options: crate::catalog::Options, buffer: Option<BufferRequest>| {
+        let manager = &manager;
+        async move {
+            manager.create_session(&local(), FAKE_ENV, 4, 0, &options, &SessionExtras { buffer, ..SessionExtras::default() }).await
+        }
+    };
+    let refused = create_with(options("envpool", 5), None).await.unwrap_err().to_string();
+    assert!(refused.contains("above num_envs 4"), "{refused}");
+    let refused = create_with(options("native", 2), None).await.unwrap_err().to_string();
+    assert!(refused.contains("needs engine 'envpool'"), "{refused}");
+    let replay = Some(BufferRequest::Replay { capacity: 100 });
+    let refused = create_with(options("envpool", 2), replay).await.unwrap_err().to_string();
+    assert!(refused.contains("keeps no replay"), "{refused}");
+    assert_eq!(simulators.creates(), 0, "a refused session built nothing");
+    assert_eq!(manager.list_sessions(&local()).len(), 0);
+
+    // Below num_envs: stepped by send/recv; equal to it (or 0): an ordinary session.
+    let info = create_with(options("envpool", 2), None).await.unwrap();
+    let session = manager.get(&local(), &info.session_id).unwrap();
+    let mut session = session.lock().await;
+    assert_eq!(session.async_batch(), Some(2));
+    session.async_reset(Some(1)).await.unwrap();
+    let (ready, _) = session.recv().await.unwrap();
+    assert_eq!(ready.iter().filter(|&&ready| ready).count(), 2);
+    drop(session);
+    let info = create_with(options("envpool", 4), replay).await.unwrap();
+    let session = manager.get(&local(), &info.session_id).unwrap();
+    assert_eq!(session.lock().await.async_batch(), None);
 }

@@ -73,6 +73,16 @@ const TABLE: &[Row] = &[
         let reset = proto::ResetRequest { session_id: id.into(), seed: Some(1), ..Default::default() };
         proto::ActRequest { request: Some(proto::act_request::Request::Reset(reset)) }.encode_to_vec()
     } },
+    Row { method: "AsyncReset", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
+        proto::AsyncResetRequest { session_id: id.into(), seed: Some(1) }.encode_to_vec()
+    } },
+    Row { method: "Send", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
+        let actions = proto::Tensor { dtype: proto::DType::DtypeInt64 as i32, shape: vec![1], data: vec![0u8; 8].into() };
+        proto::SendRequest { session_id: id.into(), actions: Some(actions), env_ids: vec![0] }.encode_to_vec()
+    } },
+    Row { method: "Recv", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
+        proto::RecvRequest { session_id: id.into(), ..Default::default() }.encode_to_vec()
+    } },
     Row { method: "ShareActing", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
         proto::ShareActingRequest { session_id: id.into() }.encode_to_vec()
     } },

@@ -18,7 +18,7 @@ use std::sync::{Arc, Mutex};
 
 use radserve_shm::{Header, MemFile};
 use radserve_core::principal::log_id;
-use radserve_core::{LeaseHold, Principal, SessionManager};
+use radserve_core::{LeaseHold, Principal, SessionManager, StepOutcome};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tonic::{Code, Status};
 use tracing::debug;
@@ -271,39 +271,82 @@ impl ActingChannel {
                 }
                 let actions = memory[layout.actions..][..layout.num_envs * layout.action_bytes].to_vec();
                 let outcome = session.step_except(dtype, &shape, &actions, mask.as_deref()).await?;
-                check_len("observations", outcome.obs.len(), layout.num_envs * layout.obs_bytes)?;
-                memory[layout.obs..][..outcome.obs.len()].copy_from_slice(&outcome.obs);
-                for (env, reward) in outcome.rewards.iter().enumerate() {
-                    memory[layout.reward + 8 * env..][..8].copy_from_slice(&reward.to_le_bytes());
-                    memory[layout.terminated + env] = outcome.terminated[env] as u8;
-                    memory[layout.truncated + env] = outcome.truncated[env] as u8;
+                write_outcome(memory, &layout, &outcome, None)
+            }
+            b'A' => {
+                if with_mask || with_seeds {
+                    return Err(ServiceError::BadRequest(
+                        "an async reset ('A') resets every env: it takes a seed (byte 1), no mask or per-env seeds".into(),
+                    ));
                 }
-                let mut records = Vec::new();
-                for (row, episode) in outcome.episodes.iter().enumerate() {
-                    let env = episode.env_index;
-                    let final_obs = &outcome.final_obs[row * layout.obs_bytes..][..layout.obs_bytes];
-                    memory[layout.final_obs + env * layout.obs_bytes..][..layout.obs_bytes].copy_from_slice(final_obs);
-                    memory[layout.episode_return + 8 * env..][..8].copy_from_slice(&episode.episode_return.to_le_bytes());
-                    memory[layout.episode_length + 8 * env..][..8].copy_from_slice(&episode.episode_length.to_le_bytes());
-                    if let Some(message) = &episode.error {
-                        push_record(&mut records, env, RECORD_ERROR, message);
-                    }
+                session.async_reset(seed).await?;
+                Ok(Vec::new())
+            }
+            kind @ (b'E' | b'V') => {
+                if seed.is_some() || with_seeds {
+                    return Err(ServiceError::BadRequest("a send or recv takes no seed".into()));
                 }
-                for info in &outcome.infos {
-                    if let Some(step) = &info.step {
-                        push_record(&mut records, info.env_index, RECORD_STEP_INFO, step);
-                    }
-                    if let Some(reset) = &info.reset {
-                        push_record(&mut records, info.env_index, RECORD_RESET_INFO, reset);
-                    }
+                if let Some(sent) = &mask {
+                    // Send: the masked envs' rows of the actions array (recv after it, for 'V').
+                    let action = &session.frame_spec.action;
+                    let (dtype, mut shape) = (action.dtype(), vec![layout.num_envs]);
+                    shape.extend_from_slice(action.shape());
+                    let actions = memory[layout.actions..][..layout.num_envs * layout.action_bytes].to_vec();
+                    session.send(dtype, &shape, &actions, sent).await?;
+                } else if kind == b'E' {
+                    return Err(ServiceError::BadRequest(
+                        "a send ('E') names its envs in the mask array (byte 2, flag 1)".into(),
+                    ));
+                }
+                if kind == b'E' {
+                    return Ok(Vec::new());
+                }
+                let (ready, outcome) = session.recv().await?;
+                let records = write_outcome(memory, &layout, &outcome, Some(&ready))?;
+                for (env, ready) in ready.iter().enumerate() {
+                    memory[layout.mask + env] = *ready as u8;
                 }
                 Ok(records)
             }
             other => Err(ServiceError::BadRequest(format!(
-                "a request starts with 'S' (step) or 'R' (reset), got byte {other:#04x}"
+                "a request starts with 'S' (step), 'R' (reset), 'A' (async reset), 'E' (send) or 'V' (recv), got byte \
+                 {other:#04x}"
             ))),
         }
     }
+}
+
+/// Writes a step's (or recv's) outcome into the region at the envs' rows (only `rows`' envs when
+/// given: a recv's ready envs) and returns the answer's records.
+fn write_outcome(memory: &mut [u8], layout: &ActingLayout, outcome: &StepOutcome, rows: Option<&[bool]>) -> Result<Vec<u8>> {
+    check_len("observations", outcome.obs.len(), layout.num_envs * layout.obs_bytes)?;
+    let obs_bytes = layout.obs_bytes;
+    for env in (0..layout.num_envs).filter(|&env| rows.is_none_or(|rows| rows[env])) {
+        memory[layout.obs + env * obs_bytes..][..obs_bytes].copy_from_slice(&outcome.obs[env * obs_bytes..][..obs_bytes]);
+        memory[layout.reward + 8 * env..][..8].copy_from_slice(&outcome.rewards[env].to_le_bytes());
+        memory[layout.terminated + env] = outcome.terminated[env] as u8;
+        memory[layout.truncated + env] = outcome.truncated[env] as u8;
+    }
+    let mut records = Vec::new();
+    for (row, episode) in outcome.episodes.iter().enumerate() {
+        let env = episode.env_index;
+        let final_obs = &outcome.final_obs[row * obs_bytes..][..obs_bytes];
+        memory[layout.final_obs + env * obs_bytes..][..obs_bytes].copy_from_slice(final_obs);
+        memory[layout.episode_return + 8 * env..][..8].copy_from_slice(&episode.episode_return.to_le_bytes());
+        memory[layout.episode_length + 8 * env..][..8].copy_from_slice(&episode.episode_length.to_le_bytes());
+        if let Some(message) = &episode.error {
+            push_record(&mut records, env, RECORD_ERROR, message);
+        }
+    }
+    for info in &outcome.infos {
+        if let Some(step) = &info.step {
+            push_record(&mut records, info.env_index, RECORD_STEP_INFO, step);
+        }
+        if let Some(reset) = &info.reset {
+            push_record(&mut records, info.env_index, RECORD_RESET_INFO, reset);
+        }
+    }
+    Ok(records)
 }
 
 /// Kinds of the records of an OK answer: an env's simulator error, step info, reset info.

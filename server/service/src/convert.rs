@@ -423,6 +423,20 @@ pub fn step_to_proto(space: &Space, outcome: StepOutcome) -> proto::StepResponse
     }
 }
 
+/// A recv's outcome as its response: the ready envs' rows only, in env order.
+pub fn recv_to_proto(space: &Space, ready: &[bool], mut outcome: StepOutcome) -> proto::RecvResponse {
+    let env_ids: Vec<usize> = (0..ready.len()).filter(|&env| ready[env]).collect();
+    let row = space.num_bytes();
+    outcome.obs = env_ids.iter().flat_map(|&env| outcome.obs[env * row..][..row].iter().copied()).collect();
+    outcome.rewards = env_ids.iter().map(|&env| outcome.rewards[env]).collect();
+    outcome.terminated = env_ids.iter().map(|&env| outcome.terminated[env]).collect();
+    outcome.truncated = env_ids.iter().map(|&env| outcome.truncated[env]).collect();
+    proto::RecvResponse {
+        env_ids: env_ids.iter().map(|&env| env as u32).collect(),
+        step: Some(step_to_proto(space, outcome)),
+    }
+}
+
 /// The reset infos of the envs the session's last reset reset.
 pub fn reset_infos_to_proto(infos: &[(usize, String)]) -> Vec<proto::InfoDicts> {
     infos

@@ -235,6 +235,49 @@ impl RadServeService {
         .await
     }
 
+    async fn async_reset(&self, caller: &Principal, request: proto::AsyncResetRequest) -> ServiceResult<proto::AsyncResetResponse> {
+        let session = self.manager.get(caller, &request.session_id)?;
+        run_to_end(async move {
+            session.lock().await.async_reset(request.seed).await?;
+            Ok(proto::AsyncResetResponse {})
+        })
+        .await
+    }
+
+    async fn send(&self, caller: &Principal, request: proto::SendRequest) -> ServiceResult<proto::SendResponse> {
+        let (dtype, shape) = convert::tensor_header(request.actions.as_ref(), "actions")?;
+        let actions = request.actions.map(|tensor| tensor.data).unwrap_or_default();
+        let env_ids: Vec<u64> = request.env_ids.iter().map(|&env| env as u64).collect();
+        let session = self.manager.get(caller, &request.session_id)?;
+        run_to_end(async move {
+            session.lock().await.send_to(dtype, &shape, &actions, &env_ids).await?;
+            Ok(proto::SendResponse {})
+        })
+        .await
+    }
+
+    /// Recv, after a send when the request carries actions: one call per batch.
+    async fn recv(&self, caller: &Principal, request: proto::RecvRequest) -> ServiceResult<proto::RecvResponse> {
+        let send = match request.actions {
+            Some(tensor) => {
+                let (dtype, shape) = convert::tensor_header(Some(&tensor), "actions")?;
+                Some((dtype, shape, tensor.data, request.env_ids.iter().map(|&env| env as u64).collect::<Vec<_>>()))
+            }
+            None if request.env_ids.is_empty() => None,
+            None => return Err(ServiceError::BadRequest("env_ids without actions: give the actions to send them".into())),
+        };
+        let session = self.manager.get(caller, &request.session_id)?;
+        run_to_end(async move {
+            let mut session = session.lock().await;
+            if let Some((dtype, shape, actions, env_ids)) = send {
+                session.send_to(dtype, &shape, &actions, &env_ids).await?;
+            }
+            let (ready, outcome) = session.recv().await?;
+            Ok(convert::recv_to_proto(&session.observation_space, &ready, outcome))
+        })
+        .await
+    }
+
     async fn act_once(&self, caller: &Principal, request: proto::ActRequest) -> ServiceResult<proto::ActResponse> {
         let response = match request.request {
             Some(act_request::Request::Reset(reset)) => act_response::Response::Reset(self.reset(caller, reset, None).await?),
@@ -323,6 +366,24 @@ impl RadServe for RadServeService {
     async fn step(&self, request: Request<proto::StepRequest>) -> Result<Response<proto::StepResponse>, Status> {
         let (caller, deadline) = (caller(&request)?, client_deadline(&request));
         Ok(Response::new(RadServeService::step(self, &caller, request.into_inner(), deadline).await?))
+    }
+
+    async fn async_reset(
+        &self,
+        request: Request<proto::AsyncResetRequest>,
+    ) -> Result<Response<proto::AsyncResetResponse>, Status> {
+        let caller = caller(&request)?;
+        Ok(Response::new(RadServeService::async_reset(self, &caller, request.into_inner()).await?))
+    }
+
+    async fn send(&self, request: Request<proto::SendRequest>) -> Result<Response<proto::SendResponse>, Status> {
+        let caller = caller(&request)?;
+        Ok(Response::new(RadServeService::send(self, &caller, request.into_inner()).await?))
+    }
+
+    async fn recv(&self, request: Request<proto::RecvRequest>) -> Result<Response<proto::RecvResponse>, Status> {
+        let caller = caller(&request)?;
+        Ok(Response::new(RadServeService::recv(self, &caller, request.into_inner()).await?))
     }
 
     type ActStream = ActStream;

@@ -35,7 +35,7 @@ PROCGEN_GAMES = [
 ]
 
 # Options the server consumes itself, and the engine choice (make_group's); adapters never see them.
-SERVER_OPTIONS = {"frame_stack", "engine"}
+SERVER_OPTIONS = {"frame_stack", "engine", "batch_size"}
 
 
 def _quiet_absl():
