@@ -81,17 +81,19 @@ def descendants(pid: int) -> "list[int]":
     return found
 
 
-def timed(step, envs_per_call: int, seconds: float, pids) -> "tuple[float, float]":
-    """(env steps per second, CPU seconds per env step) of calling `step` for `seconds`; a `step` that
-    returns a number says how many env steps it made (a recv may return fewer than its batch)."""
+def timed(step, envs_per_call: int, seconds: float, pids) -> "tuple[float, float, list[float]]":
+    """(env steps per second, CPU seconds per env step, the same per process of `pids`) of calling
+    `step` for `seconds`; a `step` that returns a number says how many env steps it made (a recv may
+    return fewer than its batch)."""
     for _ in range(3):
         step()
-    cpu, steps, start = cpu_seconds(pids), 0, time.perf_counter()
+    before, steps, start = [cpu_seconds([pid]) for pid in pids], 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
         made = step()
         steps += envs_per_call if made is None else made
     elapsed = time.perf_counter() - start
-    return steps / elapsed, (cpu_seconds(pids) - cpu) / steps
+    each = [(cpu_seconds([pid]) - cpu) / steps for pid, cpu in zip(pids, before)]
+    return steps / elapsed, sum(each), each
 
 
 # --- EnvPool, run in its own virtualenv (`--envpool-worker`) -------------------------------------
@@ -122,7 +124,7 @@ def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds:
             env.send(actions[next(counter) % 64][:len(info["env_id"])], info["env_id"])
             return len(info["env_id"])
 
-    rate, cpu = timed(step, batch, seconds, [os.getpid()])
+    rate, cpu, _ = timed(step, batch, seconds, [os.getpid()])
     first = env.reset()[0] if mode == "sync" else None
     pixels = isinstance(first, np.ndarray) and first.dtype == np.uint8
     return {"rate": rate, "cpu": cpu, "mean_pixel": float(np.mean(first)) if pixels else None}
@@ -183,11 +185,13 @@ def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int,
         def step():
             envs.step(actions[next(counter) % 64])
 
-    rate, cpu = timed(step, batch, seconds, [os.getpid(), *server_pids()])
+    # The client (this process), the server, its workers.
+    rate, cpu, each = timed(step, batch, seconds, [os.getpid(), *server_pids()])
     first = None if asynchronous else envs.reset()[0]
     envs.close()
     pixels = first is not None and first.dtype == np.uint8
-    return {"rate": rate, "cpu": cpu, "mean_pixel": float(np.mean(first)) if pixels else None}
+    return {"rate": rate, "cpu": cpu, "mean_pixel": float(np.mean(first)) if pixels else None,
+            "cpu_client": each[0], "cpu_server": each[1], "cpu_workers": sum(each[2:])}
 
 
 def main() -> None:
@@ -269,6 +273,19 @@ def main() -> None:
         print(f"| {label} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {ratio('radserve+EnvPool shm')} | "
               f"{ratio('radserve+EnvPool grpc')} | {ratio('radserve+EnvPool async shm')} | "
               f"{ratio('radserve+EnvPool async grpc')} | {cpu} ({best.split()[1]}) |")
+    print("\nCPU per env step of each process through shared memory (us, medians): client, server, workers\n")
+    print("| workload | envs | native | +EnvPool | +EnvPool async |")
+    print("|---|---:|---:|---:|---:|")
+    for label, env_id, options, task, envpool_options, num_envs in workloads:
+        row = results[label]
+
+        def split(side):
+            if not row[side]:
+                return "-"
+            return " / ".join(f"{med(row[side], key) * 1e6:,.0f}" for key in ("cpu_client", "cpu_server", "cpu_workers"))
+
+        print(f"| {label} | {num_envs} | {split('radserve shm')} | {split('radserve+EnvPool shm')} | "
+              f"{split('radserve+EnvPool async shm')} |")
     pixels = [label for label, *_ in workloads if "pixels" in label]
     for label in pixels:
         row = results[label]

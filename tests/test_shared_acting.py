@@ -170,6 +170,17 @@ def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client
         actions[:] = [1, 0]
         assert _ask(sock, REQUEST.pack(b"S", 0, 0)) == (0, "")
         assert envs.describe().total_env_steps == 2
+        # EnvPool's asynchronous requests: malformed ones, then refused on a synchronous session.
+        flagged = struct.Struct("<cBB5xQ")  # kind, has-seed, flags (1: mask, 2: per-env seeds), seed
+        code, message = _ask(sock, flagged.pack(b"A", 0, 1, 0))
+        assert code == INVALID_ARGUMENT and "no mask" in message
+        code, message = _ask(sock, flagged.pack(b"E", 0, 0, 0))
+        assert code == INVALID_ARGUMENT and "mask array" in message
+        code, message = _ask(sock, flagged.pack(b"V", 1, 0, 3))
+        assert code == INVALID_ARGUMENT and "no seed" in message
+        code, message = _ask(sock, flagged.pack(b"V", 0, 0, 0))
+        assert code == INVALID_ARGUMENT and "steps every env at once" in message
+        assert envs.describe().total_env_steps == 2
         del obs, actions
         memory.close()
         # The channel ends with its connection; then the session can open another.

@@ -120,3 +120,40 @@ def test_a_step_whose_deadline_passed_while_waiting_is_never_sent(strict_server)
     finally:
         envs.close()
         client.close()
+
+
+@pytest.mark.parametrize("delivery", ["shared_memory", "grpc"])
+def test_an_async_session_whose_worker_died_answers_an_error_then_steps_after_async_reset(strict_server, delivery):
+    # EnvPool's asynchronous mode: the envs in flight die with their worker. The call waiting on them
+    # gets an error (no hang, no other session touched) and the session asks for async_reset, which
+    # starts it over in the worker that replaced the dead one.
+    import os
+    import signal
+
+    client = radserve.Client(strict_server.address)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, engine="envpool", batch_size=2, delivery=delivery)
+    other = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0)
+    try:
+        other.reset(seed=0)
+        envs.async_reset(seed=3)
+        ids = envs.recv()[4]["env_id"]
+        for worker in _pool_workers(strict_server):
+            os.kill(worker, signal.SIGKILL)
+        started = time.monotonic()
+        with pytest.raises(radserve.RadServeError) as failed:
+            for _ in range(5):
+                ids = envs.step(np.zeros(len(ids), dtype=np.int64), ids)[4]["env_id"]
+        assert time.monotonic() - started < CALL_TIMEOUT_S + 15
+        with pytest.raises(radserve.FailedPreconditionError, match="AsyncReset before Send/Recv"):
+            envs.recv()
+        envs.async_reset(seed=3)
+        ids = envs.recv()[4]["env_id"]
+        assert len(ids) == 2, failed.value
+        for _ in range(10):
+            ids = envs.step(np.zeros(len(ids), dtype=np.int64), ids)[4]["env_id"]
+        assert envs.describe().total_env_steps >= 18
+        other.step(np.zeros(2, dtype=np.int64))
+    finally:
+        envs.close()
+        other.close()
+        client.close()

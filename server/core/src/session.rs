@@ -601,6 +601,34 @@ impl Session {
     /// each one whose last result `recv` returned) with their rows of `actions` (every env's row, as
     /// in `step`; the others are checked and ignored), without waiting for it.
     pub async fn send(&mut self, dtype: DType, shape: &[usize], actions: &[u8], sent: &[bool]) -> Result<(), CoreError> {
+        self.check_send(dtype, shape, actions, sent)?;
+        if let Err(error) = self.groups[0].send(actions.to_vec(), sent.to_vec()).await {
+            self.needs_reset = true;
+            return Err(error.into());
+        }
+        self.mark_sent(sent);
+        Ok(())
+    }
+
+    /// `send` then `recv` in one round trip to the simulators (EnvPool's `step(action, env_id)` in
+    /// its asynchronous mode). Refused, with nothing sent, when the recv could not be answered.
+    pub async fn send_recv(
+        &mut self,
+        dtype: DType,
+        shape: &[usize],
+        actions: &[u8],
+        sent: &[bool],
+    ) -> Result<(Vec<bool>, StepOutcome), CoreError> {
+        self.check_send(dtype, shape, actions, sent)?;
+        let newly = sent.iter().filter(|&&sent| sent).count();
+        self.check_recv(newly)?;
+        let started = std::time::Instant::now();
+        let reply = self.groups[0].send_recv(actions.to_vec(), sent.to_vec()).await;
+        self.mark_sent(sent);
+        self.finish_recv(reply, started)
+    }
+
+    fn check_send(&self, dtype: DType, shape: &[usize], actions: &[u8], sent: &[bool]) -> Result<(), CoreError> {
         self.require_async("send")?;
         if self.needs_reset {
             return Err(CoreError::NotReset);
@@ -616,19 +644,25 @@ impl Session {
                 "envs {waiting:?} are still stepping: send an env its next action after recv returned its last result"
             )));
         }
-        if let Err(error) = self.groups[0].send(actions.to_vec(), sent.to_vec()).await {
-            self.needs_reset = true;
-            return Err(error.into());
-        }
-        for (env, &sent) in sent.iter().enumerate() {
-            self.in_flight[env] |= sent;
-        }
         Ok(())
     }
 
-    /// `send` with the actions of the envs `env_ids` names only (EnvPool's `send(action, env_id)`):
-    /// `actions` is [len(env_ids), *action shape], row k for env `env_ids[k]`.
-    pub async fn send_to(&mut self, dtype: DType, shape: &[usize], actions: &[u8], env_ids: &[u64]) -> Result<(), CoreError> {
+    fn mark_sent(&mut self, sent: &[bool]) {
+        for (env, &sent) in sent.iter().enumerate() {
+            self.in_flight[env] |= sent;
+        }
+    }
+
+    /// The rows `send` takes for the actions of the envs `env_ids` names only (EnvPool's
+    /// `send(action, env_id)`; `actions` is [len(env_ids), *action shape], row k for env
+    /// `env_ids[k]`): every env's row, its shape, and the mask of envs sent.
+    pub fn scatter_actions(
+        &self,
+        dtype: DType,
+        shape: &[usize],
+        actions: &[u8],
+        env_ids: &[u64],
+    ) -> Result<ScatteredActions, CoreError> {
         self.require_async("send")?;
         let num_envs = self.num_envs();
         if env_ids.is_empty() || env_ids.len() > num_envs {
@@ -651,8 +685,7 @@ impl Session {
             }
         }
         validate_actions(&self.frame_spec.action, env_ids.len(), dtype, shape, actions)?;
-        // Every env's row, as `send` takes them: the unsent envs' rows repeat the first sent one (a
-        // valid action), and are ignored.
+        // The unsent envs' rows repeat the first sent one (a valid action), and are ignored.
         let row = self.frame_spec.action.num_bytes();
         let mut rows = actions[..row].repeat(num_envs);
         for (k, &env) in env_ids.iter().enumerate() {
@@ -660,7 +693,7 @@ impl Session {
         }
         let mut full_shape = shape.to_vec();
         full_shape[0] = num_envs;
-        self.send(dtype, &full_shape, &rows, &sent).await
+        Ok((rows, full_shape, sent))
     }
 
     /// EnvPool's asynchronous mode: waits for the next `batch_size` envs whose step (or reset) is
@@ -669,20 +702,37 @@ impl Session {
     /// zero). Needs at least `batch_size` envs stepping; returns fewer only when some of those were
     /// already complete.
     pub async fn recv(&mut self) -> Result<(Vec<bool>, StepOutcome), CoreError> {
+        self.check_recv(0)?;
+        let started = std::time::Instant::now();
+        let reply = self.groups[0].recv().await;
+        self.finish_recv(reply, started)
+    }
+
+    /// Refuses a recv that would wait forever: fewer than a batch stepping, counting `sending` envs
+    /// about to be sent.
+    fn check_recv(&self, sending: usize) -> Result<(), CoreError> {
         let batch = self.require_async("recv")?;
         if self.needs_reset {
             return Err(CoreError::NotReset);
         }
-        let num_envs = self.num_envs();
-        let stepping = self.in_flight.iter().filter(|&&env| env).count();
+        let stepping = self.in_flight.iter().filter(|&&env| env).count() + sending;
         if stepping < batch {
             return Err(CoreError::InvalidMask(format!(
                 "recv returns {batch} envs at a time and {stepping} are stepping: send actions to at least {} more",
                 batch - stepping
             )));
         }
-        let started = std::time::Instant::now();
-        let (ready, result) = match self.groups[0].recv().await {
+        Ok(())
+    }
+
+    /// A recv's reply from the simulators, checked and applied to the envs' stacks and episodes.
+    fn finish_recv(
+        &mut self,
+        reply: Result<(Vec<bool>, StepResult), SimulatorError>,
+        started: std::time::Instant,
+    ) -> Result<(Vec<bool>, StepOutcome), CoreError> {
+        let num_envs = self.num_envs();
+        let (ready, result) = match reply {
             Ok((ready, result))
                 if ready.len() == num_envs
                     && result.fits(num_envs)
@@ -845,6 +895,9 @@ fn check_mask(mask: &[bool], num_envs: usize, what: &str) -> Result<(), CoreErro
     }
     Ok(())
 }
+
+/// Every env's row of actions, their shape, and the mask of envs sent (`Session::scatter_actions`).
+pub type ScatteredActions = (Vec<u8>, Vec<usize>, Vec<bool>);
 
 pub fn check_seed(seed: u64, num_envs: usize) -> Result<(), CoreError> {
     if seed.saturating_add(num_envs as u64) > MAX_SEED {

@@ -142,6 +142,13 @@ pub trait EnvGroup: Send + Sync {
         Err(SimulatorError::Refused("these simulators have no asynchronous mode".into()))
     }
 
+    /// `send` then `recv` (EnvPool's `step(action, env_id)`); simulators in another process do both in
+    /// one round trip.
+    async fn send_recv(&mut self, actions: Vec<u8>, sent: Vec<bool>) -> Result<(Vec<bool>, StepResult), SimulatorError> {
+        self.send(actions, sent).await?;
+        self.recv().await
+    }
+
     /// Releases the envs. The group is not used afterwards.
     async fn close(&mut self);
 }

@@ -541,8 +541,14 @@ async fn an_async_session_refuses_what_would_wait_forever_and_what_it_cannot_kee
     let refused = session.recv().await.unwrap_err();
     assert!(refused.to_string().contains("send actions to at least 2 more"), "{refused}");
     let one = (0..4).map(|env| env == 1).collect::<Vec<_>>();
+    // A send and recv in one call whose recv could not be answered sends nothing.
+    let refused = session.send_recv(DType::Int64, &[4], &actions(&[0, 1, 0, 0]), &one).await.unwrap_err();
+    assert!(refused.to_string().contains("send actions to at least 1 more"), "{refused}");
     session.send(DType::Int64, &[4], &actions(&[0, 1, 0, 0]), &one).await.unwrap();
     assert!(session.recv().await.unwrap_err().to_string().contains("at least 1 more"));
+    let two = (0..4).map(|env| env == 2).collect::<Vec<_>>();
+    let (ready, _) = session.send_recv(DType::Int64, &[4], &actions(&[0, 0, 1, 0]), &two).await.unwrap();
+    assert_eq!(ready.iter().filter(|&&ready| ready).count(), 2, "a batch of the two envs stepping");
     assert!(session.send(DType::Int64, &[4], &actions(&[0; 4]), &[false; 4]).await.unwrap_err().to_string().contains("names no env"));
     // Bad actions are refused before anything is sent, as in step.
     assert!(matches!(session.send(DType::Int64, &[4], &actions(&[0, 9, 0, 0]), &one).await, Err(CoreError::InvalidActions(_))));

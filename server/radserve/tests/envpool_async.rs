@@ -46,8 +46,9 @@ async fn an_envpool_session_steps_asynchronously_through_the_workers() {
     let mut returned = vec![0usize; n];
     let mut firsts = Vec::new();
     let (mut ends, mut steps) = (0, 0);
+    let mut reply = session.recv().await.unwrap();
     for round in 0..300 {
-        let (ready, outcome) = session.recv().await.unwrap();
+        let (ready, outcome) = reply;
         let envs: Vec<usize> = (0..n).filter(|&env| ready[env]).collect();
         assert_eq!(envs.len(), batch, "round {round}");
         for &env in &envs {
@@ -65,7 +66,16 @@ async fn an_envpool_session_steps_asynchronously_through_the_workers() {
         // Push left twice, then right: episodes end within tens of steps.
         let values: Vec<i64> = (0..n).map(|env| i64::from((returned[env] % 3) == 0)).collect();
         let actions: Vec<u8> = values.iter().flat_map(|value| value.to_le_bytes()).collect();
-        session.send(DType::Int64, &[n], &actions, &ready).await.unwrap();
+        if round == 299 {
+            break;
+        }
+        // Half the rounds send and recv in two calls, half in one round trip (the worker's SendRecv).
+        reply = if round % 2 == 0 {
+            session.send(DType::Int64, &[n], &actions, &ready).await.unwrap();
+            session.recv().await.unwrap()
+        } else {
+            session.send_recv(DType::Int64, &[n], &actions, &ready).await.unwrap()
+        };
     }
     assert!(returned.iter().all(|&count| count > 0), "every env came back: {returned:?}");
     assert_eq!(firsts.len(), n);

@@ -286,22 +286,25 @@ impl ActingChannel {
                 if seed.is_some() || with_seeds {
                     return Err(ServiceError::BadRequest("a send or recv takes no seed".into()));
                 }
-                if let Some(sent) = &mask {
-                    // Send: the masked envs' rows of the actions array (recv after it, for 'V').
-                    let action = &session.frame_spec.action;
-                    let (dtype, mut shape) = (action.dtype(), vec![layout.num_envs]);
-                    shape.extend_from_slice(action.shape());
-                    let actions = memory[layout.actions..][..layout.num_envs * layout.action_bytes].to_vec();
-                    session.send(dtype, &shape, &actions, sent).await?;
-                } else if kind == b'E' {
-                    return Err(ServiceError::BadRequest(
-                        "a send ('E') names its envs in the mask array (byte 2, flag 1)".into(),
-                    ));
-                }
-                if kind == b'E' {
-                    return Ok(Vec::new());
-                }
-                let (ready, outcome) = session.recv().await?;
+                // A send: the masked envs' rows of the actions array ('V': then a recv, in one round trip
+                // to the simulators).
+                let action = &session.frame_spec.action;
+                let (dtype, mut shape) = (action.dtype(), vec![layout.num_envs]);
+                shape.extend_from_slice(action.shape());
+                let actions = || memory[layout.actions..][..layout.num_envs * layout.action_bytes].to_vec();
+                let (ready, outcome) = match (kind, &mask) {
+                    (b'E', Some(sent)) => {
+                        session.send(dtype, &shape, &actions(), sent).await?;
+                        return Ok(Vec::new());
+                    }
+                    (b'E', None) => {
+                        return Err(ServiceError::BadRequest(
+                            "a send ('E') names its envs in the mask array (byte 2, flag 1)".into(),
+                        ))
+                    }
+                    (_, Some(sent)) => session.send_recv(dtype, &shape, &actions(), sent).await?,
+                    (_, None) => session.recv().await?,
+                };
                 let records = write_outcome(memory, &layout, &outcome, Some(&ready))?;
                 for (env, ready) in ready.iter().enumerate() {
                     memory[layout.mask + env] = *ready as u8;

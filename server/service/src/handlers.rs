@@ -250,7 +250,9 @@ impl RadServeService {
         let env_ids: Vec<u64> = request.env_ids.iter().map(|&env| env as u64).collect();
         let session = self.manager.get(caller, &request.session_id)?;
         run_to_end(async move {
-            session.lock().await.send_to(dtype, &shape, &actions, &env_ids).await?;
+            let mut session = session.lock().await;
+            let (rows, shape, sent) = session.scatter_actions(dtype, &shape, &actions, &env_ids)?;
+            session.send(dtype, &shape, &rows, &sent).await?;
             Ok(proto::SendResponse {})
         })
         .await
@@ -269,10 +271,13 @@ impl RadServeService {
         let session = self.manager.get(caller, &request.session_id)?;
         run_to_end(async move {
             let mut session = session.lock().await;
-            if let Some((dtype, shape, actions, env_ids)) = send {
-                session.send_to(dtype, &shape, &actions, &env_ids).await?;
-            }
-            let (ready, outcome) = session.recv().await?;
+            let (ready, outcome) = match send {
+                Some((dtype, shape, actions, env_ids)) => {
+                    let (rows, shape, sent) = session.scatter_actions(dtype, &shape, &actions, &env_ids)?;
+                    session.send_recv(dtype, &shape, &rows, &sent).await?
+                }
+                None => session.recv().await?,
+            };
             Ok(convert::recv_to_proto(&session.observation_space, &ready, outcome))
         })
         .await

@@ -66,6 +66,14 @@ impl EnvGroup for WorkerGroup {
         }
     }
 
+    async fn send_recv(&mut self, actions: Vec<u8>, sent: Vec<bool>) -> Result<(Vec<bool>, StepResult), SimulatorError> {
+        let request = Request::SendRecv { group: self.id, actions, sent };
+        match await_generation(self.worker.submit_in(request, self.generation).await).await {
+            Ok((Response::Received { ready, result }, _)) => Ok((ready, result)),
+            other => Err(unexpected(other)),
+        }
+    }
+
     async fn recv(&mut self) -> Result<(Vec<bool>, StepResult), SimulatorError> {
         match await_generation(self.worker.submit_in(Request::Recv { group: self.id }, self.generation).await).await {
             Ok((Response::Received { ready, result }, _)) => Ok((ready, result)),

@@ -46,6 +46,7 @@ impl WorkerLauncher {
             | Request::Step { .. }
             | Request::Send { .. }
             | Request::Recv { .. }
+            | Request::SendRecv { .. }
             | Request::CloseGroup { .. }
             | Request::Abort => self.call_timeout,
         }

@@ -76,6 +76,8 @@ pub enum Request {
     Send { group: u64, actions: Vec<u8>, sent: Vec<bool> },
     /// Waits for the group's next batch of envs whose step or reset is complete.
     Recv { group: u64 },
+    /// A `Send` then a `Recv`, in one round trip (EnvPool's `step(action, env_id)`); answered as `Recv`.
+    SendRecv { group: u64, actions: Vec<u8>, sent: Vec<bool> },
     CloseGroup { group: u64 },
     /// Exit abruptly, as a crashing simulator would (used to test recovery).
     Abort,
@@ -92,7 +94,7 @@ pub enum Response {
     Stepped(StepResult),
     /// An `AsyncReset` or `Send` was handed to the envs.
     Sent,
-    /// The envs a `Recv` returns (`ready`, one entry per env of the group) and their results, one
+    /// The envs a `Recv` (or `SendRecv`) returns (`ready`, one entry per env of the group) and their results, one
     /// entry per env of the group (zero for the others).
     Received { ready: Vec<bool>, result: StepResult },
     Closed,

@@ -259,35 +259,14 @@ fn handle(
             Ok(Response::Sent)
         }
         Request::Send { group, actions, sent } => {
-            // The group takes the sent envs' ids and their actions in that order.
-            let row = actions.len().checked_div(sent.len()).filter(|row| row * sent.len() == actions.len());
-            let row = row.ok_or_else(|| PyValueError::new_err(format!("{} action bytes for {} envs", actions.len(), sent.len())))?;
-            let ids: Vec<u32> = (0..sent.len()).filter(|&env| sent[env]).map(|env| env as u32).collect();
-            let rows: Vec<u8> = ids.iter().flat_map(|&env| &actions[env as usize * row..][..row]).copied().collect();
-            hosted_group(groups, group)?.object.bind(py).call_method1("send", (PyBytes::new(py, &rows), ids))?;
+            send_to_group(py, hosted_group(groups, group)?, &actions, &sent)?;
             Ok(Response::Sent)
         }
-        Request::Recv { group } => {
+        Request::Recv { group } => recv_from_group(py, hosted_group(groups, group)?),
+        Request::SendRecv { group, actions, sent } => {
             let hosted = hosted_group(groups, group)?;
-            let n = hosted.object.bind(py).getattr("n")?.extract::<usize>()?;
-            let outcome = hosted.object.bind(py).call_method0("recv")?;
-            let list = |index: usize| outcome.get_item(index)?.call_method0("tolist");
-            let ids: Vec<usize> = list(0)?.extract()?;
-            let (rewards, terminated, truncated): (Vec<f64>, Vec<bool>, Vec<bool>) =
-                (list(1)?.extract()?, list(2)?.extract()?, list(3)?.extract()?);
-            let mut ready = vec![false; n];
-            let mut result =
-                StepResult { rewards: vec![0.0; n], terminated: vec![false; n], truncated: vec![false; n], ..StepResult::default() };
-            for (j, &env) in ids.iter().enumerate() {
-                if env >= n || j >= rewards.len().min(terminated.len()).min(truncated.len()) {
-                    return Err(PyValueError::new_err(format!("recv returned env {env} of a group of {n}")));
-                }
-                ready[env] = true;
-                result.rewards[env] = rewards[j];
-                result.terminated[env] = terminated[j];
-                result.truncated[env] = truncated[j];
-            }
-            Ok(Response::Received { ready, result })
+            send_to_group(py, hosted, &actions, &sent)?;
+            recv_from_group(py, hosted)
         }
         Request::CloseGroup { group } => {
             if let Some(hosted) = groups.remove(&group) {
@@ -301,6 +280,40 @@ fn handle(
 
 fn hosted_group(groups: &mut HashMap<u64, HostedGroup>, group: u64) -> PyResult<&mut HostedGroup> {
     groups.get_mut(&group).ok_or_else(|| PyValueError::new_err(format!("no group {group} in this worker")))
+}
+
+/// Hands the envs `sent` marks their rows of `actions` (every env's row) through the group's `send`,
+/// which takes the sent envs' ids and their actions in that order.
+fn send_to_group(py: Python<'_>, hosted: &HostedGroup, actions: &[u8], sent: &[bool]) -> PyResult<()> {
+    let row = actions.len().checked_div(sent.len()).filter(|row| row * sent.len() == actions.len());
+    let row = row.ok_or_else(|| PyValueError::new_err(format!("{} action bytes for {} envs", actions.len(), sent.len())))?;
+    let ids: Vec<u32> = (0..sent.len()).filter(|&env| sent[env]).map(|env| env as u32).collect();
+    let rows: Vec<u8> = ids.iter().flat_map(|&env| &actions[env as usize * row..][..row]).copied().collect();
+    hosted.object.bind(py).call_method1("send", (PyBytes::new(py, &rows), ids))?;
+    Ok(())
+}
+
+/// The group's `recv`, laid out per env of the group (zero for the envs not ready).
+fn recv_from_group(py: Python<'_>, hosted: &HostedGroup) -> PyResult<Response> {
+    let n = hosted.object.bind(py).getattr("n")?.extract::<usize>()?;
+    let outcome = hosted.object.bind(py).call_method0("recv")?;
+    let list = |index: usize| outcome.get_item(index)?.call_method0("tolist");
+    let ids: Vec<usize> = list(0)?.extract()?;
+    let (rewards, terminated, truncated): (Vec<f64>, Vec<bool>, Vec<bool>) =
+        (list(1)?.extract()?, list(2)?.extract()?, list(3)?.extract()?);
+    let mut ready = vec![false; n];
+    let mut result =
+        StepResult { rewards: vec![0.0; n], terminated: vec![false; n], truncated: vec![false; n], ..StepResult::default() };
+    for (j, &env) in ids.iter().enumerate() {
+        if env >= n || j >= rewards.len().min(terminated.len()).min(truncated.len()) {
+            return Err(PyValueError::new_err(format!("recv returned env {env} of a group of {n}")));
+        }
+        ready[env] = true;
+        result.rewards[env] = rewards[j];
+        result.terminated[env] = terminated[j];
+        result.truncated[env] = truncated[j];
+    }
+    Ok(Response::Received { ready, result })
 }
 
 fn close_group(py: Python<'_>, hosted: HostedGroup) {
