@@ -105,6 +105,9 @@ def test_step_async_is_one_outstanding_step_per_server(sharded):
             envs.step(np.zeros(5, dtype=np.int64))
     finally:
         envs.close()
+    # EnvPool's asynchronous mode is one server's: refused before any session is made.
+    with pytest.raises(radserve.InvalidArgumentError, match="for a session on one server"):
+        sharded.make_vec("gym/CartPole-v1", num_envs=6, engine="envpool", batch_size=2)
 
 
 def test_sharded_batches_have_the_size_asked_for_and_say_where_they_came_from(sharded, servers):

@@ -10,7 +10,7 @@ from . import _convert
 from ._proto import radserve_pb2 as pb
 from ._security import TlsConfig
 from ._transport import Transport, check_delivery, resolve
-from .errors import RadServeError
+from .errors import InvalidArgumentError, RadServeError
 
 
 @dataclass(frozen=True)
@@ -245,6 +245,11 @@ class Client:
         check_delivery(delivery)
         if len(self._transports) > 1:
             from .sharded import ShardedVectorEnv
+
+            if options.get("batch_size"):
+                raise InvalidArgumentError(
+                    "batch_size (EnvPool's asynchronous mode) is for a session on one server; a client of "
+                    f"{len(self._transports)} servers steps its envs together (leave batch_size at 0)")
 
             envs = ShardedVectorEnv(self, request, **settings)
             self._sharded[envs.session_id] = envs
