@@ -457,6 +457,10 @@ def test_async_sessions_refuse_what_their_mode_does_not_do(client):
         client.make_vec("gym/CartPole-v1", num_envs=4, engine="envpool", batch_size=5)
     with pytest.raises(radserve.InvalidArgumentError, match="needs engine 'envpool'"):
         client.make_vec("gym/CartPole-v1", num_envs=4, batch_size=2)
+    before = len(client.list_sessions())
+    with pytest.raises(radserve.InvalidArgumentError, match="autoreset_mode must be SameStep"):
+        client.make_vec("gym/CartPole-v1", num_envs=4, engine="envpool", batch_size=2, autoreset_mode="NextStep")
+    assert len(client.list_sessions()) == before, "the refused env's session was closed"
     for delivery in ("shared_memory", "grpc"):
         envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, engine="envpool", batch_size=2,
                                delivery=delivery)

@@ -133,6 +133,11 @@ class RemoteVectorEnv(VectorEnv):
         batch_size = int(info.options.get("batch_size", 0) or 0)
         self.batch_size = batch_size if 0 < batch_size < self.num_envs else self.num_envs
         self.is_async = self.batch_size < self.num_envs
+        if self.is_async and self.autoreset_mode != AutoresetMode.SAME_STEP:
+            raise InvalidArgumentError(
+                f"a session in EnvPool's asynchronous mode (batch_size {self.batch_size} below num_envs "
+                f"{self.num_envs}) resets an env in the step that ends its episode: autoreset_mode must be "
+                f"SameStep, got {self.autoreset_mode.value}")
         self._requests: "queue.Queue | None" = None
         self._responses = None
         self._pending = None  # the step sent by step_async, until step_wait takes its reply
