@@ -50,7 +50,8 @@ struct Harness {
     runtime: Runtime,
     server: TestServer,
     channel: Channel,
-    /// Sessions that live across cases: a CartPole with a filled replay buffer, a Pendulum, a rollout.
+    /// Sessions that live across cases: a CartPole with a filled replay buffer, a Pendulum, a rollout,
+    /// a CartPole in EnvPool's asynchronous mode.
     base: Vec<String>,
     baseline_memory: u64,
 }
@@ -73,6 +74,9 @@ fn harness() -> &'static Harness {
             let server = start_server(limits).await;
             let channel = connect(&server.address).await;
             let mut client = RadServeClient::new(channel.clone());
+            // The catalog is built once, by a low-priority worker: on a loaded host that takes longer
+            // than a case waits for an answer (60 s), so it is built before the cases.
+            client.list_envs(proto::ListEnvsRequest::default()).await.unwrap();
             let mut base = Vec::new();
             for (env_id, replay) in [
                 ("gym/CartPole-v1", Some(proto::ReplayOptions { capacity: 500, rollout_steps: 0 })),
@@ -84,6 +88,15 @@ fn harness() -> &'static Harness {
                 client.reset(proto::ResetRequest { session_id: id.clone(), seed: Some(0), ..Default::default() }).await.unwrap();
                 base.push(id);
             }
+            // And one in EnvPool's asynchronous mode (3 envs, 2 a recv), async-reset.
+            let options = HashMap::from([
+                ("engine".to_string(), proto::OptionValue { value: Some(proto::option_value::Value::StringValue("envpool".into())) }),
+                ("batch_size".to_string(), proto::OptionValue { value: Some(proto::option_value::Value::IntValue(2)) }),
+            ]);
+            let request = proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 3, options, ..Default::default() };
+            let id = client.create_session(request).await.unwrap().into_inner().session_id;
+            client.async_reset(proto::AsyncResetRequest { session_id: id.clone(), seed: Some(0) }).await.unwrap();
+            let async_base = id;
             let actions = [
                 proto::Tensor { dtype: proto::DType::DtypeInt64 as i32, shape: vec![2], data: [0i64, 1].iter().flat_map(|a| a.to_le_bytes()).collect::<Vec<u8>>().into() },
                 common::f32_tensor(&[2, 1], &[0.5, -0.5]),
@@ -94,6 +107,7 @@ fn harness() -> &'static Harness {
                     client.step(proto::StepRequest { session_id: id.clone(), actions: Some(actions.clone()), ..Default::default() }).await.unwrap();
                 }
             }
+            base.push(async_base);
             (server, channel, base)
         });
         let baseline_memory = server.manager.memory().0;
@@ -264,15 +278,19 @@ enum Op {
     ShareActing(Target, ChannelUse),
     Sample(Target, proto::SampleBatchesRequest),
     SampleShared(Target, proto::SampleBatchesRequest, Vec<u64>, bool),
+    AsyncReset(Target, Option<u64>),
+    Send(Target, proto::Tensor, Vec<u32>),
+    Recv(Target, Option<(proto::Tensor, Vec<u32>)>),
 }
 
 fn channel_use() -> impl Strategy<Value = ChannelUse> {
     let request = prop_oneof![
-        // 'S' or 'R', a seed flag, zeros, a seed: well-formed, then anything.
-        (prop::sample::select(vec![b'S', b'R']), 0u8..3, any::<u64>()).prop_map(|(kind, flag, seed)| {
+        // A kind, a seed flag, flags, zeros, a seed: well-formed, then anything.
+        (prop::sample::select(vec![b'S', b'R', b'A', b'E', b'V']), 0u8..3, 0u8..4, any::<u64>()).prop_map(|(kind, flag, flags, seed)| {
             let mut request = [0u8; 16];
             request[0] = kind;
             request[1] = flag;
+            request[2] = flags;
             request[8..].copy_from_slice(&seed.to_le_bytes());
             request
         }),
@@ -283,6 +301,11 @@ fn channel_use() -> impl Strategy<Value = ChannelUse> {
         4 => (any::<bool>(), prop::collection::vec(request, 0..4))
             .prop_map(|(wrong, requests)| ChannelUse::Connect { right_token: !wrong, requests }),
     ]
+}
+
+/// Env ids of a send: mostly small (a live session's), some far out.
+fn env_ids() -> impl Strategy<Value = Vec<u32>> {
+    prop::collection::vec(prop_oneof![4 => 0u32..3, 1 => any::<u32>()], 0..4)
 }
 
 fn op() -> impl Strategy<Value = Op> {
@@ -320,6 +343,9 @@ fn op() -> impl Strategy<Value = Op> {
         4 => (target(), sample_request()).prop_map(|(t, r)| Op::Sample(t, r)),
         2 => (target(), sample_request(), prop::collection::vec(edge_u64(), 0..3), any::<bool>())
             .prop_map(|(t, r, releases, release_first)| Op::SampleShared(t, r, releases, release_first)),
+        1 => (target(), prop::option::of(edge_u64())).prop_map(|(t, seed)| Op::AsyncReset(t, seed)),
+        2 => (target(), tensor(), env_ids()).prop_map(|(t, actions, ids)| Op::Send(t, actions, ids)),
+        2 => (target(), prop::option::of((tensor(), env_ids()))).prop_map(|(t, send)| Op::Recv(t, send)),
     ]
 }
 
@@ -457,6 +483,19 @@ impl Case {
             Op::Step(target, actions) => {
                 let request = proto::StepRequest { session_id: self.session(&target), actions: Some(actions), ..Default::default() };
                 within(limit, self.client.step(request)).await.expect("a step answers").map(drop)
+            }
+            Op::AsyncReset(target, seed) => {
+                let request = proto::AsyncResetRequest { session_id: self.session(&target), seed };
+                within(limit, self.client.async_reset(request)).await.expect("an async reset answers").map(drop)
+            }
+            Op::Send(target, actions, env_ids) => {
+                let request = proto::SendRequest { session_id: self.session(&target), actions: Some(actions), env_ids };
+                within(limit, self.client.send(request)).await.expect("a send answers").map(drop)
+            }
+            Op::Recv(target, send) => {
+                let (actions, env_ids) = send.map_or((None, Vec::new()), |(actions, ids)| (Some(actions), ids));
+                let request = proto::RecvRequest { session_id: self.session(&target), actions, env_ids };
+                within(limit, self.client.recv(request)).await.expect("a recv answers").map(drop)
             }
             Op::Act(target, messages) => {
                 let session_id = self.session(&target);
