@@ -133,6 +133,8 @@ class RemoteVectorEnv(VectorEnv):
         batch_size = int(info.options.get("batch_size", 0) or 0)
         self.batch_size = batch_size if 0 < batch_size < self.num_envs else self.num_envs
         self.is_async = self.batch_size < self.num_envs
+        # Whether a step without ended episodes or infos is returned as the server wrote it (_shared_result).
+        self._plain_mode = self.autoreset_mode == AutoresetMode.SAME_STEP and not self._channels_last
         if self.is_async and self.autoreset_mode != AutoresetMode.SAME_STEP:
             raise InvalidArgumentError(
                 f"a session in EnvPool's asynchronous mode (batch_size {self.batch_size} below num_envs "
@@ -305,16 +307,14 @@ class RemoteVectorEnv(VectorEnv):
 
     def _shared_result(self, records: "dict[str, dict[int, str]]"):
         shared = self._shared
-        if (self.autoreset_mode == AutoresetMode.SAME_STEP and not self._channels_last and not any(records.values())
-                and not (shared.terminated.any() or shared.truncated.any())):
+        if self._plain_mode and not any(records.values()) and not (shared.terminated.any() or shared.truncated.any()):
             obs = shared.obs.copy()
             self._last_obs = obs
             return obs, shared.reward.copy(), shared.terminated.copy(), shared.truncated.copy(), {}
         return self._finish(self._unpack_shared(records))
 
     def _grpc_result(self, response: "pb.StepResponse"):
-        if (self.autoreset_mode == AutoresetMode.SAME_STEP and not self._channels_last and not response.episodes
-                and not response.infos):
+        if self._plain_mode and not response.episodes and not response.infos:
             obs = _convert.to_numpy(response.obs).copy()
             self._last_obs = obs
             return (obs, _convert.to_numpy(response.reward), np.array(response.terminated, dtype=bool),
