@@ -412,10 +412,7 @@ impl Session {
             if mask.is_some_and(|mask| !mask[env]) {
                 continue;
             }
-            let frame = &group.frames()[self.layout.frame(local)];
-            for slot in self.stacks[env * stack_bytes..(env + 1) * stack_bytes].chunks_exact_mut(frame.len()) {
-                slot.copy_from_slice(frame);
-            }
+            fill_stack(&mut self.stacks[env * stack_bytes..][..stack_bytes], &group.frames()[self.layout.frame(local)]);
         }
     }
 
@@ -763,20 +760,17 @@ impl Session {
             step: info.step.clone(),
             reset: info.reset.clone(),
         }));
+        // A ready env's first result after async_reset is its reset's first frame: its stack starts
+        // from it. The others took a step.
+        let reset: Vec<bool> = (0..num_envs).map(|env| ready[env] && std::mem::take(&mut self.resetting[env])).collect();
+        self.fill_stacks_from_current(0, Some(&reset));
         let mut stepped = 0;
         for env in (0..num_envs).filter(|&env| ready[env]) {
             self.in_flight[env] = false;
-            if std::mem::take(&mut self.resetting[env]) {
-                // A reset's first frame: the stack starts from it.
-                let stack_bytes = self.stack_bytes();
-                let frame = &self.groups[0].frames()[self.layout.frame(env)];
-                for slot in self.stacks[env * stack_bytes..][..stack_bytes].chunks_exact_mut(frame.len()) {
-                    slot.copy_from_slice(frame);
-                }
-                continue;
+            if !reset[env] {
+                stepped += 1;
+                self.advance(0, env, env, &result, &mut outcome);
             }
-            stepped += 1;
-            self.advance(0, env, env, &result, &mut outcome);
         }
         self.finish_step(stepped, started, &mut outcome);
         Ok((ready, outcome))
@@ -814,9 +808,7 @@ impl Session {
             let final_frame = &group.frames()[self.layout.final_frame(local)];
             push_frame(stack, final_frame);
             outcome.final_obs.extend_from_slice(stack);
-            for slot in stack.chunks_exact_mut(frame.len()) {
-                slot.copy_from_slice(frame);
-            }
+            fill_stack(stack, frame);
             let error = result.errors.iter().find(|(j, _)| *j as usize == local).map(|(_, m)| m.clone());
             outcome.episodes.push(self.end_episode(env, terminated, truncated, error));
         } else {
@@ -878,6 +870,13 @@ impl Session {
         for mut group in self.groups.drain(..) {
             group.close().await;
         }
+    }
+}
+
+/// Sets every slot of a stack to `frame` (a stack at its episode's first frame).
+fn fill_stack(stack: &mut [u8], frame: &[u8]) {
+    for slot in stack.chunks_exact_mut(frame.len()) {
+        slot.copy_from_slice(frame);
     }
 }
 
