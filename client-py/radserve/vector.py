@@ -400,9 +400,7 @@ class RemoteVectorEnv(VectorEnv):
         """`actions` in the action dtype and the env ids they go to, checked for shape here (values and
         ids are the server's to check)."""
         self._check_async("send")
-        rows = np.asarray(actions)
-        if rows.dtype != self._action_dtype and np.can_cast(rows.dtype, self._action_dtype, "same_kind"):
-            rows = rows.astype(self._action_dtype)
+        rows = self._in_action_dtype(actions)
         if env_id is None:
             ids = np.arange(len(rows), dtype=np.int64)
         else:
@@ -488,10 +486,16 @@ class RemoteVectorEnv(VectorEnv):
             raise RuntimeError(f"{what}() while a step_async() awaits its step_wait()")
 
     def _step_request(self, actions, skip=None) -> "pb.StepRequest":
+        actions = self._in_action_dtype(actions)
+        return pb.StepRequest(session_id=self.session_id, actions=_convert.to_tensor(actions), skip=_bools(skip))
+
+    def _in_action_dtype(self, actions) -> np.ndarray:
+        """`actions` as an array of the action dtype when they cast to it safely (else as given, for the
+        server to refuse)."""
         actions = np.asarray(actions)
         if actions.dtype != self._action_dtype and np.can_cast(actions.dtype, self._action_dtype, "same_kind"):
             actions = actions.astype(self._action_dtype)
-        return pb.StepRequest(session_id=self.session_id, actions=_convert.to_tensor(actions), skip=_bools(skip))
+        return actions
 
     def _write_actions(self, actions) -> None:
         actions = np.asarray(actions)
