@@ -224,6 +224,13 @@ def _procgen(num, name, options, seed):
     return ProcgenGym3Env(num=num, env_name=name, rand_seed=int(seed), **kwargs)
 
 
+def hwc_to_chw(src, dst):
+    """Copies frames [n, h, w, c] into [n, c, h, w]. The worker replaces this with its native copy
+    (server/sim/src/pixels.rs, ~13x faster than numpy's strided loop); this is for the module
+    imported on its own."""
+    np.einsum("nhwc->nchw", src, out=dst)
+
+
 class ProcgenSpec:
     """The spec of a ProcGen game, for the catalog. Groups of games are ProcgenGroup's."""
 
@@ -456,9 +463,7 @@ class ProcgenGroup(Group):
         # gym3 has already started the next episode of a game whose episode ended: its final frame is
         # the one before the last action.
         self.final[ended] = self.current[ended]
-        # HWC to channel-first: einsum's loop does this copy in 0.38 ms per 32 frames here, against
-        # 0.55 ms for assigning the transposed view.
-        np.einsum("nhwc->nchw", obs["rgb"], out=self.current)
+        hwc_to_chw(obs["rgb"], self.current)
         if skipped:
             self.current[skipped] = held
         return rewards.tolist(), ended.tolist(), [False] * self.n, [], []

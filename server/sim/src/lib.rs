@@ -8,6 +8,7 @@
 #![warn(clippy::wildcard_enum_match_arm)]
 
 pub mod groups;
+pub mod pixels;
 pub mod pool;
 pub mod protocol;
 pub mod worker;

@@ -164,6 +164,10 @@ fn serve(py: Python<'_>, input: &mut BufReader<File>, output: &mut BufWriter<Fil
     let source = CString::new(ADAPTERS_SOURCE).map_err(|err| err.to_string())?;
     let module = PyModule::from_code(py, &source, c"radserve_worker.py", c"radserve_worker")
         .map_err(|err| format!("loading the environment adapters: {err}"))?;
+    // The native frame copy replaces the module's numpy fallback of the same name.
+    module
+        .add_function(pyo3::wrap_pyfunction!(crate::pixels::hwc_to_chw, &module).map_err(|err| err.to_string())?)
+        .map_err(|err| format!("adding the native frame copy: {err}"))?;
     module.call_method0("configure").map_err(|err| format!("configuring the adapters: {err}"))?;
     let mut groups: HashMap<u64, HostedGroup> = HashMap::new();
     loop {
