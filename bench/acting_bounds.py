@@ -60,9 +60,18 @@ def make(num_envs: int, batch: int):
     return envpool.make(TASK, env_type="gymnasium", num_envs=num_envs, batch_size=batch, num_threads=2, seed=0)
 
 
+def spin_until(counter, past: int) -> int:
+    """Waits, yielding the CPU at each look, for shared `counter[0]` to move past `past`."""
+    while True:
+        value = int(counter[0])
+        if value != past:
+            return value
+        os.sched_yield()
+
+
 def simulator(memory, n: int, mode: str, requests: int, answers: int) -> None:
     """The simulator process: steps what the caller asks, results into the shared memory."""
-    pool = make(n, n if mode == "sync" else n // 2)
+    pool = make(n, n // 2 if mode == "async" else n)
     obs_dim, act_dim = pool.observation_space.shape[0], pool.action_space.shape[0]
     header = np.ndarray((3,), np.int64, memory, 0)
     header[:] = (obs_dim, act_dim, pool.action_space.dtype.itemsize)
@@ -70,7 +79,19 @@ def simulator(memory, n: int, mode: str, requests: int, answers: int) -> None:
     keys = pool._state_keys
     at_obs, at_reward, at_id = keys.index("obs"), keys.index("reward"), keys.index("info:env_id")
     os.write(answers, b"r")
-    if mode == "sync":
+    if mode == "spin":  # sync, doorbells as counters in the shared memory, polled instead of slept on
+        pool.reset()
+        ids = np.arange(n, dtype=np.int32)
+        request, answer = np.ndarray((1,), np.int64, memory, 24), np.ndarray((1,), np.int64, memory, 32)
+        seen = 0
+        while True:
+            seen = spin_until(request, seen)
+            pool._send([ids, ids, actions.copy()])
+            state = pool._recv()
+            env = state[at_id]
+            obs[env], reward[env] = state[at_obs], state[at_reward]
+            answer[0] = seen
+    elif mode == "sync":
         pool.reset()
         ids = np.arange(n, dtype=np.int32)
         while True:
@@ -124,6 +145,16 @@ def two_processes(n: int, mode: str):
             os.read(r2, 1)
             return obs.copy(), reward.copy()
         per = n
+    elif mode == "spin":
+        request, answer = np.ndarray((1,), np.int64, memory, 24), np.ndarray((1,), np.int64, memory, 32)
+
+        def step():
+            np.copyto(actions, sent)
+            target = int(request[0]) + 1
+            request[0] = target
+            spin_until(answer, target - 1)
+            return obs.copy(), reward.copy()
+        per = n
     else:
         half = n // 2
 
@@ -173,6 +204,7 @@ def main() -> None:
     print(f"| one CPU | {statistics.median(pipe_round_trip([cpus[0]] * 2) for _ in range(5)) * 1e6:.1f} |")
 
     designs = [("2 processes, sync", two_processes, "sync"), ("2 processes, async", two_processes, "async"),
+               ("2 processes, sync, polled doorbells", two_processes, "spin"),
                ("EnvPool in-process, sync", in_process, "sync"), ("EnvPool in-process, async", in_process, "async")]
     table = []
     # Every simulator process is forked before this process loads EnvPool (its threads do not fork).

@@ -12,7 +12,9 @@ session), with its native engine (the simulators' own Python packages) and with 
 asynchronous one (option batch_size = half the envs: recv the first ready half, send its actions, one
 call per batch), and EnvPool in-process with 2 threads
 in its synchronous mode (batch = every env) and its asynchronous one (send/recv of half the envs,
-EnvPool's fast path). Same task, same physics per env step, same image size; random actions.
+EnvPool's fast path). Same task, same physics per env step, same image size; random actions. For the
+dm_control state row EnvPool is also run doing radserve's action repeat (four calls of one control
+step per agent step), a last table comparing against that.
 
 CPU per env step adds every process's user+system time over the timed window (radserve: the client,
 the server and its workers; EnvPool: its one process) and divides by the steps.
@@ -54,6 +56,12 @@ WORKLOADS = [
     ("gym HalfCheetah-v5, 64 envs", "gym/HalfCheetah-v5", {}, "HalfCheetah-v5", {}, 64),
     ("procgen bigfish", "procgen/bigfish", {"distribution_mode": "easy"}, "BigfishEasy-v0", {}, 64),
 ]
+
+# EnvPool doing radserve's action repeat on the state row: one control step per call (frame_skip 1,
+# episodes of 1000 control steps), `calls` calls per agent step, the rewards of all of them. This is
+# the work radserve's engines do for action_repeat 4 (dm_control's reward summed over the repeat), so
+# it shows how much of that row's gap is the baseline's cheaper frame_skip rather than radserve.
+TRUE_REPEAT = {"dmc cheetah-run state": ({"max_episode_steps": 1000}, 4)}
 
 
 def cpu_seconds(pids) -> float:
@@ -98,7 +106,9 @@ def timed(step, envs_per_call: int, seconds: float, pids) -> "tuple[float, float
 
 # --- EnvPool, run in its own virtualenv (`--envpool-worker`) -------------------------------------
 
-def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds: float) -> dict:
+def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds: float, calls: int = 1) -> dict:
+    """`mode` "sync" (batch = every env; `calls` EnvPool steps per agent step, the same actions) or
+    "async" (EnvPool's send/recv of half the envs)."""
     import envpool
 
     batch = num_envs if mode == "sync" else num_envs // 2
@@ -115,7 +125,9 @@ def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds:
         env.reset()
 
         def step():
-            env.step(actions[next(counter) % 64])
+            chosen = actions[next(counter) % 64]
+            for _ in range(calls):
+                env.step(chosen)
     else:
         env.async_reset()
 
@@ -144,11 +156,11 @@ def ensure_envpool() -> None:
                        env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"}, stdout=subprocess.DEVNULL)
 
 
-def envpool_run(task: str, options: dict, num_envs: int, mode: str, seconds: float) -> dict:
+def envpool_run(task: str, options: dict, num_envs: int, mode: str, seconds: float, calls: int = 1) -> dict:
     env = {**os.environ, "MUJOCO_GL": "egl", "LD_PRELOAD": EGL}
     output = subprocess.run(
         [str(VENV / "bin" / "python"), __file__, "--envpool-worker",
-         json.dumps([task, options, num_envs, mode, seconds])],
+         json.dumps([task, options, num_envs, mode, seconds, calls])],
         capture_output=True, text=True, env=env, cwd="/tmp", check=False)
     if output.returncode != 0:
         raise RuntimeError(f"EnvPool {task} {mode}: {output.stderr[-2000:]}")
@@ -210,7 +222,8 @@ def main() -> None:
 
     ensure_envpool()
     sides = ["radserve shm", "radserve grpc", "radserve+EnvPool shm", "radserve+EnvPool grpc",
-             "radserve+EnvPool async shm", "radserve+EnvPool async grpc", "EnvPool sync", "EnvPool async"]
+             "radserve+EnvPool async shm", "radserve+EnvPool async grpc", "EnvPool sync", "EnvPool async",
+             "EnvPool repeat"]
     results: "dict[str, dict[str, list[dict]]]" = {}
     workloads = [w for w in WORKLOADS if args.only in w[0]]
     with radserve.LocalServer(workers=2) as server:
@@ -228,6 +241,11 @@ def main() -> None:
                             continue  # the envpool engine hosts state observations; radserve renders pixels
                         result = radserve_run(client, pids, env_id, options, num_envs, delivery, args.seconds, engine,
                                               asynchronous="async" in side)
+                    elif side == "EnvPool repeat":
+                        if label not in TRUE_REPEAT:
+                            continue
+                        repeat_options, calls = TRUE_REPEAT[label]
+                        result = envpool_run(task, repeat_options, num_envs, "sync", args.seconds, calls)
                     else:
                         result = envpool_run(task, envpool_options, num_envs, side.split()[1], args.seconds)
                     row[side].append(result)
@@ -253,7 +271,7 @@ def main() -> None:
                 return "-"
             return f"{statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f})"
 
-        print(f"| {label} | {num_envs} | " + " | ".join(cell(side) for side in sides) + " |")
+        print(f"| {label} | {num_envs} | " + " | ".join(cell(side) for side in sides[:-1]) + " |")
     print("\nagainst EnvPool's best mode (ratio of each round's rates), and CPU per env step (us, every process):\n")
     print("| workload | shm | gRPC | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | +EnvPool async gRPC | "
           "CPU shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
@@ -286,6 +304,24 @@ def main() -> None:
 
         print(f"| {label} | {num_envs} | {split('radserve shm')} | {split('radserve+EnvPool shm')} | "
               f"{split('radserve+EnvPool async shm')} |")
+    repeated = [w for w in workloads if w[0] in TRUE_REPEAT]
+    if repeated:
+        print("\nAgainst EnvPool doing the same action repeat (one control step per call, rewards of each; "
+              "sync, the same actions each call):\n")
+        print("| workload | envs | EnvPool, repeat by calls | radserve shm / it | +EnvPool shm / it | "
+              "EnvPool frame_skip best / it |")
+        print("|---|---:|---:|---:|---:|---:|")
+        for label, env_id, options, task, envpool_options, num_envs in repeated:
+            row = results[label]
+            best = max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
+
+            def against(side):
+                values = [a["rate"] / b["rate"] for a, b in zip(row[side], row["EnvPool repeat"])]
+                return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})" if values else "-"
+
+            rates = [r["rate"] for r in row["EnvPool repeat"]]
+            print(f"| {label} | {num_envs} | {statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f}) | "
+                  f"{against('radserve shm')} | {against('radserve+EnvPool shm')} | {against(best)} |")
     pixels = [label for label, *_ in workloads if "pixels" in label]
     for label in pixels:
         row = results[label]
