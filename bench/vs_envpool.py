@@ -10,7 +10,8 @@ workers through shared-memory acting and through gRPC (a Python client in this p
 session), with its native engine (the simulators' own Python packages) and with engine="envpool"
 (EnvPool's ports inside radserve's workers; state rows only) in its synchronous mode and in EnvPool's
 asynchronous one (option batch_size = half the envs: recv the first ready half, send its actions, one
-call per batch), and EnvPool in-process with 2 threads
+call per batch), the native engine also pipelined (two sessions of half the envs, one's step in
+flight while the other's is read: step_async/step_wait), and EnvPool in-process with 2 threads
 in its synchronous mode (batch = every env) and its asynchronous one (send/recv of half the envs,
 EnvPool's fast path). Same task, same physics per env step, same image size; random actions. For the
 dm_control state row EnvPool is also run doing radserve's action repeat (four calls of one control
@@ -206,6 +207,37 @@ def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int,
             "cpu_client": each[0], "cpu_server": each[1], "cpu_workers": sum(each[2:])}
 
 
+def radserve_pipelined_run(client, server_pids, env_id: str, options: dict, num_envs: int, seconds: float):
+    """The native engine's way of overlapping simulation with the client (README, step_async): the
+    envs split into two sessions of half, one half's step in flight while the other's is read and its
+    next actions sent, through shared memory."""
+    half = num_envs // 2
+    pair = [client.make_vec(env_id, num_envs=half, seed=i * half, delivery="shared_memory", **options) for i in range(2)]
+    for envs in pair:
+        envs.reset()
+    space = pair[0].single_action_space
+    rng = np.random.default_rng(0)
+    if hasattr(space, "n"):
+        actions = [rng.integers(0, space.n, half) for _ in range(64)]
+    else:
+        actions = [rng.uniform(space.low, space.high, (half,) + space.shape).astype(np.float32) for _ in range(64)]
+    counter = iter(range(1 << 62))
+    pair[0].step_async(actions[0])
+
+    def step():  # both halves: num_envs env steps
+        pair[1].step_async(actions[next(counter) % 64])
+        pair[0].step_wait()
+        pair[0].step_async(actions[next(counter) % 64])
+        pair[1].step_wait()
+
+    rate, cpu, each = timed(step, num_envs, seconds, [os.getpid(), *server_pids()])
+    pair[0].step_wait()
+    for envs in pair:
+        envs.close()
+    return {"rate": rate, "cpu": cpu, "mean_pixel": None,
+            "cpu_client": each[0], "cpu_server": each[1], "cpu_workers": sum(each[2:])}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rounds", type=int, default=3)
@@ -221,7 +253,7 @@ def main() -> None:
     import radserve
 
     ensure_envpool()
-    sides = ["radserve shm", "radserve grpc", "radserve+EnvPool shm", "radserve+EnvPool grpc",
+    sides = ["radserve shm", "radserve grpc", "radserve pipelined shm", "radserve+EnvPool shm", "radserve+EnvPool grpc",
              "radserve+EnvPool async shm", "radserve+EnvPool async grpc", "EnvPool sync", "EnvPool async",
              "EnvPool repeat"]
     results: "dict[str, dict[str, list[dict]]]" = {}
@@ -234,7 +266,11 @@ def main() -> None:
             for label, env_id, options, task, envpool_options, num_envs in workloads:
                 row = results.setdefault(label, {side: [] for side in sides})
                 for side in sides:
-                    if side.startswith("radserve"):
+                    if side == "radserve pipelined shm":
+                        if options.get("pixels"):
+                            continue  # rendering bound: nothing to overlap
+                        result = radserve_pipelined_run(client, pids, env_id, options, num_envs, args.seconds)
+                    elif side.startswith("radserve"):
                         delivery = "shared_memory" if side.endswith("shm") else "grpc"
                         engine = "envpool" if "EnvPool" in side else "native"
                         if engine == "envpool" and options.get("pixels"):
@@ -259,9 +295,10 @@ def main() -> None:
     print(f"\nradserve (2 workers; engine native, and engine envpool for the state rows) vs EnvPool 1.2.5 "
           f"(2 threads), 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s\n")
     print("env steps/s:\n")
-    print("| workload | envs | radserve shm | radserve gRPC | radserve+EnvPool shm | radserve+EnvPool gRPC | "
-          "radserve+EnvPool async shm | radserve+EnvPool async gRPC | EnvPool sync | EnvPool async |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| workload | envs | radserve shm | radserve gRPC | radserve pipelined shm | radserve+EnvPool shm | "
+          "radserve+EnvPool gRPC | radserve+EnvPool async shm | radserve+EnvPool async gRPC | EnvPool sync | "
+          "EnvPool async |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
 
@@ -273,9 +310,9 @@ def main() -> None:
 
         print(f"| {label} | {num_envs} | " + " | ".join(cell(side) for side in sides[:-1]) + " |")
     print("\nagainst EnvPool's best mode (ratio of each round's rates), and CPU per env step (us, every process):\n")
-    print("| workload | shm | gRPC | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | +EnvPool async gRPC | "
-          "CPU shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("| workload | shm | gRPC | pipelined shm | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | "
+          "+EnvPool async gRPC | CPU shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
         best = max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
@@ -288,12 +325,13 @@ def main() -> None:
 
         cpu = ", ".join(f"{med(row[side], 'cpu') * 1e6:,.0f}" if row[side] else "-"
                         for side in ("radserve shm", "radserve+EnvPool shm", "radserve+EnvPool async shm", best))
-        print(f"| {label} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {ratio('radserve+EnvPool shm')} | "
+        print(f"| {label} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {ratio('radserve pipelined shm')} | "
+              f"{ratio('radserve+EnvPool shm')} | "
               f"{ratio('radserve+EnvPool grpc')} | {ratio('radserve+EnvPool async shm')} | "
               f"{ratio('radserve+EnvPool async grpc')} | {cpu} ({best.split()[1]}) |")
     print("\nCPU per env step of each process through shared memory (us, medians): client, server, workers\n")
-    print("| workload | envs | native | +EnvPool | +EnvPool async |")
-    print("|---|---:|---:|---:|---:|")
+    print("| workload | envs | native | native pipelined | +EnvPool | +EnvPool async |")
+    print("|---|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
 
@@ -302,7 +340,8 @@ def main() -> None:
                 return "-"
             return " / ".join(f"{med(row[side], key) * 1e6:,.0f}" for key in ("cpu_client", "cpu_server", "cpu_workers"))
 
-        print(f"| {label} | {num_envs} | {split('radserve shm')} | {split('radserve+EnvPool shm')} | "
+        print(f"| {label} | {num_envs} | {split('radserve shm')} | {split('radserve pipelined shm')} | "
+              f"{split('radserve+EnvPool shm')} | "
               f"{split('radserve+EnvPool async shm')} |")
     repeated = [w for w in workloads if w[0] in TRUE_REPEAT]
     if repeated:
