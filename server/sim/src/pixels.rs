@@ -128,6 +128,38 @@ mod tests {
         }
     }
 
+    /// The function the adapters call, on buffers made by Python's own memoryview (no numpy here).
+    #[test]
+    fn the_python_function_copies_and_refuses_what_it_cannot_copy() {
+        Python::initialize();
+        Python::attach(|py| {
+            let scope = pyo3::types::PyDict::new(py);
+            py.run(
+                c"shared = bytearray(24)\n\
+                  src = memoryview(bytearray(range(24))).cast('B', [2, 2, 2, 3])\n\
+                  dst = memoryview(bytearray(24)).cast('B', [2, 3, 2, 2])\n\
+                  wrong = memoryview(bytearray(24)).cast('B', [2, 2, 2, 3])\n\
+                  frozen = memoryview(bytes(24)).cast('B', [2, 3, 2, 2])\n\
+                  alias_src = memoryview(shared).cast('B', [2, 2, 2, 3])\n\
+                  alias_dst = memoryview(shared).cast('B', [2, 3, 2, 2])\n",
+                None,
+                Some(&scope),
+            )
+            .unwrap();
+            let get = |name: &str| scope.get_item(name).unwrap().unwrap();
+            hwc_to_chw(&get("src"), &get("dst")).unwrap();
+            let copied: Vec<u8> = get("dst").call_method0("tobytes").unwrap().extract().unwrap();
+            let source: Vec<u8> = (0..24).collect();
+            let mut expected = reference(&source[..12], 4, 3);
+            expected.extend(reference(&source[12..], 4, 3));
+            assert_eq!(copied, expected);
+            let refused = |src: &str, dst: &str| hwc_to_chw(&get(src), &get(dst)).unwrap_err().to_string();
+            assert!(refused("src", "wrong").contains("are not [n, h, w, c] and [n, c, h, w]"));
+            assert!(refused("src", "frozen").contains("read-only"));
+            assert!(refused("alias_src", "alias_dst").contains("overlap"));
+        });
+    }
+
     #[test]
     fn a_procgen_frame_matches_the_reference() {
         let src: Vec<u8> = (0..64 * 64 * 3).map(|i| (i * 13 % 255) as u8).collect();
