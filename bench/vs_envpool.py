@@ -65,6 +65,30 @@ WORKLOADS = [
 TRUE_REPEAT = {"dmc cheetah-run state": ({"max_episode_steps": 1000}, 4)}
 
 
+def rate_cell(runs) -> str:
+    """Median (range) of the runs' rates, or "-" for a side not run."""
+    rates = [r["rate"] for r in runs]
+    if not rates:
+        return "-"
+    return f"{statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f})"
+
+
+def ratio_cell(runs, baseline_runs) -> str:
+    """Median (range) of each round's rate over the baseline's in the same round."""
+    values = [a["rate"] / b["rate"] for a, b in zip(runs, baseline_runs)]
+    if not values:
+        return "-"
+    return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})"
+
+
+def random_actions(space, batch: int) -> "list[np.ndarray]":
+    """64 batches of random actions for `space` (float32 for boxes: radserve's action dtype)."""
+    rng = np.random.default_rng(0)
+    if hasattr(space, "n"):
+        return [rng.integers(0, space.n, batch) for _ in range(64)]
+    return [rng.uniform(space.low, space.high, (batch,) + space.shape).astype(np.float32) for _ in range(64)]
+
+
 def cpu_seconds(pids) -> float:
     total = 0.0
     for pid in pids:
@@ -177,12 +201,7 @@ def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int,
     batch = num_envs // 2 if asynchronous else num_envs
     extra = {"batch_size": batch} if asynchronous else {}
     envs = client.make_vec(env_id, num_envs=num_envs, seed=0, delivery=delivery, engine=engine, **options, **extra)
-    space = envs.single_action_space
-    rng = np.random.default_rng(0)
-    if hasattr(space, "n"):
-        actions = [rng.integers(0, space.n, batch) for _ in range(64)]
-    else:
-        actions = [rng.uniform(space.low, space.high, (batch,) + space.shape).astype(np.float32) for _ in range(64)]
+    actions = random_actions(envs.single_action_space, batch)
     counter = iter(range(1 << 62))
     if asynchronous:
         envs.async_reset()
@@ -215,12 +234,7 @@ def radserve_pipelined_run(client, server_pids, env_id: str, options: dict, num_
     pair = [client.make_vec(env_id, num_envs=half, seed=i * half, delivery="shared_memory", **options) for i in range(2)]
     for envs in pair:
         envs.reset()
-    space = pair[0].single_action_space
-    rng = np.random.default_rng(0)
-    if hasattr(space, "n"):
-        actions = [rng.integers(0, space.n, half) for _ in range(64)]
-    else:
-        actions = [rng.uniform(space.low, space.high, (half,) + space.shape).astype(np.float32) for _ in range(64)]
+    actions = random_actions(pair[0].single_action_space, half)
     counter = iter(range(1 << 62))
     pair[0].step_async(actions[0])
 
@@ -292,6 +306,9 @@ def main() -> None:
     def med(runs, key="rate"):
         return statistics.median(r[key] for r in runs)
 
+    def best_mode(row):
+        return max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
+
     print(f"\nradserve (2 workers; engine native, and engine envpool for the state rows) vs EnvPool 1.2.5 "
           f"(2 threads), 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s\n")
     print("env steps/s:\n")
@@ -301,27 +318,17 @@ def main() -> None:
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
-
-        def cell(side):
-            rates = [r["rate"] for r in row[side]]
-            if not rates:
-                return "-"
-            return f"{statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f})"
-
-        print(f"| {label} | {num_envs} | " + " | ".join(cell(side) for side in sides[:-1]) + " |")
+        print(f"| {label} | {num_envs} | " + " | ".join(rate_cell(row[side]) for side in sides[:-1]) + " |")
     print("\nagainst EnvPool's best mode (ratio of each round's rates), and CPU per env step (us, every process):\n")
     print("| workload | shm | gRPC | pipelined shm | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | "
           "+EnvPool async gRPC | CPU shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
-        best = max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
+        best = best_mode(row)
 
         def ratio(side):
-            values = [a["rate"] / b["rate"] for a, b in zip(row[side], row[best])]
-            if not values:
-                return "-"
-            return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})"
+            return ratio_cell(row[side], row[best])
 
         cpu = ", ".join(f"{med(row[side], 'cpu') * 1e6:,.0f}" if row[side] else "-"
                         for side in ("radserve shm", "radserve+EnvPool shm", "radserve+EnvPool async shm", best))
@@ -352,15 +359,12 @@ def main() -> None:
         print("|---|---:|---:|---:|---:|---:|")
         for label, env_id, options, task, envpool_options, num_envs in repeated:
             row = results[label]
-            best = max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
 
             def against(side):
-                values = [a["rate"] / b["rate"] for a, b in zip(row[side], row["EnvPool repeat"])]
-                return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})" if values else "-"
+                return ratio_cell(row[side], row["EnvPool repeat"])
 
-            rates = [r["rate"] for r in row["EnvPool repeat"]]
-            print(f"| {label} | {num_envs} | {statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f}) | "
-                  f"{against('radserve shm')} | {against('radserve+EnvPool shm')} | {against(best)} |")
+            print(f"| {label} | {num_envs} | {rate_cell(row['EnvPool repeat'])} | "
+                  f"{against('radserve shm')} | {against('radserve+EnvPool shm')} | {against(best_mode(row))} |")
     pixels = [label for label, *_ in workloads if "pixels" in label]
     for label in pixels:
         row = results[label]
