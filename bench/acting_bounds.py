@@ -60,6 +60,11 @@ def make(num_envs: int, batch: int):
     return envpool.make(TASK, env_type="gymnasium", num_envs=num_envs, batch_size=batch, num_threads=2, seed=0)
 
 
+def doorbells(memory):
+    """The polled design's request and answer counters, in the header after its three sizes."""
+    return np.ndarray((1,), np.int64, memory, 24), np.ndarray((1,), np.int64, memory, 32)
+
+
 def spin_until(counter, past: int) -> int:
     """Waits, yielding the CPU at each look, for shared `counter[0]` to move past `past`."""
     while True:
@@ -79,28 +84,32 @@ def simulator(memory, n: int, mode: str, requests: int, answers: int) -> None:
     keys = pool._state_keys
     at_obs, at_reward, at_id = keys.index("obs"), keys.index("reward"), keys.index("info:env_id")
     os.write(answers, b"r")
-    if mode == "spin":  # sync, doorbells as counters in the shared memory, polled instead of slept on
+    if mode in ("sync", "spin"):
         pool.reset()
         ids = np.arange(n, dtype=np.int32)
-        request, answer = np.ndarray((1,), np.int64, memory, 24), np.ndarray((1,), np.int64, memory, 32)
+        if mode == "spin":  # doorbells as counters in the shared memory, polled instead of slept on
+            request, answer = doorbells(memory)
+
+            def wait(seen):
+                return spin_until(request, seen)
+
+            def done(seen):
+                answer[0] = seen
+        else:  # one byte through a pipe each way, slept on
+            def wait(seen):
+                os.read(requests, 1)
+                return seen
+
+            def done(seen):
+                os.write(answers, b"k")
         seen = 0
         while True:
-            seen = spin_until(request, seen)
+            seen = wait(seen)
             pool._send([ids, ids, actions.copy()])
             state = pool._recv()
             env = state[at_id]
             obs[env], reward[env] = state[at_obs], state[at_reward]
-            answer[0] = seen
-    elif mode == "sync":
-        pool.reset()
-        ids = np.arange(n, dtype=np.int32)
-        while True:
-            os.read(requests, 1)
-            pool._send([ids, ids, actions.copy()])
-            state = pool._recv()
-            env = state[at_id]
-            obs[env], reward[env] = state[at_obs], state[at_reward]
-            os.write(answers, b"k")
+            done(seen)
     else:
         pool.async_reset()
         while True:
@@ -146,7 +155,7 @@ def two_processes(n: int, mode: str):
             return obs.copy(), reward.copy()
         per = n
     elif mode == "spin":
-        request, answer = np.ndarray((1,), np.int64, memory, 24), np.ndarray((1,), np.int64, memory, 32)
+        request, answer = doorbells(memory)
 
         def step():
             np.copyto(actions, sent)

@@ -89,6 +89,12 @@ def random_actions(space, batch: int) -> "list[np.ndarray]":
     return [rng.uniform(space.low, space.high, (batch,) + space.shape).astype(np.float32) for _ in range(64)]
 
 
+def radserve_result(rate, cpu, each, mean_pixel=None) -> dict:
+    """A radserve measurement: `each` is the CPU per env step of the client, the server, its workers."""
+    return {"rate": rate, "cpu": cpu, "mean_pixel": mean_pixel,
+            "cpu_client": each[0], "cpu_server": each[1], "cpu_workers": sum(each[2:])}
+
+
 def cpu_seconds(pids) -> float:
     total = 0.0
     for pid in pids:
@@ -222,8 +228,7 @@ def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int,
     first = None if asynchronous else envs.reset()[0]
     envs.close()
     pixels = first is not None and first.dtype == np.uint8
-    return {"rate": rate, "cpu": cpu, "mean_pixel": float(np.mean(first)) if pixels else None,
-            "cpu_client": each[0], "cpu_server": each[1], "cpu_workers": sum(each[2:])}
+    return radserve_result(rate, cpu, each, float(np.mean(first)) if pixels else None)
 
 
 def radserve_pipelined_run(client, server_pids, env_id: str, options: dict, num_envs: int, seconds: float):
@@ -248,8 +253,7 @@ def radserve_pipelined_run(client, server_pids, env_id: str, options: dict, num_
     pair[0].step_wait()
     for envs in pair:
         envs.close()
-    return {"rate": rate, "cpu": cpu, "mean_pixel": None,
-            "cpu_client": each[0], "cpu_server": each[1], "cpu_workers": sum(each[2:])}
+    return radserve_result(rate, cpu, each)
 
 
 def main() -> None:
@@ -318,7 +322,7 @@ def main() -> None:
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
-        print(f"| {label} | {num_envs} | " + " | ".join(rate_cell(row[side]) for side in sides[:-1]) + " |")
+        print(f"| {label} | {num_envs} | " + " | ".join(rate_cell(row[side]) for side in sides if side != "EnvPool repeat") + " |")
     print("\nagainst EnvPool's best mode (ratio of each round's rates), and CPU per env step (us, every process):\n")
     print("| workload | shm | gRPC | pipelined shm | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | "
           "+EnvPool async gRPC | CPU shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
