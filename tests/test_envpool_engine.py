@@ -390,10 +390,10 @@ def _action(env, t):
     return (env * 7 + t * 3 + t // 5) % 2
 
 
-def _sync_trajectories(client, num_envs, steps):
+def _sync_trajectories(client, num_envs, steps, engine):
     """Per env: its `steps` results (obs, reward, terminated, truncated, final obs or None) of a
     synchronous session, the first being its reset."""
-    envs = client.make_vec("gym/CartPole-v1", num_envs=num_envs, seed=4, engine="envpool")
+    envs = client.make_vec("gym/CartPole-v1", num_envs=num_envs, seed=4, engine=engine)
     try:
         obs, _ = envs.reset()
         record = [[(obs[i], 0.0, False, False, None)] for i in range(num_envs)]
@@ -407,14 +407,16 @@ def _sync_trajectories(client, num_envs, steps):
         envs.close()
 
 
-@pytest.mark.parametrize("delivery", ["shared_memory", "grpc"])
-def test_async_sessions_give_each_env_the_trajectory_a_synchronous_session_gives(client, delivery):
+@pytest.mark.parametrize("engine,delivery", [("envpool", "shared_memory"), ("envpool", "grpc"),
+                                             ("native", "shared_memory"), ("native", "grpc")])
+def test_async_sessions_give_each_env_the_trajectory_a_synchronous_session_gives(client, engine, delivery):
     # EnvPool's own loop (recv the first ready batch, send it its actions), through the server: whatever
     # order the envs come back in, each env's observations, rewards, ends and final observations are
-    # those of the same env of a synchronous session given the same actions.
+    # those of the same env of a synchronous session of the same engine given the same actions. (The
+    # native engine's batches are its groups of batch_size envs, each stepped whole.)
     num_envs, batch, steps = 6, 2, 40
-    expected = _sync_trajectories(client, num_envs, steps)
-    envs = client.make_vec("gym/CartPole-v1", num_envs=num_envs, seed=4, engine="envpool", batch_size=batch,
+    expected = _sync_trajectories(client, num_envs, steps, engine)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=num_envs, seed=4, engine=engine, batch_size=batch,
                            delivery=delivery)
     try:
         assert envs.delivery == delivery and envs.is_async and envs.batch_size == batch
@@ -425,6 +427,8 @@ def test_async_sessions_give_each_env_the_trajectory_a_synchronous_session_gives
             obs, rewards, terminated, truncated, infos = result
             ids = infos["env_id"]
             assert len(ids) == batch and obs.shape == (batch, 4)
+            if engine == "native":
+                assert ids[0] % batch == 0 and ids[1] == ids[0] + 1, f"one group: {ids}"
             for row, env in enumerate(ids):
                 final = infos["final_obs"][row] if infos.get("_final_obs", np.zeros(batch, bool))[row] else None
                 got[env].append((obs[row], rewards[row], terminated[row], truncated[row], final))
@@ -455,8 +459,8 @@ def test_async_sessions_give_each_env_the_trajectory_a_synchronous_session_gives
 def test_async_sessions_refuse_what_their_mode_does_not_do(client):
     with pytest.raises(radserve.InvalidArgumentError, match="above num_envs 4"):
         client.make_vec("gym/CartPole-v1", num_envs=4, engine="envpool", batch_size=5)
-    with pytest.raises(radserve.InvalidArgumentError, match="needs engine 'envpool'"):
-        client.make_vec("gym/CartPole-v1", num_envs=4, batch_size=2)
+    with pytest.raises(radserve.InvalidArgumentError, match="num_envs must be a multiple of batch_size"):
+        client.make_vec("gym/CartPole-v1", num_envs=4, batch_size=3)
     before = len(client.list_sessions())
     with pytest.raises(radserve.InvalidArgumentError, match="autoreset_mode must be SameStep"):
         client.make_vec("gym/CartPole-v1", num_envs=4, engine="envpool", batch_size=2, autoreset_mode="NextStep")
@@ -481,6 +485,16 @@ def test_async_sessions_refuse_what_their_mode_does_not_do(client):
             assert len(envs.recv()[4]["env_id"]) == 2
         finally:
             envs.close()
+    # The native engine's batches are whole groups: part of one is refused, and changes nothing.
+    envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, batch_size=2)
+    try:
+        envs.async_reset()
+        first = envs.recv()[4]["env_id"]
+        with pytest.raises(radserve.InvalidArgumentError, match="send names whole groups"):
+            envs.send(np.zeros(1, dtype=np.int64), first[:1])
+        assert sorted(envs.step(np.zeros(2, dtype=np.int64), first)[4]["env_id"].tolist()) in ([0, 1], [2, 3])
+    finally:
+        envs.close()
     sync = client.make_vec("gym/CartPole-v1", num_envs=2, engine="envpool")
     try:
         with pytest.raises(radserve.FailedPreconditionError, match="steps with reset"):

@@ -356,11 +356,13 @@ class RemoteVectorEnv(VectorEnv):
         return self._grpc_result(response)
 
     # --- EnvPool's asynchronous mode ----------------------------------------------------------------
-    # A session created with batch_size below num_envs (engine="envpool") is stepped as EnvPool's
-    # users step theirs (envpool.readthedocs.io, "Asynchronous API"): async_reset() once, then
-    # recv() the first batch_size envs whose step is done and send() them their next actions, so
-    # the simulators never wait for the slowest env nor for the learner. Episodes reset in the step
-    # that ends them, as in the synchronous mode (infos["final_obs"]).
+    # A session created with batch_size below num_envs is stepped as EnvPool's users step theirs
+    # (envpool.readthedocs.io, "Asynchronous API"): async_reset() once, then recv() the first
+    # batch_size envs whose step is done and send() them their next actions, so the simulators never
+    # wait for the slowest env nor for the learner. Episodes reset in the step that ends them, as in
+    # the synchronous mode (infos["final_obs"]). engine="envpool": EnvPool's own asynchronous mode, any
+    # batch_size; engine="native": groups of batch_size envs (num_envs a multiple of it), each stepped
+    # whole in its worker process, recv returning the first group done and send taking whole groups.
 
     def async_reset(self, seed: "int | None" = None) -> None:
         """Starts every env's reset (env i re-seeded with seed + i when `seed` is given); their first
@@ -393,8 +395,8 @@ class RemoteVectorEnv(VectorEnv):
     def _check_async(self, what: str) -> None:
         if not self.is_async:
             raise FailedPreconditionError(
-                f"{what}() is for sessions in EnvPool's asynchronous mode: create one with engine='envpool' and "
-                f"batch_size below num_envs; this one ({self.num_envs} envs) steps with reset()/step()")
+                f"{what}() is for sessions in EnvPool's asynchronous mode: create one with batch_size below "
+                f"num_envs; this one ({self.num_envs} envs) steps with reset()/step()")
 
     def _async_actions(self, actions, env_id) -> "tuple[np.ndarray, np.ndarray]":
         """`actions` in the action dtype and the env ids they go to, checked for shape here (values and

@@ -146,6 +146,16 @@ pub fn async_batch(options: &Options, num_envs: usize) -> Option<usize> {
         _ => None,
     }
 }
+/// Whether `options` have EnvPool's ports step the session (engine "envpool"), not the simulators' own
+/// packages.
+pub fn engine_is_envpool(options: &Options) -> bool {
+    options.get(ENGINE) == Some(&OptionValue::Str("envpool".into()))
+}
+
+/// The most groups a session in the native engine's asynchronous mode is split into (num_envs /
+/// batch_size): each is a group of its own in a worker, with its own frame memory.
+pub const MAX_ASYNC_GROUPS: usize = 32;
+
 /// "native": the simulators' own Python packages (dm_control, gymnasium, procgen), results equal to
 /// theirs; "envpool": EnvPool's C++ ports of the same tasks (dm_control state tasks, MuJoCo-gym and
 /// classic control, ProcGen), faster per step, results EnvPool's (radserve_worker.py, EnvpoolGroup).
@@ -192,8 +202,8 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
     };
     options.push(option(ENGINE, Str("native".into()), Rule::OneOf(ENGINES)));
     // EnvPool's `batch_size`: 0 (or num_envs) steps every env together; below num_envs the session is
-    // stepped by send/recv, `batch_size` envs per recv (engine "envpool" only; checked against num_envs
-    // at create).
+    // stepped by send/recv, `batch_size` envs per recv (engine "envpool": EnvPool's own asynchronous
+    // mode; engine "native": groups of batch_size envs stepped whole; checked against num_envs at create).
     options.push(option(BATCH_SIZE, Int(0), Rule::IntRange(0, i32::MAX as i64)));
     options
 }
@@ -245,14 +255,6 @@ pub fn resolve_options(env: &EnvId, overrides: &Options) -> Result<Options, Core
             "option 'engine' of {} is 'envpool', which hosts dm_control's state observations only: give \
              pixels=false, or engine 'native' for pixels (radserve renders them itself)",
             env.full()
-        )));
-    }
-    if resolved[BATCH_SIZE] != OptionValue::Int(0) && resolved[ENGINE] != OptionValue::Str("envpool".into()) {
-        return Err(CoreError::InvalidOption(format!(
-            "option 'batch_size' of {} is {}, which needs engine 'envpool' (EnvPool's asynchronous mode); give \
-             engine='envpool', or leave batch_size at 0",
-            env.full(),
-            resolved[BATCH_SIZE]
         )));
     }
     Ok(resolved)
@@ -402,7 +404,7 @@ mod tests {
         assert!(refused.contains("pixels=false"), "{refused}");
         let unknown = resolve_options(&cheetah, &Options::from([(ENGINE.into(), OptionValue::Str("mjx".into()))]));
         assert!(unknown.unwrap_err().to_string().contains("one of native, envpool"));
-        // EnvPool's asynchronous mode is the envpool engine's.
+        // Both engines have an asynchronous mode (the native engine's is checked against num_envs at create).
         let batched = |engine: &str| {
             resolve_options(&cheetah, &Options::from([
                 (ENGINE.into(), OptionValue::Str(engine.into())),
@@ -411,7 +413,7 @@ mod tests {
             ]))
         };
         assert_eq!(batched("envpool").unwrap()[BATCH_SIZE], OptionValue::Int(8));
-        assert!(batched("native").unwrap_err().to_string().contains("needs engine 'envpool'"));
+        assert_eq!(batched("native").unwrap()[BATCH_SIZE], OptionValue::Int(8));
         assert_eq!(default_options(&cheetah)[BATCH_SIZE], OptionValue::Int(0));
     }
 

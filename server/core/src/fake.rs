@@ -149,9 +149,18 @@ impl Simulators for FakeSimulators {
         if let Some(message) = self.faults().refuse_create.take() {
             return Err(SimulatorError::Refused(message));
         }
+        let mut groups: Vec<Box<dyn EnvGroup>> = Vec::new();
+        if batch > 0 && !crate::catalog::engine_is_envpool(options) {
+            // The native engine's asynchronous mode: synchronous groups of `batch` envs, as groups.rs builds.
+            for start in (0..seeds.len()).step_by(batch) {
+                let envs = start..(start + batch).min(seeds.len());
+                groups.push(Box::new(FakeGroup::new(envs.clone(), seeds[envs].to_vec(), self.faults.clone(), 0)));
+            }
+            self.faults().groups_alive += groups.len();
+            return Ok((spec(), groups));
+        }
         let parts = self.processes.min(seeds.len()).max(1);
         let (base, extra) = (seeds.len() / parts, seeds.len() % parts);
-        let mut groups: Vec<Box<dyn EnvGroup>> = Vec::new();
         let mut start = 0;
         for part in 0..parts {
             let envs = start..start + base + usize::from(part < extra);

@@ -30,5 +30,5 @@ pub use manager::{
 };
 pub use principal::{Principal, PrincipalLimits, Role};
 pub use session::{AutoresetMode, EnvInfo, EpisodeEnd, ResetSpec, StepOutcome};
-pub use simulators::{EnvGroup, EnvSpec, FrameLayout, GroupInfo, ResetInfos, SimulatorError, Simulators, StepResult};
+pub use simulators::{EnvGroup, EnvSpec, FrameLayout, GroupInfo, PendingStep, ResetInfos, SimulatorError, Simulators, StepResult};
 pub use space::{DType, Space};

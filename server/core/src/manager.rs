@@ -898,6 +898,17 @@ fn check_batch_size(options: &Options, num_envs: usize, extras: &SessionExtras) 
              batch_size in [1, {num_envs}] (below num_envs for EnvPool's asynchronous mode) or 0"
         )));
     }
+    if let Some(batch) = catalog::async_batch(options, num_envs).filter(|_| !catalog::engine_is_envpool(options)) {
+        // The native engine steps a whole group at a time: recv returns the first group done.
+        if !num_envs.is_multiple_of(batch) || num_envs / batch > catalog::MAX_ASYNC_GROUPS {
+            return Err(CoreError::InvalidOption(format!(
+                "option 'batch_size' is {batch} with num_envs {num_envs}: the native engine steps a session's envs in \
+                 groups of batch_size (each recv returns the first group done), so num_envs must be a multiple of \
+                 batch_size, in at most {} groups; give such a batch_size, or engine='envpool' for any batch_size",
+                catalog::MAX_ASYNC_GROUPS
+            )));
+        }
+    }
     if let (Some(batch), Some(_)) = (catalog::async_batch(options, num_envs), extras.buffer) {
         // Transitions would be recorded per recv, in the order envs come back: not built.
         return Err(CoreError::InvalidSession(format!(

@@ -5,17 +5,19 @@
 //! episode returns the first observation of the next one, and the last observation of the ended
 //! episode separately, as `final_obs`.
 
+use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
+use std::task::Poll;
 
 use futures_util::future::join_all;
 use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline};
 use radserve_replay::{RecordedStep, ReplayBuffer};
 
-use crate::catalog::{async_batch, EnvId, Options};
+use crate::catalog::{async_batch, engine_is_envpool, EnvId, Options};
 use crate::error::CoreError;
 use crate::metrics::CoreMetrics;
-use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
+use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, GroupInfo, PendingStep, ResetInfos, SimulatorError, Simulators, StepResult};
 use crate::space::{DType, Space};
 
 /// Largest seed + num_envs: dm_control and ProcGen seeds are 32-bit signed integers.
@@ -136,6 +138,12 @@ pub struct Session {
     in_flight: Vec<bool>,
     /// Asynchronous mode: envs whose next result is a reset's first frame, not a step.
     resetting: Vec<bool>,
+    /// The native engine's asynchronous mode (groups of `batch_size` envs, each sent and returned
+    /// whole): each group's step in flight.
+    group_steps: Vec<Option<PendingStep>>,
+    /// The same: groups whose async reset is done and not yet returned by `recv`, with their reset
+    /// infos, in order.
+    group_resets: VecDeque<(usize, ResetInfos)>,
 }
 
 impl Session {
@@ -155,17 +163,34 @@ impl Session {
             })?;
         let layout = FrameLayout { frame_bytes: frame_spec.observation.num_bytes() };
         let (config_seed, config_num_envs) = (config.seed, config.num_envs);
-        if async_batch(&config.options, config.num_envs).is_some() && groups.len() != 1 {
+        // EnvPool's asynchronous mode runs in one process (EnvPool's); the native engine's steps groups
+        // of batch_size envs whole.
+        let misfit = match async_batch(&config.options, config.num_envs) {
+            Some(_) if engine_is_envpool(&config.options) => (groups.len() != 1).then(|| {
+                format!(
+                    "a session of engine 'envpool' with a batch_size below num_envs must be hosted by one simulator \
+                     process; {} hosts it in {}",
+                    config.env.full(),
+                    groups.len()
+                )
+            }),
+            Some(batch) => groups.iter().any(|group| group.envs().len() != batch).then(|| {
+                format!(
+                    "a session with batch_size {batch} steps its envs in groups of {batch}; {} built groups of {:?} envs",
+                    config.env.full(),
+                    groups.iter().map(|group| group.envs().len()).collect::<Vec<_>>()
+                )
+            }),
+            None => None,
+        };
+        if let Some(message) = misfit {
             let mut groups = groups;
             for group in &mut groups {
                 group.close().await;
             }
-            return Err(CoreError::InvalidSession(format!(
-                "a session with a batch_size below num_envs must be hosted by one simulator process; {} hosts it in {}",
-                config.env.full(),
-                groups.len()
-            )));
+            return Err(CoreError::InvalidSession(message));
         }
+        let group_count = groups.len();
         Ok(Session {
             observation_space: frame_spec.observation.stacked(config.frame_stack),
             stacks: vec![0; config.num_envs * config.frame_stack * layout.frame_bytes],
@@ -187,6 +212,8 @@ impl Session {
             metrics: Arc::default(),
             in_flight: vec![false; config_num_envs],
             resetting: vec![false; config_num_envs],
+            group_steps: (0..group_count).map(|_| None).collect(),
+            group_resets: VecDeque::new(),
         })
     }
 
@@ -580,8 +607,7 @@ impl Session {
             self.config.seed = seed;
             self.stats.seed.store(seed, Ordering::Relaxed);
         }
-        let seeds = seed.map(|_| self.group_seeds(0));
-        if let Err(error) = self.groups[0].async_reset(seeds).await {
+        if let Err(error) = self.start_async_reset(seed.is_some()).await {
             self.needs_reset = true;
             return Err(error.into());
         }
@@ -594,12 +620,110 @@ impl Session {
         Ok(())
     }
 
+    /// Whether this is the native engine's asynchronous mode: groups of `batch_size` envs, each stepped
+    /// whole by its worker, one group's step in flight while another's result is read (the session
+    /// does the asynchronous part); otherwise EnvPool's, in its one group.
+    fn steps_groups(&self) -> bool {
+        self.async_batch().is_some() && !engine_is_envpool(&self.config.options)
+    }
+
+    /// Resets every env for `async_reset` (reseeded with the session's seeds when `seeded`).
+    async fn start_async_reset(&mut self, seeded: bool) -> Result<(), SimulatorError> {
+        if !self.steps_groups() {
+            let seeds = seeded.then(|| self.group_seeds(0));
+            return self.groups[0].async_reset(seeds).await;
+        }
+        // Steps in flight are dropped: their worker answers them before the reset (a worker runs its
+        // requests in order), so the reset is what the envs' next results start from.
+        self.group_steps.iter_mut().for_each(|step| *step = None);
+        self.group_resets.clear();
+        let seeds: Vec<Option<Vec<u64>>> = (0..self.groups.len()).map(|index| seeded.then(|| self.group_seeds(index))).collect();
+        let results = join_all(self.groups.iter_mut().zip(seeds).map(|(group, seeds)| group.reset(seeds, None))).await;
+        for (index, result) in results.into_iter().enumerate() {
+            match result {
+                Ok(infos) => self.group_resets.push_back((index, infos)),
+                Err(error) => {
+                    self.group_resets.clear();
+                    return Err(error);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The native engine's asynchronous mode: starts the step of each group `sent` marks (whole).
+    async fn start_group_steps(&mut self, actions: &[u8], sent: &[bool]) {
+        let row = self.frame_spec.action.num_bytes();
+        for index in 0..self.groups.len() {
+            let envs = self.groups[index].envs();
+            if sent[envs.start] {
+                let slice = actions[envs.start * row..envs.end * row].to_vec();
+                self.group_steps[index] = Some(self.groups[index].start_step(slice).await);
+            }
+        }
+    }
+
+    /// The native engine's asynchronous mode: the next group whose reset or step is done, and its
+    /// result (every env of it ready).
+    async fn next_group(&mut self) -> (usize, Result<(Vec<bool>, StepResult), SimulatorError>) {
+        if let Some((index, infos)) = self.group_resets.pop_front() {
+            let n = self.groups[index].envs().len();
+            let result = StepResult {
+                rewards: vec![0.0; n],
+                terminated: vec![false; n],
+                truncated: vec![false; n],
+                errors: Vec::new(),
+                infos: infos.into_iter().map(|(env, info)| GroupInfo { env, step: None, reset: Some(info) }).collect(),
+            };
+            return (index, Ok((vec![true; n], result)));
+        }
+        if self.group_steps.iter().all(Option::is_none) {
+            // check_recv lets a recv through only with a whole group in flight.
+            return (0, Err(SimulatorError::Failed("recv found no group stepping".into())));
+        }
+        let steps = &mut self.group_steps;
+        let (index, result) = std::future::poll_fn(|context| {
+            for (index, step) in steps.iter_mut().enumerate() {
+                if let Some(future) = step {
+                    if let Poll::Ready(result) = future.as_mut().poll(context) {
+                        *step = None;
+                        return Poll::Ready((index, result));
+                    }
+                }
+            }
+            Poll::Pending
+        })
+        .await;
+        let n = self.groups[index].envs().len();
+        (index, result.map(|result| (vec![true; n], result)))
+    }
+
+    /// The native engine's asynchronous mode sends whole groups.
+    fn check_whole_groups(&self, sent: &[bool]) -> Result<(), CoreError> {
+        for group in &self.groups {
+            let envs = group.envs();
+            if let Some(env) = envs.clone().find(|&env| sent[env] != sent[envs.start]) {
+                let (part, missing) = if sent[env] { (env, envs.start) } else { (envs.start, env) };
+                return Err(CoreError::InvalidMask(format!(
+                    "the native engine steps this session's envs in groups of batch_size {} (envs {}..{} are one): \
+                     send names whole groups, as recv returns them; env {part} is sent without env {missing}",
+                    envs.len(),
+                    envs.start,
+                    envs.end
+                )));
+            }
+        }
+        Ok(())
+    }
+
     /// EnvPool's asynchronous mode: starts the next step of the envs `sent` marks (`num_envs` entries;
     /// each one whose last result `recv` returned) with their rows of `actions` (every env's row, as
     /// in `step`; the others are checked and ignored), without waiting for it.
     pub async fn send(&mut self, dtype: DType, shape: &[usize], actions: &[u8], sent: &[bool]) -> Result<(), CoreError> {
         self.check_send(dtype, shape, actions, sent)?;
-        if let Err(error) = self.groups[0].send(actions.to_vec(), sent.to_vec()).await {
+        if self.steps_groups() {
+            self.start_group_steps(actions, sent).await;
+        } else if let Err(error) = self.groups[0].send(actions.to_vec(), sent.to_vec()).await {
             self.needs_reset = true;
             return Err(error.into());
         }
@@ -620,9 +744,15 @@ impl Session {
         let newly = sent.iter().filter(|&&sent| sent).count();
         self.check_recv(newly)?;
         let started = std::time::Instant::now();
+        if self.steps_groups() {
+            self.start_group_steps(actions, sent).await;
+            self.mark_sent(sent);
+            let (index, reply) = self.next_group().await;
+            return self.finish_recv(index, reply, started);
+        }
         let reply = self.groups[0].send_recv(actions.to_vec(), sent.to_vec()).await;
         self.mark_sent(sent);
-        self.finish_recv(reply, started)
+        self.finish_recv(0, reply, started)
     }
 
     fn check_send(&self, dtype: DType, shape: &[usize], actions: &[u8], sent: &[bool]) -> Result<(), CoreError> {
@@ -634,6 +764,9 @@ impl Session {
         check_mask(sent, self.num_envs(), "the mask of envs sent")?;
         if !sent.contains(&true) {
             return Err(CoreError::InvalidMask("send names no env: mark at least one".into()));
+        }
+        if self.steps_groups() {
+            self.check_whole_groups(sent)?;
         }
         let waiting: Vec<usize> = (0..self.num_envs()).filter(|&env| sent[env] && self.in_flight[env]).collect();
         if !waiting.is_empty() {
@@ -701,8 +834,8 @@ impl Session {
     pub async fn recv(&mut self) -> Result<(Vec<bool>, StepOutcome), CoreError> {
         self.check_recv(0)?;
         let started = std::time::Instant::now();
-        let reply = self.groups[0].recv().await;
-        self.finish_recv(reply, started)
+        let (index, reply) = if self.steps_groups() { self.next_group().await } else { (0, self.groups[0].recv().await) };
+        self.finish_recv(index, reply, started)
     }
 
     /// Refuses a recv that would wait forever: fewer than a batch stepping, counting `sending` envs
@@ -722,26 +855,30 @@ impl Session {
         Ok(())
     }
 
-    /// A recv's reply from the simulators, checked and applied to the envs' stacks and episodes.
+    /// A recv's reply from group `index` (which of its envs are ready, and their results), checked
+    /// and applied to the envs' stacks and episodes; returns which of the session's envs are ready.
     fn finish_recv(
         &mut self,
+        index: usize,
         reply: Result<(Vec<bool>, StepResult), SimulatorError>,
         started: std::time::Instant,
     ) -> Result<(Vec<bool>, StepOutcome), CoreError> {
         let num_envs = self.num_envs();
-        let (ready, result) = match reply {
+        let envs = self.groups[index].envs();
+        let (local_ready, result) = match reply {
             Ok((ready, result))
-                if ready.len() == num_envs
-                    && result.fits(num_envs)
-                    && ready.iter().zip(&self.in_flight).all(|(&ready, &stepping)| stepping || !ready) =>
+                if ready.len() == envs.len()
+                    && result.fits(envs.len())
+                    && ready.iter().zip(&self.in_flight[envs.clone()]).all(|(&ready, &stepping)| stepping || !ready) =>
             {
                 (ready, result)
             }
             Ok((ready, _)) => {
                 self.needs_reset = true;
                 return Err(CoreError::Simulator(format!(
-                    "worker answered a recv with {} of {num_envs} envs ready, or an env that was not stepping",
-                    ready.len()
+                    "worker answered a recv with {} of {} envs ready, or an env that was not stepping",
+                    ready.len(),
+                    envs.len()
                 )));
             }
             Err(error) => {
@@ -755,21 +892,23 @@ impl Session {
             truncated: vec![false; num_envs],
             ..StepOutcome::default()
         };
-        outcome.infos.extend(result.infos.iter().filter(|info| ready[info.env as usize]).map(|info| EnvInfo {
-            env_index: info.env as usize,
+        let mut ready = vec![false; num_envs];
+        ready[envs.clone()].copy_from_slice(&local_ready);
+        outcome.infos.extend(result.infos.iter().filter(|info| local_ready[info.env as usize]).map(|info| EnvInfo {
+            env_index: envs.start + info.env as usize,
             step: info.step.clone(),
             reset: info.reset.clone(),
         }));
         // A ready env's first result after async_reset is its reset's first frame: its stack starts
         // from it. The others took a step.
         let reset: Vec<bool> = (0..num_envs).map(|env| ready[env] && std::mem::take(&mut self.resetting[env])).collect();
-        self.fill_stacks_from_current(0, Some(&reset));
+        self.fill_stacks_from_current(index, Some(&reset));
         let mut stepped = 0;
-        for env in (0..num_envs).filter(|&env| ready[env]) {
+        for (local, env) in envs.enumerate().filter(|&(local, _)| local_ready[local]) {
             self.in_flight[env] = false;
             if !reset[env] {
                 stepped += 1;
-                self.advance(0, env, env, &result, &mut outcome);
+                self.advance(index, local, env, &result, &mut outcome);
             }
         }
         self.finish_step(stepped, started, &mut outcome);

@@ -7,7 +7,9 @@
 //! memory the core reads after the call returns ([`FrameLayout`]); everything else comes back as a
 //! [`StepResult`].
 
+use std::future::Future;
 use std::ops::Range;
+use std::pin::Pin;
 
 use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
@@ -80,6 +82,9 @@ impl FrameLayout {
     }
 }
 
+/// A group's step started by [`EnvGroup::start_step`]: resolves to its result.
+pub type PendingStep = Pin<Box<dyn Future<Output = Result<StepResult, SimulatorError>> + Send>>;
+
 /// Why a simulator call did not do what was asked.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum SimulatorError {
@@ -120,6 +125,15 @@ pub trait EnvGroup: Send + Sync {
     /// the action dtype, already checked against the action space), except those `skip` marks: they
     /// keep their frame and report reward 0 and no episode end.
     async fn step(&mut self, actions: Vec<u8>, skip: Option<Vec<bool>>) -> Result<StepResult, SimulatorError>;
+
+    /// Starts a step of every env of the group with `actions` (as `step`'s) and returns what resolves
+    /// to its result, without waiting for it: the native engine's asynchronous mode keeps one group's
+    /// step in flight while the session reads another's. Dropping it drops the result, not the step.
+    /// By default the step is taken here and the result is ready at once.
+    async fn start_step(&mut self, actions: Vec<u8>) -> PendingStep {
+        let result = self.step(actions, None).await;
+        Box::pin(std::future::ready(result))
+    }
 
     /// EnvPool's asynchronous mode, for a group built with a `batch_size` below its envs: resets every
     /// env (reseeding env j with `seeds[j]` when given); their first frames come back through `recv`.

@@ -455,12 +455,19 @@ async fn the_envs_info_dicts_travel_with_their_env_index() {
     assert_eq!(session.reset_infos().iter().map(|(env, _)| *env).collect::<Vec<_>>(), vec![1]);
 }
 
-/// An async session (option batch_size) of `num_envs` fake envs, built directly (so that a session
-/// split over processes can be tried).
-async fn async_session(simulators: &FakeSimulators, num_envs: usize, batch: i64, frame_stack: i64) -> Result<Session, CoreError> {
-    use crate::catalog::{EnvId, Family, OptionValue, BATCH_SIZE};
+/// An async session (option batch_size) of `num_envs` fake envs of `engine`, built directly (so that
+/// a session split over processes can be tried).
+async fn async_session(
+    simulators: &FakeSimulators,
+    num_envs: usize,
+    batch: i64,
+    frame_stack: i64,
+    engine: &str,
+) -> Result<Session, CoreError> {
+    use crate::catalog::{EnvId, Family, OptionValue, BATCH_SIZE, ENGINE};
     let mut options = fake::fake_options(frame_stack);
     options.insert(BATCH_SIZE.to_string(), OptionValue::Int(batch));
+    options.insert(ENGINE.to_string(), OptionValue::Str(engine.into()));
     let config = SessionConfig {
         env: EnvId { family: Family::Gym, name: "Fake-v0".into() },
         num_envs,
@@ -477,7 +484,7 @@ async fn an_async_session_gives_each_env_its_own_episodes_in_the_order_envs_come
     // complete; each env's stack, rewards, episode ends and final observations are still its own.
     let (k, n, batch) = (2usize, 6usize, 2usize);
     let simulators = FakeSimulators::new(1);
-    let mut session = async_session(&simulators, n, batch as i64, k as i64).await.unwrap();
+    let mut session = async_session(&simulators, n, batch as i64, k as i64, "envpool").await.unwrap();
     assert_eq!(session.async_batch(), Some(batch));
     let frame_bytes = k * FRAME_BYTES;
     let sent = |envs: &[usize]| (0..n).map(|env| envs.contains(&env)).collect::<Vec<bool>>();
@@ -533,7 +540,7 @@ async fn an_async_session_gives_each_env_its_own_episodes_in_the_order_envs_come
 #[tokio::test]
 async fn an_async_session_refuses_what_would_wait_forever_and_what_it_cannot_keep() {
     let simulators = FakeSimulators::new(1);
-    let mut session = async_session(&simulators, 4, 2, 1).await.unwrap();
+    let mut session = async_session(&simulators, 4, 2, 1, "envpool").await.unwrap();
     session.async_reset(Some(3)).await.unwrap();
     session.recv().await.unwrap();
     session.recv().await.unwrap();
@@ -559,9 +566,74 @@ async fn an_async_session_refuses_what_would_wait_forever_and_what_it_cannot_kee
     let sync = manager.get(&local(), &id).unwrap();
     let refused = sync.lock().await.recv().await.unwrap_err();
     assert!(refused.to_string().contains("steps every env at once"), "{refused}");
-    let split = async_session(&FakeSimulators::new(2), 4, 2, 1).await.err().expect("refused");
+    let split = async_session(&FakeSimulators::new(2), 4, 2, 1, "envpool").await.err().expect("refused");
     assert!(split.to_string().contains("one simulator process"), "{split}");
     drop(simulators);
+}
+
+#[tokio::test]
+async fn the_native_engines_async_mode_returns_whole_groups_and_keeps_each_envs_episodes() {
+    // Groups of batch_size envs, each stepped whole in its worker: recv returns the first group done,
+    // send takes whole groups; each env's stack, rewards, ends and final observations are its own.
+    let (k, n, batch) = (2usize, 6usize, 2usize);
+    let simulators = FakeSimulators::new(2);
+    let mut session = async_session(&simulators, n, batch as i64, k as i64, "native").await.unwrap();
+    assert_eq!(session.async_batch(), Some(batch));
+    let frame_bytes = k * FRAME_BYTES;
+    let sent = |envs: &[usize]| (0..n).map(|env| envs.contains(&env)).collect::<Vec<bool>>();
+    session.async_reset(None).await.unwrap();
+    let mut models: Vec<EnvModel> = (0..n as u64).map(|i| EnvModel::new(10 + i)).collect();
+    let mut first_seen = vec![false; n];
+    let mut pending = vec![0i64; n];
+    let mut ends = 0;
+    let (mut ready, mut outcome) = session.recv().await.unwrap();
+    for round in 0..40i64 {
+        let envs: Vec<usize> = (0..n).filter(|&env| ready[env]).collect();
+        assert_eq!(envs.len(), batch, "round {round}");
+        assert!(envs[0].is_multiple_of(batch) && envs[1] == envs[0] + 1, "a whole group: {envs:?}");
+        let mut final_rows = outcome.final_obs.chunks_exact(frame_bytes);
+        for &env in &envs {
+            if !std::mem::replace(&mut first_seen[env], true) {
+                assert_eq!((outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]), (0.0, false, false));
+            } else {
+                let (reward, terminated, truncated, ended) = models[env].step(pending[env], k);
+                assert_eq!((outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]), (reward, terminated, truncated));
+                if let Some((final_stack, _, _)) = ended {
+                    assert_eq!(final_rows.next().unwrap(), final_stack.as_slice(), "env {env} round {round}");
+                    ends += 1;
+                }
+            }
+            assert_eq!(&outcome.obs[env * frame_bytes..][..frame_bytes], EnvModel::stack(&models[env].frames, k).as_slice());
+        }
+        assert!(final_rows.next().is_none(), "one final observation per ended episode");
+        // Part of a group is refused, and sends nothing.
+        let refused = session.send(DType::Int64, &[n], &actions(&[0; 6]), &sent(&envs[..1])).await.unwrap_err();
+        assert!(refused.to_string().contains("send names whole groups"), "{refused}");
+        let mut values = vec![0i64; n];
+        for &env in &envs {
+            pending[env] = (env as i64 + round) % 3;
+            values[env] = pending[env];
+        }
+        (ready, outcome) = if round % 2 == 0 {
+            session.send_recv(DType::Int64, &[n], &actions(&values), &sent(&envs)).await.unwrap()
+        } else {
+            session.send(DType::Int64, &[n], &actions(&values), &sent(&envs)).await.unwrap();
+            session.recv().await.unwrap()
+        };
+    }
+    assert!(ends > 0, "the run covers episode ends");
+    assert_eq!(session.total_env_steps, 40 * batch as u64 - n as u64 + batch as u64);
+    // A seeded async reset with steps in flight: every env starts its seed's episode again.
+    session.async_reset(Some(10)).await.unwrap();
+    for _ in 0..n / batch {
+        let (ready, outcome) = session.recv().await.unwrap();
+        for env in (0..n).filter(|&env| ready[env]) {
+            let fresh = EnvModel::new(10 + env as u64);
+            assert_eq!(&outcome.obs[env * frame_bytes..][..frame_bytes], EnvModel::stack(&fresh.frames, k).as_slice());
+        }
+    }
+    assert!(session.recv().await.unwrap_err().to_string().contains("send actions to at least 2 more"));
+    session.close().await;
 }
 
 #[tokio::test]
@@ -582,8 +654,8 @@ async fn batch_size_is_checked_at_create_before_anything_is_built() {
     };
     let refused = create_with(options("envpool", 5), None).await.unwrap_err().to_string();
     assert!(refused.contains("above num_envs 4"), "{refused}");
-    let refused = create_with(options("native", 2), None).await.unwrap_err().to_string();
-    assert!(refused.contains("needs engine 'envpool'"), "{refused}");
+    let refused = create_with(options("native", 3), None).await.unwrap_err().to_string();
+    assert!(refused.contains("must be a multiple of batch_size"), "{refused}");
     let replay = Some(BufferRequest::Replay { capacity: 100 });
     let refused = create_with(options("envpool", 2), replay).await.unwrap_err().to_string();
     assert!(refused.contains("keeps no replay"), "{refused}");
