@@ -1,6 +1,6 @@
 """radserve against EnvPool on the same tasks, in one run: steps/s and CPU per env step.
 
-    .venv/bin/python bench/vs_envpool.py [--rounds 3] [--seconds 4] [--only TEXT]
+    .venv/bin/python bench/vs_envpool.py [--rounds 3] [--seconds 4] [--only TEXT] [--policy-ms M]
 
 EnvPool (1.2.5, C++ dm_control / MuJoCo-gym / ProcGen ports with their own thread pool) is what a
 researcher would use instead of radserve for fast vectorized simulation. This script runs it from a
@@ -8,14 +8,17 @@ virtualenv of its own (`.venv-envpool`, installed here, never the project's: the
 as its users install it), then measures each workload in alternating rounds: radserve with 2
 workers through shared-memory acting and through gRPC (a Python client in this process, one
 session), with its native engine (the simulators' own Python packages) and with engine="envpool"
-(EnvPool's ports inside radserve's workers; state rows only) in its synchronous mode and in EnvPool's
-asynchronous one (option batch_size = half the envs: recv the first ready half, send its actions, one
-call per batch), the native engine also pipelined (two sessions of half the envs, one's step in
-flight while the other's is read: step_async/step_wait), and EnvPool in-process with 2 threads
+(EnvPool's ports inside radserve's workers; state rows only), each in its synchronous mode and in
+EnvPool's asynchronous one (option batch_size = half the envs: recv the first ready half, send its
+actions, one call per batch; the native engine's halves are two groups, one per worker process,
+each stepped whole while the other's result is read), and EnvPool in-process with 2 threads
 in its synchronous mode (batch = every env) and its asynchronous one (send/recv of half the envs,
 EnvPool's fast path). Same task, same physics per env step, same image size; random actions. For the
 dm_control state row EnvPool is also run doing radserve's action repeat (four calls of one control
 step per agent step), a last table comparing against that.
+
+With --policy-ms M every side spends M ms choosing each call's actions (a sleep: the learner waiting on
+its accelerator's forward pass), the work EnvPool's asynchronous mode overlaps with stepping.
 
 CPU per env step adds every process's user+system time over the timed window (radserve: the client,
 the server and its workers; EnvPool: its one process) and divides by the steps.
@@ -63,6 +66,17 @@ WORKLOADS = [
 # the work radserve's engines do for action_repeat 4 (dm_control's reward summed over the repeat), so
 # it shows how much of that row's gap is the baseline's cheaper frame_skip rather than radserve.
 TRUE_REPEAT = {"dmc cheetah-run state": ({"max_episode_steps": 1000}, 4)}
+
+
+# Seconds the learner spends choosing each call's actions (--policy-ms): slept before each send or step.
+POLICY = {"seconds": 0.0}
+
+
+def choose(actions):
+    """`actions`, after the learner's time to choose them."""
+    if POLICY["seconds"]:
+        time.sleep(POLICY["seconds"])
+    return actions
 
 
 def rate_cell(runs) -> str:
@@ -137,11 +151,13 @@ def timed(step, envs_per_call: int, seconds: float, pids) -> "tuple[float, float
 
 # --- EnvPool, run in its own virtualenv (`--envpool-worker`) -------------------------------------
 
-def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds: float, calls: int = 1) -> dict:
+def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds: float, calls: int = 1,
+                    policy_s: float = 0.0) -> dict:
     """`mode` "sync" (batch = every env; `calls` EnvPool steps per agent step, the same actions) or
     "async" (EnvPool's send/recv of half the envs)."""
     import envpool
 
+    POLICY["seconds"] = policy_s
     batch = num_envs if mode == "sync" else num_envs // 2
     env = envpool.make(task, env_type="gymnasium", num_envs=num_envs, batch_size=batch, num_threads=2, seed=0,
                        **options)
@@ -156,7 +172,7 @@ def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds:
         env.reset()
 
         def step():
-            chosen = actions[next(counter) % 64]
+            chosen = choose(actions[next(counter) % 64])
             for _ in range(calls):
                 env.step(chosen)
     else:
@@ -164,7 +180,7 @@ def envpool_measure(task: str, options: dict, num_envs: int, mode: str, seconds:
 
         def step():  # EnvPool's own async loop: take the first ready half, send its actions
             *_, info = env.recv()
-            env.send(actions[next(counter) % 64][:len(info["env_id"])], info["env_id"])
+            env.send(choose(actions[next(counter) % 64][:len(info["env_id"])]), info["env_id"])
             return len(info["env_id"])
 
     rate, cpu, _ = timed(step, batch, seconds, [os.getpid()])
@@ -191,7 +207,7 @@ def envpool_run(task: str, options: dict, num_envs: int, mode: str, seconds: flo
     env = {**os.environ, "MUJOCO_GL": "egl", "LD_PRELOAD": EGL}
     output = subprocess.run(
         [str(VENV / "bin" / "python"), __file__, "--envpool-worker",
-         json.dumps([task, options, num_envs, mode, seconds, calls])],
+         json.dumps([task, options, num_envs, mode, seconds, calls, POLICY["seconds"]])],
         capture_output=True, text=True, env=env, cwd="/tmp", check=False)
     if output.returncode != 0:
         raise RuntimeError(f"EnvPool {task} {mode}: {output.stderr[-2000:]}")
@@ -215,13 +231,13 @@ def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int,
 
         def step():  # recv the first ready half and send it its actions, in one call (step(action, env_id))
             sent = ready[0]
-            ready[0] = envs.step(actions[next(counter) % 64][:len(sent)], sent)[4]["env_id"]
+            ready[0] = envs.step(choose(actions[next(counter) % 64][:len(sent)]), sent)[4]["env_id"]
             return len(sent)
     else:
         envs.reset()
 
         def step():
-            envs.step(actions[next(counter) % 64])
+            envs.step(choose(actions[next(counter) % 64]))
 
     # The client (this process), the server, its workers.
     rate, cpu, each = timed(step, batch, seconds, [os.getpid(), *server_pids()])
@@ -231,38 +247,16 @@ def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int,
     return radserve_result(rate, cpu, each, float(np.mean(first)) if pixels else None)
 
 
-def radserve_pipelined_run(client, server_pids, env_id: str, options: dict, num_envs: int, seconds: float):
-    """The native engine's way of overlapping simulation with the client (README, step_async): the
-    envs split into two sessions of half, one half's step in flight while the other's is read and its
-    next actions sent, through shared memory."""
-    half = num_envs // 2
-    pair = [client.make_vec(env_id, num_envs=half, seed=i * half, delivery="shared_memory", **options) for i in range(2)]
-    for envs in pair:
-        envs.reset()
-    actions = random_actions(pair[0].single_action_space, half)
-    counter = iter(range(1 << 62))
-    pair[0].step_async(actions[0])
-
-    def step():  # both halves: num_envs env steps
-        pair[1].step_async(actions[next(counter) % 64])
-        pair[0].step_wait()
-        pair[0].step_async(actions[next(counter) % 64])
-        pair[1].step_wait()
-
-    rate, cpu, each = timed(step, num_envs, seconds, [os.getpid(), *server_pids()])
-    pair[0].step_wait()
-    for envs in pair:
-        envs.close()
-    return radserve_result(rate, cpu, each)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=4.0)
     parser.add_argument("--only", default="", help="only the workloads whose label contains this")
+    parser.add_argument("--policy-ms", type=float, default=0.0,
+                        help="the learner's time to choose each call's actions (slept), overlapped by the async modes")
     parser.add_argument("--envpool-worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    POLICY["seconds"] = args.policy_ms / 1000
     if args.envpool_worker:
         print(json.dumps(envpool_measure(*json.loads(args.envpool_worker))))
         return
@@ -271,7 +265,8 @@ def main() -> None:
     import radserve
 
     ensure_envpool()
-    sides = ["radserve shm", "radserve grpc", "radserve pipelined shm", "radserve+EnvPool shm", "radserve+EnvPool grpc",
+    sides = ["radserve shm", "radserve grpc", "radserve async shm", "radserve async grpc", "radserve+EnvPool shm",
+             "radserve+EnvPool grpc",
              "radserve+EnvPool async shm", "radserve+EnvPool async grpc", "EnvPool sync", "EnvPool async",
              "EnvPool repeat"]
     results: "dict[str, dict[str, list[dict]]]" = {}
@@ -284,11 +279,7 @@ def main() -> None:
             for label, env_id, options, task, envpool_options, num_envs in workloads:
                 row = results.setdefault(label, {side: [] for side in sides})
                 for side in sides:
-                    if side == "radserve pipelined shm":
-                        if options.get("pixels"):
-                            continue  # rendering bound: nothing to overlap
-                        result = radserve_pipelined_run(client, pids, env_id, options, num_envs, args.seconds)
-                    elif side.startswith("radserve"):
+                    if side.startswith("radserve"):
                         delivery = "shared_memory" if side.endswith("shm") else "grpc"
                         engine = "envpool" if "EnvPool" in side else "native"
                         if engine == "envpool" and options.get("pixels"):
@@ -314,19 +305,20 @@ def main() -> None:
         return max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
 
     print(f"\nradserve (2 workers; engine native, and engine envpool for the state rows) vs EnvPool 1.2.5 "
-          f"(2 threads), 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s\n")
+          f"(2 threads), 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s"
+          + (f", {args.policy_ms:g} ms per call to choose actions" if args.policy_ms else "") + "\n")
     print("env steps/s:\n")
-    print("| workload | envs | radserve shm | radserve gRPC | radserve pipelined shm | radserve+EnvPool shm | "
-          "radserve+EnvPool gRPC | radserve+EnvPool async shm | radserve+EnvPool async gRPC | EnvPool sync | "
+    print("| workload | envs | radserve shm | radserve gRPC | radserve async shm | radserve async gRPC | "
+          "radserve+EnvPool shm | radserve+EnvPool gRPC | radserve+EnvPool async shm | radserve+EnvPool async gRPC | EnvPool sync | "
           "EnvPool async |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
         print(f"| {label} | {num_envs} | " + " | ".join(rate_cell(row[side]) for side in sides if side != "EnvPool repeat") + " |")
     print("\nagainst EnvPool's best mode (ratio of each round's rates), and CPU per env step (us, every process):\n")
-    print("| workload | shm | gRPC | pipelined shm | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | "
-          "+EnvPool async gRPC | CPU shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| workload | shm | gRPC | async shm | async gRPC | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | "
+          "+EnvPool async gRPC | CPU shm, async shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
         best = best_mode(row)
@@ -335,13 +327,15 @@ def main() -> None:
             return ratio_cell(row[side], row[best])
 
         cpu = ", ".join(f"{med(row[side], 'cpu') * 1e6:,.0f}" if row[side] else "-"
-                        for side in ("radserve shm", "radserve+EnvPool shm", "radserve+EnvPool async shm", best))
-        print(f"| {label} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {ratio('radserve pipelined shm')} | "
+                        for side in ("radserve shm", "radserve async shm", "radserve+EnvPool shm",
+                                     "radserve+EnvPool async shm", best))
+        print(f"| {label} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {ratio('radserve async shm')} | "
+              f"{ratio('radserve async grpc')} | "
               f"{ratio('radserve+EnvPool shm')} | "
               f"{ratio('radserve+EnvPool grpc')} | {ratio('radserve+EnvPool async shm')} | "
               f"{ratio('radserve+EnvPool async grpc')} | {cpu} ({best.split()[1]}) |")
     print("\nCPU per env step of each process through shared memory (us, medians): client, server, workers\n")
-    print("| workload | envs | native | native pipelined | +EnvPool | +EnvPool async |")
+    print("| workload | envs | native | native async | +EnvPool | +EnvPool async |")
     print("|---|---:|---:|---:|---:|---:|")
     for label, env_id, options, task, envpool_options, num_envs in workloads:
         row = results[label]
@@ -351,7 +345,7 @@ def main() -> None:
                 return "-"
             return " / ".join(f"{med(row[side], key) * 1e6:,.0f}" for key in ("cpu_client", "cpu_server", "cpu_workers"))
 
-        print(f"| {label} | {num_envs} | {split('radserve shm')} | {split('radserve pipelined shm')} | "
+        print(f"| {label} | {num_envs} | {split('radserve shm')} | {split('radserve async shm')} | "
               f"{split('radserve+EnvPool shm')} | "
               f"{split('radserve+EnvPool async shm')} |")
     repeated = [w for w in workloads if w[0] in TRUE_REPEAT]
