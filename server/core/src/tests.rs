@@ -455,6 +455,56 @@ async fn the_envs_info_dicts_travel_with_their_env_index() {
     assert_eq!(session.reset_infos().iter().map(|(env, _)| *env).collect::<Vec<_>>(), vec![1]);
 }
 
+/// The env models of an async session's envs, which come back in any order: each env's first result
+/// is its reset's first frame, the others its step with the action it was last sent.
+struct AsyncModel {
+    models: Vec<EnvModel>,
+    first_seen: Vec<bool>,
+    sent: Vec<i64>,
+    k: usize,
+}
+
+impl AsyncModel {
+    /// `n` envs seeded 10 + i, stacked `k` frames.
+    fn new(n: usize, k: usize) -> AsyncModel {
+        AsyncModel { models: (0..n as u64).map(|i| EnvModel::new(10 + i)).collect(), first_seen: vec![false; n], sent: vec![0; n], k }
+    }
+
+    /// Checks a recv's outcome for its ready `envs`; returns how many of their episodes ended.
+    fn check(&mut self, envs: &[usize], outcome: &StepOutcome, round: i64) -> usize {
+        let frame_bytes = self.k * FRAME_BYTES;
+        let mut final_rows = outcome.final_obs.chunks_exact(frame_bytes);
+        let mut ends = 0;
+        for &env in envs {
+            if !std::mem::replace(&mut self.first_seen[env], true) {
+                // Its reset's first frame, stacked k times; no reward, no episode end.
+                assert_eq!((outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]), (0.0, false, false));
+            } else {
+                let (reward, terminated, truncated, ended) = self.models[env].step(self.sent[env], self.k);
+                assert_eq!((outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]), (reward, terminated, truncated));
+                if let Some((final_stack, _, _)) = ended {
+                    assert_eq!(final_rows.next().unwrap(), final_stack.as_slice(), "env {env} round {round}");
+                    ends += 1;
+                }
+            }
+            let expected = EnvModel::stack(&self.models[env].frames, self.k);
+            assert_eq!(&outcome.obs[env * frame_bytes..][..frame_bytes], expected.as_slice(), "env {env} round {round}");
+        }
+        assert!(final_rows.next().is_none(), "one final observation per ended episode");
+        ends
+    }
+
+    /// Every env's action for a send to `envs` in `round` (the others' rows 0), remembered for `check`.
+    fn next_actions(&mut self, envs: &[usize], round: i64) -> Vec<i64> {
+        let mut values = vec![0i64; self.sent.len()];
+        for &env in envs {
+            self.sent[env] = (env as i64 + round) % 3;
+            values[env] = self.sent[env];
+        }
+        values
+    }
+}
+
 /// An async session (option batch_size) of `num_envs` fake envs of `engine`, built directly (so that
 /// a session split over processes can be tried).
 async fn async_session(
@@ -486,7 +536,6 @@ async fn an_async_session_gives_each_env_its_own_episodes_in_the_order_envs_come
     let simulators = FakeSimulators::new(1);
     let mut session = async_session(&simulators, n, batch as i64, k as i64, "envpool").await.unwrap();
     assert_eq!(session.async_batch(), Some(batch));
-    let frame_bytes = k * FRAME_BYTES;
     let sent = |envs: &[usize]| (0..n).map(|env| envs.contains(&env)).collect::<Vec<bool>>();
     let all_actions = |value: i64| actions(&vec![value; n]);
     // Before async_reset nothing steps; the synchronous calls are refused with what to use instead.
@@ -494,9 +543,7 @@ async fn an_async_session_gives_each_env_its_own_episodes_in_the_order_envs_come
     let refused = session.step(DType::Int64, &[n], &all_actions(0)).await.unwrap_err();
     assert!(refused.to_string().contains("async_reset and stepped with send/recv"), "{refused}");
     session.async_reset(None).await.unwrap();
-    let mut models: Vec<EnvModel> = (0..n as u64).map(|i| EnvModel::new(10 + i)).collect();
-    let mut first_seen = vec![false; n];
-    let mut pending = vec![0i64; n];
+    let mut model = AsyncModel::new(n, k);
     let mut order = Vec::new();
     let mut ends = 0;
     for round in 0..40 {
@@ -504,28 +551,8 @@ async fn an_async_session_gives_each_env_its_own_episodes_in_the_order_envs_come
         let envs: Vec<usize> = (0..n).filter(|&env| ready[env]).collect();
         assert_eq!(envs.len(), batch, "round {round}");
         order.extend(envs.iter().copied());
-        let mut final_rows = outcome.final_obs.chunks_exact(frame_bytes);
-        for &env in &envs {
-            if !std::mem::replace(&mut first_seen[env], true) {
-                // Its reset's first frame, stacked k times; no reward, no episode end.
-                assert_eq!(outcome.rewards[env], 0.0);
-                assert!(!outcome.terminated[env] && !outcome.truncated[env]);
-            } else {
-                let (reward, terminated, truncated, ended) = models[env].step(pending[env], k);
-                assert_eq!((outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]), (reward, terminated, truncated));
-                if let Some((final_stack, _, _)) = ended {
-                    assert_eq!(final_rows.next().unwrap(), final_stack.as_slice(), "env {env} round {round}");
-                    ends += 1;
-                }
-            }
-            assert_eq!(&outcome.obs[env * frame_bytes..][..frame_bytes], EnvModel::stack(&models[env].frames, k).as_slice());
-        }
-        assert!(final_rows.next().is_none(), "one final observation per ended episode");
-        let mut values = vec![0i64; n];
-        for &env in &envs {
-            pending[env] = (env as i64 + round) % 3;
-            values[env] = pending[env];
-        }
+        ends += model.check(&envs, &outcome, round);
+        let values = model.next_actions(&envs, round);
         session.send(DType::Int64, &[n], &actions(&values), &sent(&envs)).await.unwrap();
         // An env already stepping cannot be sent another action.
         let busy = session.send(DType::Int64, &[n], &all_actions(0), &sent(&envs[..1])).await.unwrap_err();
@@ -582,38 +609,18 @@ async fn the_native_engines_async_mode_returns_whole_groups_and_keeps_each_envs_
     let frame_bytes = k * FRAME_BYTES;
     let sent = |envs: &[usize]| (0..n).map(|env| envs.contains(&env)).collect::<Vec<bool>>();
     session.async_reset(None).await.unwrap();
-    let mut models: Vec<EnvModel> = (0..n as u64).map(|i| EnvModel::new(10 + i)).collect();
-    let mut first_seen = vec![false; n];
-    let mut pending = vec![0i64; n];
+    let mut model = AsyncModel::new(n, k);
     let mut ends = 0;
     let (mut ready, mut outcome) = session.recv().await.unwrap();
     for round in 0..40i64 {
         let envs: Vec<usize> = (0..n).filter(|&env| ready[env]).collect();
         assert_eq!(envs.len(), batch, "round {round}");
         assert!(envs[0].is_multiple_of(batch) && envs[1] == envs[0] + 1, "a whole group: {envs:?}");
-        let mut final_rows = outcome.final_obs.chunks_exact(frame_bytes);
-        for &env in &envs {
-            if !std::mem::replace(&mut first_seen[env], true) {
-                assert_eq!((outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]), (0.0, false, false));
-            } else {
-                let (reward, terminated, truncated, ended) = models[env].step(pending[env], k);
-                assert_eq!((outcome.rewards[env], outcome.terminated[env], outcome.truncated[env]), (reward, terminated, truncated));
-                if let Some((final_stack, _, _)) = ended {
-                    assert_eq!(final_rows.next().unwrap(), final_stack.as_slice(), "env {env} round {round}");
-                    ends += 1;
-                }
-            }
-            assert_eq!(&outcome.obs[env * frame_bytes..][..frame_bytes], EnvModel::stack(&models[env].frames, k).as_slice());
-        }
-        assert!(final_rows.next().is_none(), "one final observation per ended episode");
+        ends += model.check(&envs, &outcome, round);
         // Part of a group is refused, and sends nothing.
         let refused = session.send(DType::Int64, &[n], &actions(&[0; 6]), &sent(&envs[..1])).await.unwrap_err();
         assert!(refused.to_string().contains("send names whole groups"), "{refused}");
-        let mut values = vec![0i64; n];
-        for &env in &envs {
-            pending[env] = (env as i64 + round) % 3;
-            values[env] = pending[env];
-        }
+        let values = model.next_actions(&envs, round);
         (ready, outcome) = if round % 2 == 0 {
             session.send_recv(DType::Int64, &[n], &actions(&values), &sent(&envs)).await.unwrap()
         } else {
