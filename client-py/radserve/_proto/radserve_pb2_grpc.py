@@ -166,11 +166,13 @@ class RadServeServicer:
         raise NotImplementedError('Method not implemented!')
 
     def AsyncReset(self, request, context):
-        """EnvPool's asynchronous mode, for a session created with option `batch_size` below `num_envs`
-        (engine "envpool"): AsyncReset starts every env's reset, Send starts the next step of some envs,
-        and Recv waits until `batch_size` envs' steps (or resets) are complete and returns those. The
-        simulators never wait for the slowest env of a step, and the learner works on one batch while
-        the others step. Such a session is not stepped with Reset/Step, and keeps no replay buffer.
+        """EnvPool's asynchronous mode, for a session created with option `batch_size` below `num_envs`:
+        AsyncReset starts every env's reset, Send starts the next step of some envs, and Recv waits until
+        `batch_size` envs' steps (or resets) are complete and returns those, so the learner works on one
+        batch while the others step. Engine "envpool": EnvPool's own mode, any batch_size. Engine
+        "native": groups of batch_size envs (num_envs a multiple of it), each stepped whole; Recv returns
+        the first group done and Send takes whole groups. Such a session is not stepped with Reset/Step,
+        and keeps no replay buffer.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
