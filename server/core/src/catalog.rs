@@ -152,6 +152,19 @@ pub fn engine_is_envpool(options: &Options) -> bool {
     options.get(ENGINE) == Some(&OptionValue::Str("envpool".into()))
 }
 
+/// `batch_size` when `options` put a session of `num_envs` envs in the native engine's asynchronous
+/// mode (groups of batch_size envs, each stepped whole); None otherwise.
+pub fn native_async_batch(options: &Options, num_envs: usize) -> Option<usize> {
+    async_batch(options, num_envs).filter(|_| !engine_is_envpool(options))
+}
+
+/// The groups the native engine's asynchronous mode steps a session in: consecutive runs of
+/// `batch_size` envs (the last shorter only when num_envs is not a multiple, which create refuses).
+pub fn native_async_groups(options: &Options, num_envs: usize) -> Option<Vec<std::ops::Range<usize>>> {
+    native_async_batch(options, num_envs)
+        .map(|batch| (0..num_envs).step_by(batch).map(|start| start..(start + batch).min(num_envs)).collect())
+}
+
 /// The most groups a session in the native engine's asynchronous mode is split into (num_envs /
 /// batch_size): each is a group of its own in a worker, with its own frame memory.
 pub const MAX_ASYNC_GROUPS: usize = 32;

@@ -145,15 +145,15 @@ impl Simulators for FakeSimulators {
         seeds: Vec<u64>,
     ) -> Result<(EnvSpec, Vec<Box<dyn EnvGroup>>), SimulatorError> {
         let batch = crate::catalog::async_batch(options, seeds.len()).unwrap_or(0);
+        let native_groups = crate::catalog::native_async_groups(options, seeds.len());
         self.faults().creates += 1;
         if let Some(message) = self.faults().refuse_create.take() {
             return Err(SimulatorError::Refused(message));
         }
         let mut groups: Vec<Box<dyn EnvGroup>> = Vec::new();
-        if batch > 0 && !crate::catalog::engine_is_envpool(options) {
+        if let Some(ranges) = native_groups {
             // The native engine's asynchronous mode: synchronous groups of `batch` envs, as groups.rs builds.
-            for start in (0..seeds.len()).step_by(batch) {
-                let envs = start..(start + batch).min(seeds.len());
+            for envs in ranges {
                 groups.push(Box::new(FakeGroup::new(envs.clone(), seeds[envs].to_vec(), self.faults.clone(), 0)));
             }
             self.faults().groups_alive += groups.len();

@@ -898,7 +898,7 @@ fn check_batch_size(options: &Options, num_envs: usize, extras: &SessionExtras) 
              batch_size in [1, {num_envs}] (below num_envs for EnvPool's asynchronous mode) or 0"
         )));
     }
-    if let Some(batch) = catalog::async_batch(options, num_envs).filter(|_| !catalog::engine_is_envpool(options)) {
+    if let Some(batch) = catalog::native_async_batch(options, num_envs) {
         // The native engine steps a whole group at a time: recv returns the first group done.
         if !num_envs.is_multiple_of(batch) || num_envs / batch > catalog::MAX_ASYNC_GROUPS {
             return Err(CoreError::InvalidOption(format!(

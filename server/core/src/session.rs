@@ -14,7 +14,7 @@ use futures_util::future::join_all;
 use radserve_augment::{Augmentation, Draws, FrameShape, ImagePlan, Pipeline};
 use radserve_replay::{RecordedStep, ReplayBuffer};
 
-use crate::catalog::{async_batch, engine_is_envpool, EnvId, Options};
+use crate::catalog::{async_batch, engine_is_envpool, native_async_batch, EnvId, Options};
 use crate::error::CoreError;
 use crate::metrics::CoreMetrics;
 use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, GroupInfo, PendingStep, ResetInfos, SimulatorError, Simulators, StepResult};
@@ -624,7 +624,7 @@ impl Session {
     /// whole by its worker, one group's step in flight while another's result is read (the session
     /// does the asynchronous part); otherwise EnvPool's, in its one group.
     fn steps_groups(&self) -> bool {
-        self.async_batch().is_some() && !engine_is_envpool(&self.config.options)
+        native_async_batch(&self.config.options, self.config.num_envs).is_some()
     }
 
     /// Resets every env for `async_reset` (reseeded with the session's seeds when `seeded`).

@@ -6,7 +6,7 @@ use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use async_trait::async_trait;
-use radserve_core::catalog::{async_batch, engine_is_envpool, OptionValue};
+use radserve_core::catalog::{engine_is_envpool, native_async_groups, OptionValue};
 use radserve_core::{
     EnvGroup, EnvId, EnvNames, EnvSpec, FrameLayout, Options, PendingStep, ResetInfos, SimulatorError, Simulators, StepResult,
 };
@@ -198,16 +198,13 @@ impl Simulators for WorkerPool {
         }
         // The native engine's asynchronous mode steps groups of batch_size envs whole (the session
         // keeps one in flight while it reads another): the groups go round the least loaded workers.
-        let batch = async_batch(&options, seeds.len()).filter(|_| !envpool);
-        let workers = self.least_loaded(match batch {
+        let groups = native_async_groups(&options, seeds.len());
+        let workers = self.least_loaded(match &groups {
             _ if envpool => 1,
-            Some(batch) => seeds.len().div_ceil(batch),
+            Some(groups) => groups.len(),
             None => seeds.len(),
         });
-        let ranges = match batch {
-            Some(batch) => (0..seeds.len()).step_by(batch).map(|start| start..(start + batch).min(seeds.len())).collect(),
-            None => split_evenly(seeds.len(), workers.len()),
-        };
+        let ranges = groups.unwrap_or_else(|| split_evenly(seeds.len(), workers.len()));
         let mut pending = Vec::new();
         for (worker, envs) in workers.iter().cycle().zip(&ranges) {
             let group = NEXT_GROUP.fetch_add(1, Ordering::Relaxed);
