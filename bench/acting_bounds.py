@@ -1,32 +1,53 @@
-"""How fast could a same-host server step EnvPool at best? Bounds of two designs, on this machine.
+"""How fast could a same-host server step EnvPool at best? EnvPool behind one shared-memory hop.
 
-    .venv/bin/python bench/acting_bounds.py [--rounds 4] [--seconds 2]
+    .venv/bin/python bench/acting_bounds.py [--rounds 3] [--seconds 4] [--only TEXT] [--spin-us L,C]
 
-radserve keeps simulators out of the learner's process, so every step crosses processes. This script
-measures what that costs at the very least, with nothing of radserve in the way: a simulator process
-holding EnvPool (2 threads, raw calls) and the caller sharing memory, one one-byte pipe message each
-way per step, against EnvPool in the caller's own process (its sync and async modes), alternating
-rounds, same task and threads:
+radserve keeps simulators out of the learner's process, so every step crosses processes. The least
+such a design can add to EnvPool in-process is one hop per call: the learner writes its actions into
+memory both processes map and rings a Unix socket; a process holding EnvPool steps them and writes the
+results beside them (numpy, in place) and rings back. This script measures exactly that, with nothing
+of radserve in the way (no server, no frame stacking, no episode bookkeeping, no checks): EnvPool
+1.2.5 (2 threads, its raw `_send`/`_recv`, as radserve's envpool engine calls it) in a child process of
+its own virtualenv (`.venv-envpool`, installed by bench/vs_envpool.py), one byte each way on a
+socketpair, against EnvPool in-process (its public API, as its users step it) in alternating rounds,
+on bench/vs_envpool.py's state and ProcGen workloads:
 
-- "2 processes, sync": the caller sends a whole batch and waits for it (gymnasium's `step`, radserve's
-  contract today);
-- "2 processes, async": EnvPool's own async pattern across the two processes (batch = half the envs:
-  the caller takes the first half that is ready and sends its actions while the other half steps).
+- "one hop sync": the learner sends every env's actions and waits (gymnasium's `step`);
+- "one hop async": EnvPool's async pattern across the hop (batch = half the envs: the child sends the
+  ready half's actions, then recv's the next ready half and rings).
+
+In the same rounds, radserve itself (2 workers, a synchronous session through shared-memory acting,
+engine native and engine envpool; `--no-radserve` leaves it out). The column "one hop best /
+in-process best" (each round's better mode of each) is what no design with the simulator outside the
+learner's process can exceed on this machine; "radserve best / one hop best" is what radserve's own
+relay (client, server, worker loop) costs below that bound. `--spin-us L,C` has the learner (L) and
+the child (C) poll the socket for that long before sleeping on it.
 
 First it times a pipe round trip between two processes on different CPUs and on one CPU: on a VM
 whose idle vCPUs halt at once, waking a process on another CPU is what a cross-process step costs.
 """
 
 import argparse
+import contextlib
+import json
 import mmap
 import os
+import socket
 import statistics
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-TASK = "HalfCheetah-v5"
-HEADER = 64  # obs_dim, action_dim, action itemsize (int64 each), written by the simulator process
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import vs_envpool  # noqa: E402  (the same workloads, EnvPool virtualenv and timing)
+
+# Seconds each side polls before it sleeps on the ring (--spin-us): learner, child.
+SPIN = {"learner": 0.0, "child": 0.0}
+
+ROWS = [w for w in vs_envpool.WORKLOADS if "pixels" not in w[0]]
 
 
 def pipe_round_trip(cpus, count=20000) -> float:
@@ -54,156 +75,188 @@ def pipe_round_trip(cpus, count=20000) -> float:
     return elapsed / count
 
 
-def make(num_envs: int, batch: int):
-    import envpool  # after any fork: EnvPool's threads do not survive one
-
-    return envpool.make(TASK, env_type="gymnasium", num_envs=num_envs, batch_size=batch, num_threads=2, seed=0)
-
-
-def doorbells(memory):
-    """The polled design's request and answer counters, in the header after its three sizes."""
-    return np.ndarray((1,), np.int64, memory, 24), np.ndarray((1,), np.int64, memory, 32)
-
-
-def spin_until(counter, past: int) -> int:
-    """Waits, yielding the CPU at each look, for shared `counter[0]` to move past `past`."""
-    while True:
-        value = int(counter[0])
-        if value != past:
-            return value
-        os.sched_yield()
+def layout(num_envs: int, batch: int, obs_shape, obs_dtype, act_shape, act_dtype):
+    """Offsets of actions, env ids, obs, reward, terminated, truncated in the shared memory."""
+    sizes = [("actions", batch * int(np.prod(act_shape)) * np.dtype(act_dtype).itemsize),
+             ("ids", num_envs * 4),
+             ("obs", num_envs * int(np.prod(obs_shape)) * np.dtype(obs_dtype).itemsize),
+             ("reward", num_envs * 8), ("terminated", num_envs), ("truncated", num_envs)]
+    offsets, end = {}, 0
+    for name, size in sizes:
+        offsets[name] = end
+        end += (size + 63) // 64 * 64
+    return offsets, end
 
 
-def simulator(memory, n: int, mode: str, requests: int, answers: int) -> None:
-    """The simulator process: steps what the caller asks, results into the shared memory."""
-    pool = make(n, n // 2 if mode == "async" else n)
-    obs_dim, act_dim = pool.observation_space.shape[0], pool.action_space.shape[0]
-    header = np.ndarray((3,), np.int64, memory, 0)
-    header[:] = (obs_dim, act_dim, pool.action_space.dtype.itemsize)
-    actions, obs, reward, ready = views(memory, n, obs_dim, act_dim, pool.action_space.dtype)
-    keys = pool._state_keys
-    at_obs, at_reward, at_id = keys.index("obs"), keys.index("reward"), keys.index("info:env_id")
-    os.write(answers, b"r")
-    if mode in ("sync", "spin"):
-        pool.reset()
-        ids = np.arange(n, dtype=np.int32)
-        if mode == "spin":  # doorbells as counters in the shared memory, polled instead of slept on
-            request, answer = doorbells(memory)
+def views(buffer, offsets, num_envs, batch, obs_shape, obs_dtype, act_shape, act_dtype):
+    def at(name, dtype, shape):
+        return np.frombuffer(buffer, dtype=dtype, count=int(np.prod(shape)), offset=offsets[name]).reshape(shape)
 
-            def wait(seen):
-                return spin_until(request, seen)
-
-            def done(seen):
-                answer[0] = seen
-        else:  # one byte through a pipe each way, slept on
-            def wait(seen):
-                os.read(requests, 1)
-                return seen
-
-            def done(seen):
-                os.write(answers, b"k")
-        seen = 0
-        while True:
-            seen = wait(seen)
-            pool._send([ids, ids, actions.copy()])
-            state = pool._recv()
-            env = state[at_id]
-            obs[env], reward[env] = state[at_obs], state[at_reward]
-            done(seen)
-    else:
-        pool.async_reset()
-        while True:
-            state = pool._recv()
-            env = state[at_id]
-            obs[env], reward[env] = state[at_obs], state[at_reward]
-            ready[: len(env)] = env
-            os.write(answers, b"k")
-            os.read(requests, 1)
-            pool._send([env, env, actions[env]])
+    return {"actions": at("actions", act_dtype, (batch,) + tuple(act_shape)),
+            "ids": at("ids", np.int32, (num_envs,)),
+            "obs": at("obs", obs_dtype, (num_envs,) + tuple(obs_shape)),
+            "reward": at("reward", np.float64, (num_envs,)),
+            "terminated": at("terminated", np.bool_, (num_envs,)),
+            "truncated": at("truncated", np.bool_, (num_envs,))}
 
 
-def views(memory, n, obs_dim, act_dim, action_dtype):
-    at = HEADER
-    actions = np.ndarray((n, act_dim), action_dtype, memory, at)
-    at += 8 * n * act_dim
-    obs = np.ndarray((n, obs_dim), np.float32, memory, at)
-    at += 4 * n * obs_dim
-    reward = np.ndarray((n,), np.float64, memory, at)
-    at += 8 * n
-    ready = np.ndarray((n,), np.int32, memory, at)
-    return actions, obs, reward, ready
+def wait(sock, ring, spin_s: float) -> int:
+    """Receives the ring: polling without sleeping for up to `spin_s` first (--spin-us), then blocking."""
+    if spin_s:
+        until = time.perf_counter() + spin_s
+        while time.perf_counter() < until:
+            try:
+                return sock.recv_into(ring, 1, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                pass
+    return sock.recv_into(ring)
 
 
-def two_processes(n: int, mode: str):
-    """(step function, envs per call, cleanup) for the two-process design."""
-    memory = mmap.mmap(-1, 1 << 20)
-    r1, w1 = os.pipe()
-    r2, w2 = os.pipe()
-    pid = os.fork()
-    if pid == 0:
-        simulator(memory, n, mode, r1, w2)
-    os.read(r2, 1)
-    obs_dim, act_dim, itemsize = np.ndarray((3,), np.int64, memory, 0)
-    actions, obs, reward, ready = views(memory, n, int(obs_dim), int(act_dim), np.dtype(f"f{itemsize}"))
-    sent = np.random.default_rng(0).uniform(-1, 1, actions.shape)
+def child(spec: str) -> None:
+    """EnvPool behind the doorbell (runs in EnvPool's virtualenv), on the socket and memory passed."""
+    import envpool
 
+    task, options, num_envs, mode, socket_fd, memory_fd, spin = json.loads(spec)
+    batch = num_envs if mode == "sync" else num_envs // 2
+    env = envpool.make(task, env_type="gymnasium", num_envs=num_envs, batch_size=batch, num_threads=2, seed=0,
+                       **options)
+    obs_space, act_space = env.observation_space, env.action_space
+    act_shape, act_dtype = (act_space.shape, act_space.dtype)
+    # dm_control's observations are a dict: one float32 vector per env, the keys' arrays side by side (the
+    # flattening a server does).
+    keys = list(obs_space.spaces) if hasattr(obs_space, "spaces") else None
+    if keys is not None:
+        widths = [int(np.prod(obs_space.spaces[key].shape)) for key in keys]
+        obs_space = type("Flat", (), {"shape": (sum(widths),), "dtype": np.dtype(np.float32)})
+    doorbell = socket.socket(fileno=socket_fd)
+    memory = mmap.mmap(memory_fd, os.fstat(memory_fd).st_size)
+    offsets, _ = layout(num_envs, batch, obs_space.shape, obs_space.dtype, act_shape, act_dtype)
+    shared = views(memory, offsets, num_envs, batch, obs_space.shape, obs_space.dtype, act_shape, act_dtype)
+    doorbell.sendall(json.dumps({"obs_shape": obs_space.shape, "obs_dtype": str(obs_space.dtype),
+                                 "act_shape": act_shape, "act_dtype": str(act_dtype),
+                                 "discrete": hasattr(act_space, "n"),
+                                 "low": None if hasattr(act_space, "n") else act_space.low.tolist(),
+                                 "high": int(act_space.n) if hasattr(act_space, "n") else act_space.high.tolist()}
+                                ).encode().ljust(4096))
+
+    def write(obs, reward, terminated, truncated, ids):
+        n = len(ids)
+        shared["ids"][:n] = ids
+        if keys is None:
+            shared["obs"][:n] = obs
+        else:
+            start = 0
+            for key, width in zip(keys, widths):
+                shared["obs"][:n, start:start + width] = obs[key].reshape(n, width)
+                start += width
+        shared["reward"][:n] = reward
+        shared["terminated"][:n] = terminated
+        shared["truncated"][:n] = truncated
+
+    # EnvPool's raw calls (what radserve's envpool engine steps with): no action conversion, state tree or
+    # info dict, 60-70 us less per call than its public step/recv.
+    names = list(env._state_keys)
+    obs_names = ["obs"] if keys is None else [f"obs:{key}" for key in keys]
+    index = [names.index(name) for name in ["info:env_id", "reward", "done", "trunc"] + obs_names]
+    all_ids = np.arange(num_envs, dtype=np.int32)
+
+    def raw_recv():
+        state = env._recv()
+        obs = state[index[4]] if keys is None else dict(zip(keys, (state[i] for i in index[4:])))
+        done, trunc = state[index[2]], state[index[3]]
+        return obs, state[index[1]], done & ~trunc, trunc, {"env_id": state[index[0]]}
+
+    ring = bytearray(1)
     if mode == "sync":
-        def step():
-            np.copyto(actions, sent)
-            os.write(w1, b"s")
-            os.read(r2, 1)
-            return obs.copy(), reward.copy()
-        per = n
-    elif mode == "spin":
-        request, answer = doorbells(memory)
-
-        def step():
-            np.copyto(actions, sent)
-            target = int(request[0]) + 1
-            request[0] = target
-            spin_until(answer, target - 1)
-            return obs.copy(), reward.copy()
-        per = n
+        env.reset()
     else:
-        half = n // 2
+        env.async_reset()
+        obs, reward, terminated, truncated, info = env.recv()
+        write(obs, reward, terminated, truncated, info["env_id"])
+    while wait(doorbell, ring, spin) == 1:
+        if mode == "sync":
+            env._send([all_ids, all_ids, shared["actions"]])
+        else:
+            ids = shared["ids"][:batch].copy()
+            env._send([ids, ids, shared["actions"]])
+        obs, reward, terminated, truncated, info = raw_recv()
+        write(obs, reward, terminated, truncated, info["env_id"])
+        doorbell.send(b"d")
+
+
+def one_hop(task: str, options: dict, num_envs: int, mode: str, seconds: float) -> dict:
+    """Steps/s and CPU per env step (learner + child) of EnvPool behind the doorbell."""
+    ours, theirs = socket.socketpair()
+    memory_fd = os.memfd_create("acting-bounds")
+    os.ftruncate(memory_fd, 1 << 26)
+    env = {**os.environ, "MUJOCO_GL": "egl", "LD_PRELOAD": vs_envpool.EGL}
+    env.pop("PYTHONPATH", None)
+    process = subprocess.Popen(
+        [str(vs_envpool.VENV / "bin" / "python"), __file__, "--child",
+         json.dumps([task, options, num_envs, mode, theirs.fileno(), memory_fd, SPIN["child"]])],
+        pass_fds=(theirs.fileno(), memory_fd), env=env, cwd="/tmp")
+    theirs.close()
+    try:
+        hello = b""
+        while len(hello) < 4096:
+            part = ours.recv(4096 - len(hello))
+            if not part:
+                raise RuntimeError(f"EnvPool child for {task} exited")
+            hello += part
+        spec = json.loads(hello.decode().strip())
+        batch = num_envs if mode == "sync" else num_envs // 2
+        memory = mmap.mmap(memory_fd, 1 << 26)
+        offsets, _ = layout(num_envs, batch, spec["obs_shape"], spec["obs_dtype"], spec["act_shape"], spec["act_dtype"])
+        shared = views(memory, offsets, num_envs, batch, spec["obs_shape"], spec["obs_dtype"], spec["act_shape"],
+                       spec["act_dtype"])
+        rng = np.random.default_rng(0)
+        if spec["discrete"]:
+            actions = [rng.integers(0, spec["high"], batch) for _ in range(64)]
+        else:
+            actions = [rng.uniform(spec["low"], spec["high"], (batch,) + tuple(spec["act_shape"]))
+                       for _ in range(64)]
+        counter = iter(range(1 << 62))
+        ring = bytearray(1)
+        spin = SPIN["learner"]
 
         def step():
-            os.read(r2, 1)
-            env = ready[:half].copy()
-            result = obs[env], reward[env]
-            actions[env] = sent[:half]
-            os.write(w1, b"s")
-            return result
-        per = half
+            shared["actions"][:] = actions[next(counter) % 64]  # the ready envs' actions (async: their ids stay)
+            ours.send(b"s")
+            wait(ours, ring, spin)
 
-    def close():
-        os.kill(pid, 9)  # every forked process holds the pipes' ends: no end-of-file would reach it
-        os.waitpid(pid, 0)
-        for fd in (r1, w1, r2, w2):
-            os.close(fd)
-    return step, per, close
+        rate, cpu, _ = vs_envpool.timed(step, batch, seconds, [os.getpid(), process.pid])
+        return {"rate": rate, "cpu": cpu}
+    finally:
+        ours.close()
+        process.wait(timeout=30)
+        os.close(memory_fd)
 
 
-def in_process(n: int, mode: str):
-    pool = make(n, n if mode == "sync" else n // 2)
-    sent = np.random.default_rng(0).uniform(-1, 1, (n,) + pool.action_space.shape)
-    if mode == "sync":
-        pool.reset()
-        ids = np.arange(n, dtype=np.int32)
-        return (lambda: pool.step(sent, ids)), n, pool.close
-    pool.async_reset()
+def best_of(row, sides, rounds: int) -> "list[float]":
+    """Round by round, the best rate of `sides` (those run)."""
+    return [max(row[side][i]["rate"] for side in sides if row[side]) for i in range(rounds)]
 
-    def step():
-        *_, info = pool.recv()
-        pool.send(sent[: n // 2], info["env_id"])
-    return step, n // 2, pool.close
+
+def ratio_text(values) -> str:
+    return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rounds", type=int, default=4)
-    parser.add_argument("--seconds", type=float, default=2.0)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--only", default="")
+    parser.add_argument("--spin-us", default="0,0",
+                        help="learner,child: microseconds each side polls the ring before it sleeps")
+    parser.add_argument("--no-radserve", action="store_true",
+                        help="leave out radserve's synchronous shared-memory sessions (both engines)")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    SPIN["learner"], SPIN["child"] = (float(us) / 1e6 for us in args.spin_us.split(","))
+    if args.child:
+        child(args.child)
+        return
+    vs_envpool.ensure_envpool()
     cpus = sorted(os.sched_getaffinity(0))
     print("\npipe round trip between two processes, median of 5:\n")
     print("| processes on | us |")
@@ -211,38 +264,52 @@ def main() -> None:
     if len(cpus) > 1:
         print(f"| two CPUs | {statistics.median(pipe_round_trip(cpus[:2]) for _ in range(5)) * 1e6:.1f} |")
     print(f"| one CPU | {statistics.median(pipe_round_trip([cpus[0]] * 2) for _ in range(5)) * 1e6:.1f} |")
+    sides = ["in-process sync", "in-process async", "one hop sync", "one hop async"]
+    if not args.no_radserve:
+        sides += ["radserve native", "radserve envpool"]
+    rows = [w for w in ROWS if args.only in w[0]]
+    results = {}
+    with contextlib.ExitStack() as stack:
+        if not args.no_radserve:
+            os.environ.setdefault("MUJOCO_GL", "egl")
+            import radserve
 
-    designs = [("2 processes, sync", two_processes, "sync"), ("2 processes, async", two_processes, "async"),
-               ("2 processes, sync, polled doorbells", two_processes, "spin"),
-               ("EnvPool in-process, sync", in_process, "sync"), ("EnvPool in-process, async", in_process, "async")]
-    table = []
-    # Every simulator process is forked before this process loads EnvPool (its threads do not fork).
-    built = {n: [(label, *build(n, mode)) for label, build, mode in designs if build is two_processes]
-             for n in (16, 64)}
-    for n in (16, 64):
-        steps = built[n] + [(label, *build(n, mode)) for label, build, mode in designs if build is in_process]
-        rates = {label: [] for label, *_ in steps}
-        for _ in range(args.rounds):
-            for label, step, per, _ in steps:
-                for _ in range(10):
-                    step()
-                calls, start = 0, time.perf_counter()
-                while time.perf_counter() - start < args.seconds:
-                    step()
-                    calls += 1
-                rates[label].append(calls * per / (time.perf_counter() - start))
-        for *_, close in steps:
-            close()
-        best = max(("EnvPool in-process, sync", "EnvPool in-process, async"), key=lambda k: statistics.median(rates[k]))
-        for label in rates:
-            ratios = [a / b for a, b in zip(rates[label], rates[best])]
-            table.append((n, label, statistics.median(rates[label]), statistics.median(ratios)))
-    print(f"\n{TASK}, EnvPool 2 threads, median of {args.rounds} alternating rounds of {args.seconds:g} s:\n")
-    print("| envs | design | steps/s | vs EnvPool's best |")
-    print("|---:|---|---:|---:|")
-    for n, label, rate, ratio in table:
-        print(f"| {n} | {label} | {rate:,.0f} | {ratio:.2f}x |")
-
+            server = stack.enter_context(radserve.LocalServer(workers=2))
+            client = radserve.Client(server.address)
+            stack.callback(client.close)
+            client.list_envs()  # the catalog is built
+            pids = lambda: vs_envpool.descendants(server.process.pid)  # noqa: E731
+        for round_ in range(args.rounds):
+            for label, env_id, radserve_options, task, options, num_envs in rows:
+                row = results.setdefault(label, {side: [] for side in sides})
+                for side in sides:
+                    mode = side.split()[-1]
+                    if side.startswith("in-process"):
+                        result = vs_envpool.envpool_run(task, options, num_envs, mode, args.seconds)
+                    elif side.startswith("one hop"):
+                        result = one_hop(task, options, num_envs, mode, args.seconds)
+                    else:  # radserve, synchronous, through shared-memory acting
+                        result = vs_envpool.radserve_run(client, pids, env_id, radserve_options, num_envs,
+                                                         "shared_memory", args.seconds, engine=mode)
+                    row[side].append(result)
+                    print(f"round {round_ + 1} {label} x{num_envs}: {side} {result['rate']:,.0f} steps/s, "
+                          f"{result['cpu'] * 1e6:,.0f} us CPU/step", file=sys.stderr)
+    print(f"\nEnvPool 1.2.5 (2 threads) in-process and behind one shared-memory hop"
+          + ("" if args.no_radserve else ", and radserve (2 workers, synchronous session, shared-memory acting)")
+          + f", 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s\n")
+    print("| workload | envs | " + " | ".join(sides) + " | one hop best / in-process best |"
+          + ("" if args.no_radserve else " radserve best / one hop best |"))
+    print("|---|---:|" + "---:|" * (len(sides) + 1 + (not args.no_radserve)))
+    for label, *_, num_envs in rows:
+        row = results[label]
+        best = best_of(row, ["in-process sync", "in-process async"], args.rounds)
+        hop = best_of(row, ["one hop sync", "one hop async"], args.rounds)
+        line = (f"| {label} | {num_envs} | " + " | ".join(vs_envpool.rate_cell(row[side]) for side in sides)
+                + f" | {ratio_text([h / b for h, b in zip(hop, best)])} |")
+        if not args.no_radserve:
+            ours = best_of(row, ["radserve native", "radserve envpool"], args.rounds)
+            line += f" {ratio_text([r / h for r, h in zip(ours, hop)])} |"
+        print(line)
 
 if __name__ == "__main__":
     main()
