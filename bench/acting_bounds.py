@@ -44,6 +44,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import vs_envpool  # noqa: E402  (the same workloads, EnvPool virtualenv and timing)
 
+# Bytes of the memory the learner and the child share (every row's arrays fit: bigfish x64 needs ~1 MB).
+MEMORY = 1 << 26
+
 # Seconds each side polls before it sleeps on the ring (--spin-us): learner, child.
 SPIN = {"learner": 0.0, "child": 0.0}
 
@@ -85,6 +88,8 @@ def layout(num_envs: int, batch: int, obs_shape, obs_dtype, act_shape, act_dtype
     for name, size in sizes:
         offsets[name] = end
         end += (size + 63) // 64 * 64
+    if end > MEMORY:
+        raise ValueError(f"the arrays need {end} bytes, the shared memory holds {MEMORY}")
     return offsets, end
 
 
@@ -188,7 +193,7 @@ def one_hop(task: str, options: dict, num_envs: int, mode: str, seconds: float) 
     """Steps/s and CPU per env step (learner + child) of EnvPool behind the doorbell."""
     ours, theirs = socket.socketpair()
     memory_fd = os.memfd_create("acting-bounds")
-    os.ftruncate(memory_fd, 1 << 26)
+    os.ftruncate(memory_fd, MEMORY)
     env = {**os.environ, "MUJOCO_GL": "egl", "LD_PRELOAD": vs_envpool.EGL}
     env.pop("PYTHONPATH", None)
     process = subprocess.Popen(
@@ -205,7 +210,7 @@ def one_hop(task: str, options: dict, num_envs: int, mode: str, seconds: float) 
             hello += part
         spec = json.loads(hello.decode().strip())
         batch = num_envs if mode == "sync" else num_envs // 2
-        memory = mmap.mmap(memory_fd, 1 << 26)
+        memory = mmap.mmap(memory_fd, MEMORY)
         offsets, _ = layout(num_envs, batch, spec["obs_shape"], spec["obs_dtype"], spec["act_shape"], spec["act_dtype"])
         shared = views(memory, offsets, num_envs, batch, spec["obs_shape"], spec["obs_dtype"], spec["act_shape"],
                        spec["act_dtype"])
