@@ -1,6 +1,6 @@
 """How fast could a same-host server step EnvPool at best? EnvPool behind one shared-memory hop.
 
-    .venv/bin/python bench/acting_bounds.py [--rounds 3] [--seconds 4] [--only TEXT] [--spin-us L,C]
+    .venv/bin/python bench/acting_bounds.py [--rounds 3] [--seconds 4] [--only TEXT] [--spin-us L,C] [--no-radserve]
 
 radserve keeps simulators out of the learner's process, so every step crosses processes. The least
 such a design can add to EnvPool in-process is one hop per call: the learner writes its actions into
@@ -18,8 +18,9 @@ on bench/vs_envpool.py's state and ProcGen workloads:
 
 In the same rounds, radserve itself (2 workers, a synchronous session through shared-memory acting,
 engine native and engine envpool; `--no-radserve` leaves it out). The column "one hop best /
-in-process best" (each round's better mode of each) is what no design with the simulator outside the
-learner's process can exceed on this machine; "radserve best / one hop best" is what radserve's own
+in-process best" (each round's better mode of each) is about the most any design with the simulator
+outside the learner's process can reach on this machine (the child's own work per call is a few numpy
+writes); "radserve best / one hop best" is what radserve's own
 relay (client, server, worker loop) costs below that bound. `--spin-us L,C` has the learner (L) and
 the child (C) poll the socket for that long before sleeping on it.
 
