@@ -20,9 +20,9 @@ In the same rounds, radserve itself (2 workers, a synchronous session through sh
 engine native and engine envpool; `--no-radserve` leaves it out). The column "one hop best /
 in-process best" (each round's better mode of each) is about the most any design with the simulator
 outside the learner's process can reach on this machine (the child's own work per call is a few numpy
-writes); "radserve best / one hop best" is what radserve's own
-relay (client, server, worker loop) costs below that bound. `--spin-us L,C` has the learner (L) and
-the child (C) poll the socket for that long before sleeping on it.
+writes); "radserve best / one hop best" is what radserve's own relay (client, server, worker loop)
+costs below that bound. `--spin-us L,C` has the learner (L) and the child (C) poll the socket for
+that long before sleeping on it.
 
 First it times a pipe round trip between two processes on different CPUs and on one CPU: on a VM
 whose idle vCPUs halt at once, waking a process on another CPU is what a cross-process step costs.
