@@ -39,6 +39,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -91,7 +92,7 @@ def layout(num_envs: int, batch: int, obs_shape, obs_dtype, act_shape, act_dtype
         end += (size + 63) // 64 * 64
     if end > MEMORY:
         raise ValueError(f"the arrays need {end} bytes, the shared memory holds {MEMORY}")
-    return offsets, end
+    return offsets
 
 
 def views(buffer, offsets, num_envs, batch, obs_shape, obs_dtype, act_shape, act_dtype):
@@ -136,28 +137,15 @@ def child(spec: str) -> None:
         obs_space = type("Flat", (), {"shape": (sum(widths),), "dtype": np.dtype(np.float32)})
     doorbell = socket.socket(fileno=socket_fd)
     memory = mmap.mmap(memory_fd, os.fstat(memory_fd).st_size)
-    offsets, _ = layout(num_envs, batch, obs_space.shape, obs_space.dtype, act_shape, act_dtype)
+    offsets = layout(num_envs, batch, obs_space.shape, obs_space.dtype, act_shape, act_dtype)
     shared = views(memory, offsets, num_envs, batch, obs_space.shape, obs_space.dtype, act_shape, act_dtype)
     doorbell.sendall(json.dumps({"obs_shape": obs_space.shape, "obs_dtype": str(obs_space.dtype),
                                  "act_shape": act_shape, "act_dtype": str(act_dtype),
                                  "discrete": hasattr(act_space, "n"),
+                                 "n": int(act_space.n) if hasattr(act_space, "n") else None,
                                  "low": None if hasattr(act_space, "n") else act_space.low.tolist(),
-                                 "high": int(act_space.n) if hasattr(act_space, "n") else act_space.high.tolist()}
+                                 "high": None if hasattr(act_space, "n") else act_space.high.tolist()}
                                 ).encode().ljust(4096))
-
-    def write(obs, reward, terminated, truncated, ids):
-        n = len(ids)
-        shared["ids"][:n] = ids
-        if keys is None:
-            shared["obs"][:n] = obs
-        else:
-            start = 0
-            for key, width in zip(keys, widths):
-                shared["obs"][:n, start:start + width] = obs[key].reshape(n, width)
-                start += width
-        shared["reward"][:n] = reward
-        shared["terminated"][:n] = terminated
-        shared["truncated"][:n] = truncated
 
     # EnvPool's raw calls (what radserve's envpool engine steps with): no action conversion, state tree or
     # info dict, 60-70 us less per call than its public step/recv.
@@ -165,28 +153,32 @@ def child(spec: str) -> None:
     obs_names = ["obs"] if keys is None else [f"obs:{key}" for key in keys]
     index = [names.index(name) for name in ["info:env_id", "reward", "done", "trunc"] + obs_names]
     all_ids = np.arange(num_envs, dtype=np.int32)
+    flat_obs = shared["obs"].reshape(num_envs, -1)  # a view: each env's observation parts side by side
 
-    def raw_recv():
+    def receive():
+        """EnvPool's next results, written into the shared memory (rows in its order, ids beside)."""
         state = env._recv()
-        obs = state[index[4]] if keys is None else dict(zip(keys, (state[i] for i in index[4:])))
-        done, trunc = state[index[2]], state[index[3]]
-        return obs, state[index[1]], done & ~trunc, trunc, {"env_id": state[index[0]]}
+        ids, done, trunc = state[index[0]], state[index[2]], state[index[3]]
+        n = len(ids)
+        shared["ids"][:n] = ids
+        start = 0
+        for part in (state[i].reshape(n, -1) for i in index[4:]):
+            flat_obs[:n, start:start + part.shape[1]] = part
+            start += part.shape[1]
+        shared["reward"][:n] = state[index[1]]
+        shared["terminated"][:n] = done & ~trunc
+        shared["truncated"][:n] = trunc
 
     ring = bytearray(1)
     if mode == "sync":
         env.reset()
     else:
         env.async_reset()
-        obs, reward, terminated, truncated, info = env.recv()
-        write(obs, reward, terminated, truncated, info["env_id"])
+        receive()
     while wait(doorbell, ring, spin) == 1:
-        if mode == "sync":
-            env._send([all_ids, all_ids, shared["actions"]])
-        else:
-            ids = shared["ids"][:batch].copy()
-            env._send([ids, ids, shared["actions"]])
-        obs, reward, terminated, truncated, info = raw_recv()
-        write(obs, reward, terminated, truncated, info["env_id"])
+        ids = all_ids if mode == "sync" else shared["ids"][:batch].copy()
+        env._send([ids, ids, shared["actions"]])
+        receive()
         doorbell.send(b"d")
 
 
@@ -212,15 +204,12 @@ def one_hop(task: str, options: dict, num_envs: int, mode: str, seconds: float) 
         spec = json.loads(hello.decode().strip())
         batch = num_envs if mode == "sync" else num_envs // 2
         memory = mmap.mmap(memory_fd, MEMORY)
-        offsets, _ = layout(num_envs, batch, spec["obs_shape"], spec["obs_dtype"], spec["act_shape"], spec["act_dtype"])
+        offsets = layout(num_envs, batch, spec["obs_shape"], spec["obs_dtype"], spec["act_shape"], spec["act_dtype"])
         shared = views(memory, offsets, num_envs, batch, spec["obs_shape"], spec["obs_dtype"], spec["act_shape"],
                        spec["act_dtype"])
-        rng = np.random.default_rng(0)
-        if spec["discrete"]:
-            actions = [rng.integers(0, spec["high"], batch) for _ in range(64)]
-        else:
-            actions = [rng.uniform(spec["low"], spec["high"], (batch,) + tuple(spec["act_shape"]))
-                       for _ in range(64)]
+        space = (SimpleNamespace(n=spec["n"]) if spec["discrete"] else
+                 SimpleNamespace(low=np.array(spec["low"]), high=np.array(spec["high"]), shape=tuple(spec["act_shape"])))
+        actions = vs_envpool.random_actions(space, batch)
         counter = iter(range(1 << 62))
         ring = bytearray(1)
         spin = SPIN["learner"]
