@@ -38,6 +38,8 @@ def test_a_real_server_exposes_what_its_sessions_do():
         assert families["radserve_env_steps"].type == "counter"
         assert families["radserve_step_seconds"].type == "histogram"
         assert value(families, "radserve_workers") == 2
+        assert families["radserve_build"].type == "info"
+        assert value(families, "radserve_build", "_info", version=radserve.__version__, api="radserve.v1") == 1
         baseline = value(families, "radserve_env_steps", "_total", family="gym")
 
         envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, replay_capacity=1000)

@@ -3,8 +3,9 @@
 Public names only; the generated gRPC code lives in the private `radserve._proto` package.
 """
 
+from ._version import __version__
 from .batches import Batch, BatchStream, SharedBatchStream
-from .client import Client, EnvInfo, SessionInfo, SessionSummary
+from .client import Client, EnvInfo, ServerInfo, SessionInfo, SessionSummary
 from .errors import (
     FailedPreconditionError,
     InternalError,
@@ -23,7 +24,7 @@ from .sharded import ShardedBatchStream, ShardedVectorEnv
 from .vector import RemoteVectorEnv
 
 __all__ = [
-    "Client", "EnvInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "SharedBatchStream", "RemoteVectorEnv",
+    "__version__", "Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "SharedBatchStream", "RemoteVectorEnv",
     "ShardedVectorEnv", "ShardedBatchStream", "LocalServer", "TlsConfig",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",

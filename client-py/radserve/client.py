@@ -25,6 +25,17 @@ class EnvInfo:
 
 
 @dataclass(frozen=True)
+class ServerInfo:
+    """What a server says it is (rpc ServerInfo)."""
+
+    address: str
+    version: str
+    """its release, e.g. "0.1.0" (`radserve --version`)"""
+    api: str
+    """the gRPC API it implements, "radserve.v1" """
+
+
+@dataclass(frozen=True)
 class SessionInfo:
     session_id: str
     env_id: str
@@ -177,6 +188,15 @@ class Client:
                 except RadServeError:
                     continue
         return self._transport
+
+    def server_info(self) -> "list[ServerInfo]":
+        """What each server is, in the order of the servers. Answers before the server's catalog is
+        ready (unlike `list_envs`)."""
+        infos = []
+        for transport in self._transports:
+            response = transport.call("ServerInfo", pb.ServerInfoRequest())
+            infos.append(ServerInfo(address=transport.address, version=response.version, api=response.api))
+        return infos
 
     def list_envs(self, prefix: str = "") -> "list[EnvInfo]":
         """Every environment id the server hosts (optionally those starting with `prefix`)."""
@@ -346,8 +366,10 @@ class Client:
         self._for_session(session_id).close_session(session_id)
 
     def list_sessions(self) -> "list[SessionSummary]":
-        """Every session open on the server (all clients'; with several servers, every server's in
-        the order of the servers), oldest first: what each holds and how long it has been idle. The
+        """Every open session the caller may see: its own, or every principal's for an admin or a
+        monitor token (on a server without tokens every caller is the admin `local`, so that is every
+        session); with several servers, every server's in the order of the servers; oldest first:
+        what each holds and how long it has been idle. The
         server closes a session idle for longer than its `limits.session_idle_timeout_s`
         (`SessionSummary.idle_timeout_seconds`)."""
         sessions = []

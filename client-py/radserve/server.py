@@ -4,11 +4,14 @@ import os
 import shutil
 import signal
 import subprocess
+import sysconfig
 import threading
 from pathlib import Path
 
 def find_binary() -> str:
-    """$RADSERVE_BIN, else the release build of the repository this package lives in, else PATH."""
+    """$RADSERVE_BIN; else the release build of the repository this package lives in (a clone, after
+    `make setup`); else the one the `radserve-server` wheel installed beside this interpreter (a
+    virtualenv used without activating it); else `radserve` on PATH."""
     explicit = os.environ.get("RADSERVE_BIN")
     if explicit:
         return explicit
@@ -16,10 +19,15 @@ def find_binary() -> str:
         candidate = parent / "target" / "release" / "radserve"
         if candidate.exists():
             return str(candidate)
+    installed = Path(sysconfig.get_path("scripts")) / "radserve"
+    if installed.is_file() and os.access(installed, os.X_OK):
+        return str(installed)
     found = shutil.which("radserve")
     if found:
         return found
-    raise FileNotFoundError("no radserve binary: run `make setup`, or set RADSERVE_BIN")
+    raise FileNotFoundError(
+        "no radserve binary: `pip install radserve-server` (or `pip install \"radserve[server]\"`) into this "
+        "environment, run `make setup` in a clone, or set RADSERVE_BIN")
 
 
 class LocalServer:

@@ -109,6 +109,18 @@ class EnvInfo(_message.Message):
     default_options: _containers.MessageMap[str, OptionValue]
     def __init__(self, id: _Optional[str] = ..., family: _Optional[str] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., default_options: _Optional[_Mapping[str, OptionValue]] = ...) -> None: ...
 
+class ServerInfoRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class ServerInfoResponse(_message.Message):
+    __slots__ = ("version", "api")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    API_FIELD_NUMBER: _ClassVar[int]
+    version: str
+    api: str
+    def __init__(self, version: _Optional[str] = ..., api: _Optional[str] = ...) -> None: ...
+
 class ListEnvsRequest(_message.Message):
     __slots__ = ("prefix",)
     PREFIX_FIELD_NUMBER: _ClassVar[int]

@@ -34,6 +34,11 @@ class RadServeStub:
         Args:
             channel: A grpc.Channel.
         """
+        self.ServerInfo = channel.unary_unary(
+                '/radserve.v1.RadServe/ServerInfo',
+                request_serializer=radserve__pb2.ServerInfoRequest.SerializeToString,
+                response_deserializer=radserve__pb2.ServerInfoResponse.FromString,
+                _registered_method=True)
         self.ListEnvs = channel.unary_unary(
                 '/radserve.v1.RadServe/ListEnvs',
                 request_serializer=radserve__pb2.ListEnvsRequest.SerializeToString,
@@ -108,6 +113,14 @@ class RadServeStub:
 
 class RadServeServicer:
     """Missing associated documentation comment in .proto file."""
+
+    def ServerInfo(self, request, context):
+        """What the server is: its release and the API it implements. Answers at once (ListEnvs waits until
+        the workers have listed their environments), so a client can check what it talks to first.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
 
     def ListEnvs(self, request, context):
         """Every environment id the server can host, with its default observation and action spaces.
@@ -226,6 +239,11 @@ class RadServeServicer:
 
 def add_RadServeServicer_to_server(servicer, server):
     rpc_method_handlers = {
+            'ServerInfo': grpc.unary_unary_rpc_method_handler(
+                    servicer.ServerInfo,
+                    request_deserializer=radserve__pb2.ServerInfoRequest.FromString,
+                    response_serializer=radserve__pb2.ServerInfoResponse.SerializeToString,
+            ),
             'ListEnvs': grpc.unary_unary_rpc_method_handler(
                     servicer.ListEnvs,
                     request_deserializer=radserve__pb2.ListEnvsRequest.FromString,
@@ -306,6 +324,33 @@ def add_RadServeServicer_to_server(servicer, server):
  # This class is part of an EXPERIMENTAL API.
 class RadServe:
     """Missing associated documentation comment in .proto file."""
+
+    @staticmethod
+    def ServerInfo(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/ServerInfo',
+            radserve__pb2.ServerInfoRequest.SerializeToString,
+            radserve__pb2.ServerInfoResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
 
     @staticmethod
     def ListEnvs(request,

@@ -22,10 +22,12 @@ use crate::session::{check_seed, AutoresetMode, Session, SessionConfig, SessionS
 use crate::simulators::Simulators;
 use crate::space::{DType, Space};
 
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Limits {
+    /// Sessions open at once on the server (every principal's together).
     pub max_sessions: usize,
+    /// Environments in one session (`num_envs`).
     pub max_envs_per_session: usize,
     /// Environments across all sessions of the server.
     pub max_total_envs: usize,

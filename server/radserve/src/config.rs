@@ -16,7 +16,7 @@ use radserve_service::auth::{parse_digest, Digest};
 use radserve_sim::GlBackend;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     pub server: ServerConfig,
@@ -29,7 +29,7 @@ pub struct Config {
 }
 
 /// The Prometheus endpoint (`GET /metrics`, OpenMetrics text; the README's "The server").
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct MetricsConfig {
     /// host:port of the HTTP endpoint, e.g. "127.0.0.1:9090" (or "0.0.0.0:9090" in a container for
@@ -39,7 +39,7 @@ pub struct MetricsConfig {
 }
 
 /// Who may call (docs/security.md).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct AuthConfig {
     /// A TOML file of principals and their tokens' SHA-256 digests (`radserve token` makes entries).
@@ -54,7 +54,7 @@ pub struct AuthConfig {
 
 /// TLS on the gRPC port (rustls). Both files set: TLS; `client_ca_file` too: clients must present a
 /// certificate signed by that CA (mTLS).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct TlsConfig {
     /// PEM: the server's certificate chain.
@@ -127,19 +127,21 @@ impl TokensFile {
     }
 }
 
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct AugmentConfig {
     /// Threads that sample and augment minibatches; 0 means one per core.
     pub threads: usize,
-    /// Niceness of those threads (0..=19): above 0, acting (the gRPC handlers, the simulator
+    /// Niceness of the augmentation threads (0..=19): above 0, acting (the gRPC handlers, the simulator
     /// workers) gets the cores first when both want them, and augmentation takes what is left.
     pub nice: i32,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct ServerConfig {
+    /// host:port of the gRPC port (port 0 picks a free one). On a non-loopback address the server
+    /// starts only with authentication (auth.tokens_file or tls.client_ca_file) or server.insecure.
     pub address: String,
     /// Seconds from SIGTERM (or SIGINT) to exit, at most: streams end, calls finish, sessions close.
     /// A second signal exits at once.
@@ -153,8 +155,9 @@ pub struct ServerConfig {
     /// Seconds a connection may stay silent (no bytes from the peer) before it is closed. Live
     /// clients answer the keepalive pings, so only dead or non-gRPC peers reach it.
     pub idle_connection_timeout_s: f64,
-    /// Seconds between the server's HTTP/2 pings on each connection, and how long an answer may take.
+    /// Seconds between the server's HTTP/2 pings on each connection (below the idle timeout).
     pub keepalive_interval_s: f64,
+    /// Seconds a ping's answer may take before the connection is closed.
     pub keepalive_timeout_s: f64,
     /// Serve a non-loopback address with neither tokens nor client certificates: anyone who can
     /// reach the port can do anything. Off: such a start-up is refused.
@@ -180,15 +183,17 @@ impl Default for ServerConfig {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimConfig {
     /// Worker processes; 0 means one per core.
     pub workers: usize,
     /// OpenGL platform for MuJoCo rendering: "egl" (default) or "osmesa".
+    #[schemars(with = "String")]
     pub gl: GlBackend,
-    /// The virtualenv whose Python the workers embed. Unset: $VIRTUAL_ENV, then a `.venv` found
-    /// walking up from the executable (the layout `make setup` creates).
+    /// The virtualenv whose Python the workers embed. Unset: $VIRTUAL_ENV, then the virtualenv the
+    /// executable is installed in (the wheel's layout), then a `.venv` found walking up from the
+    /// executable (the layout `make setup` creates).
     pub venv: Option<PathBuf>,
     /// Seconds a worker may take to answer a reset, step or close before it is killed and replaced
     /// and the episodes it hosted end as truncated. Generous: a step of 64 default-look dm_control
@@ -354,13 +359,22 @@ impl Config {
             return Ok(PathBuf::from(active));
         }
         let exe = std::env::current_exe().context("locating the radserve executable")?;
+        // Installed from the wheel: the executable sits in a virtualenv's bin/, beside its python.
+        if let Some(prefix) = exe.parent().and_then(Path::parent) {
+            if prefix.join("pyvenv.cfg").exists() && prefix.join("bin/python").exists() {
+                return Ok(prefix.to_path_buf());
+            }
+        }
         for dir in exe.ancestors().skip(1) {
             let candidate = dir.join(".venv");
             if candidate.join("bin/python").exists() {
                 return Ok(candidate);
             }
         }
-        bail!("no Python virtualenv found: run `make setup`, or set sim.venv (RADSERVE__SIM__VENV)")
+        bail!(
+            "no Python virtualenv found for the simulators: install radserve-server into one (`pip install radserve-server` \
+             in a venv), activate one that has it, run `make setup` in a clone, or set sim.venv (RADSERVE__SIM__VENV)"
+        )
     }
 }
 

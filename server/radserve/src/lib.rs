@@ -3,6 +3,7 @@
 
 pub mod augment_cli;
 pub mod config;
+pub mod config_reference;
 pub mod metrics;
 pub mod incoming;
 

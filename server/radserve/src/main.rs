@@ -68,6 +68,18 @@ enum Command {
         #[arg(long, default_value = "localhost")]
         server_name: String,
     },
+    /// Print the configuration: the one `serve` would run with (defaults, then --config, then
+    /// RADSERVE__SECTION__KEY variables), every default, or the reference table of the docs.
+    Config {
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Every key at its default, as a commented TOML file (a starting point for --config).
+        #[arg(long, conflicts_with_all = ["config", "markdown"])]
+        defaults: bool,
+        /// The reference tables of docs/configuration.md (key, default, variable, meaning).
+        #[arg(long, conflicts_with = "config")]
+        markdown: bool,
+    },
     /// List every environment id with its observation and action spaces.
     Envs {
         /// Only ids starting with this prefix, e.g. `dmc/`.
@@ -228,6 +240,22 @@ async fn health(address: &str, service: String, timeout: std::time::Duration, tl
 
 async fn run(command: Command) -> anyhow::Result<()> {
     match command {
+        Command::Config { config, defaults, markdown } => {
+            use radserve::config_reference;
+            let text = if defaults {
+                config_reference::defaults_toml()
+            } else if markdown {
+                config_reference::markdown()
+            } else {
+                let title = match &config {
+                    Some(file) => format!("radserve's configuration from the defaults, {}, and the environment", file.display()),
+                    None => "radserve's configuration from the defaults and the environment".to_string(),
+                };
+                config_reference::toml_of(&Config::load(config.as_deref())?, &title)
+            };
+            print!("{text}");
+            Ok(())
+        }
         Command::Healthcheck { address, config, service, timeout_s, ca, server_name } => {
             let address = match address {
                 Some(address) => address,

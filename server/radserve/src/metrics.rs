@@ -16,6 +16,7 @@ use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric, MetricEncoder, NoLabelSet};
 use prometheus_client::metrics::counter::ConstCounter;
 use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::metrics::info::Info;
 use prometheus_client::metrics::MetricType;
 use prometheus_client::registry::Registry;
 use radserve_core::metrics::HistogramSnapshot;
@@ -62,6 +63,10 @@ impl Collector for Sources {
     fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
         let core = self.manager.metrics();
         let sessions = self.manager.list_sessions(&Principal::local());
+
+        // OpenMetrics' info type: exposed as radserve_build_info{version="..."} 1.
+        Info::new(vec![("version", radserve_service::VERSION), ("api", radserve_service::API)])
+            .encode(encoder.encode_descriptor("radserve_build", "The server's release and the gRPC API it implements", None, MetricType::Info)?)?;
 
         let mut steps = encoder.encode_descriptor("radserve_env_steps", "Environment steps (each env of a Step counts one)", None, MetricType::Counter)?;
         for (family, count) in core.env_steps() {

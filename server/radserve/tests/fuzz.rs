@@ -673,6 +673,7 @@ fn request_sequences_get_documented_answers_and_reserve_nothing_once_closed() {
 
 const METHODS: &[(&str, bool, bool)] = &[
     // (method, client streams, server streams)
+    ("ServerInfo", false, false),
     ("ListEnvs", false, false),
     ("CreateSession", false, false),
     ("DescribeSession", false, false),

@@ -46,6 +46,9 @@ async fn serves_health_reflection_and_answers_bad_input() {
     }
 
     let mut client = RadServeClient::new(channel);
+    let info = client.server_info(proto::ServerInfoRequest {}).await.unwrap().into_inner();
+    assert_eq!(info.version, env!("CARGO_PKG_VERSION"));
+    assert_eq!(info.api, "radserve.v1");
     let unknown = client
         .create_session(proto::CreateSessionRequest { env_id: "gym/CartPol-v1".into(), num_envs: 1, ..Default::default() })
         .await

@@ -47,6 +47,9 @@ fn sample(session_id: &str) -> proto::SampleBatchesRequest {
 }
 
 const TABLE: &[Row] = &[
+    Row { method: "ServerInfo", client_streams: false, server_streams: false, scope: Scope::Server, request: |_| {
+        proto::ServerInfoRequest::default().encode_to_vec()
+    } },
     Row { method: "ListEnvs", client_streams: false, server_streams: false, scope: Scope::Server, request: |_| {
         proto::ListEnvsRequest::default().encode_to_vec()
     } },

@@ -44,7 +44,7 @@ impl std::fmt::Debug for AuthPolicy {
 }
 
 /// Methods a principal with the `monitor` role may call: they change nothing.
-pub const MONITOR_METHODS: &[&str] = &["ListEnvs", "ListSessions", "DescribeSession"];
+pub const MONITOR_METHODS: &[&str] = &["ServerInfo", "ListEnvs", "ListSessions", "DescribeSession"];
 const SERVICE_PREFIX: &str = "/radserve.v1.RadServe/";
 const HEALTH_PREFIX: &str = "/grpc.health.v1.Health/";
 const REFLECTION_PREFIX: &str = "/grpc.reflection.";

@@ -299,6 +299,10 @@ type SharedSampleStream = Pin<Box<dyn Stream<Item = Result<proto::SharedSampleRe
 
 #[tonic::async_trait]
 impl RadServe for RadServeService {
+    async fn server_info(&self, _request: Request<proto::ServerInfoRequest>) -> Result<Response<proto::ServerInfoResponse>, Status> {
+        Ok(Response::new(proto::ServerInfoResponse { version: crate::VERSION.into(), api: crate::API.into() }))
+    }
+
     async fn list_envs(&self, request: Request<proto::ListEnvsRequest>) -> Result<Response<proto::ListEnvsResponse>, Status> {
         let prefix = request.into_inner().prefix;
         radserve_core::bounds::check_len("prefix", &prefix, radserve_core::bounds::MAX_ID_BYTES).map_err(ServiceError::from)?;

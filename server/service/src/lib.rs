@@ -41,6 +41,13 @@ pub use pb::dm_env_rpc::v1::environment_server::EnvironmentServer;
 pub use handlers::{RadServeService, StreamStopper};
 pub use proto::rad_serve_server::RadServeServer;
 
+/// The server's release (the workspace's one version, Cargo.toml): ServerInfo, `--version` and
+/// `radserve_build_info` all report it.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// The gRPC API package the server implements.
+pub const API: &str = "radserve.v1";
+
 /// Largest message the server sends or accepts. A session's batched observations (64 dm_control
 /// pixel stacks are ~6 MB) must fit.
 pub const MAX_MESSAGE_BYTES: usize = 256 << 20;
