@@ -4,10 +4,11 @@ VENV := .venv
 PYTHON := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 TORCH_STAMP := $(VENV)/.installed-torch
+DIST_STAMP := $(VENV)/.installed-dist
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build demo test test-rust test-python test-learners test-cluster images images-local bench-cluster fuzz soak bench bench-sim bench-augment bench-replay bench-security bench-learning preview torch lock proto api-snapshot clean
+.PHONY: setup system-libs build dist demo test test-rust test-python test-learners test-cluster images images-local bench-cluster fuzz soak bench bench-sim bench-augment bench-replay bench-security bench-demo bench-learning docs-tables preview torch lock proto api-snapshot clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -31,8 +32,8 @@ build: $(STAMP)
 	cargo build --release -p radserve
 
 ## demo: a server on localhost and RAD-SAC (translate) learning dm_control's cartpole-swingup from
-## pixels through it, with a progress bar (~7-10 min on 2 cores: 64x64 frames translated to 72x72,
-## a 16-filter encoder, batch 32, 24k environment steps; docs/learning.md); ends with one line: the
+## pixels through it, with a progress bar (64x64 frames translated to 72x72, a 16-filter encoder,
+## batch 32, 24k environment steps; the README's table says how long; docs/learning.md); ends with one line: the
 ## evaluation return at the start and at the end, the curve runs/demo/<run>/curve.png and the
 ## augmentation preview grid.
 DEMO_ENV ?= dmc/cartpole-swingup
@@ -60,6 +61,18 @@ test-python:
 	bash scripts/bounded.sh $(TEST_BOUND_S) $(PYTHON) -m pytest -q tests client-py/tests --ignore=tests/test_learners.py \
 		--ignore=client-py/tests/test_torch_adapter.py --ignore=tests/cluster
 
+## dist: the release's wheels in dist/: radserve (the client, pure Python) and radserve-server (the
+## binary for Linux x86_64 and CPython 3.11, with the simulators as dependencies; maturin, pyproject.toml)
+dist: $(STAMP) $(DIST_STAMP)
+	rm -rf dist && mkdir dist
+	$(PYTHON) -m pip wheel -q --no-deps -w dist ./client-py && rm -rf client-py/build
+	$(VENV)/bin/maturin build -q --release --locked --out dist -i $(PYTHON)
+	@ls dist
+
+$(DIST_STAMP): requirements-dist.lock | $(PYTHON)
+	$(PYTHON) -m pip install -q -r requirements-dist.lock
+	touch $(DIST_STAMP)
+
 ## images: the server and learner images (radserve:dev, radserve-learner:dev) on public base images;
 ## images-local: the same on base images made here from Debian packages (no registry needed)
 images:
@@ -70,8 +83,9 @@ images-local:
 
 ## test-cluster: the container tests (tests/cluster): three server containers and a learner container on
 ## a private Docker network, one sharded session over them, a server killed, restarted and stopped;
-## Compose. Builds the images first (on local bases: nothing is pulled). Needs a Docker engine.
-test-cluster: setup images-local
+## Compose; the wheels installed where there is no repository and no Rust. Builds the images and the
+## wheels first (on local bases: nothing is pulled). Needs a Docker engine.
+test-cluster: setup images-local dist
 	$(PYTHON) -m pytest -q -s tests/cluster
 
 test-learners: torch
@@ -106,6 +120,10 @@ $(TORCH_STAMP): requirements-torch.lock $(STAMP)
 ## what tokens and TLS cost) (the learning checks take hours on two cores: make bench-learning runs them)
 bench: bench-sim bench-augment bench-replay bench-security
 
+## bench-demo: `make demo`, then its run recorded in bench/results/demo.json (the README's demo table)
+bench-demo: demo
+	$(PYTHON) bench/demo_result.py $$(ls -td runs/demo/*/ | head -1)
+
 ## bench-cluster: steps/s and sharded batches/s over 1-3 server containers beside one local server
 bench-cluster: setup images-local
 	$(PYTHON) bench/cluster.py
@@ -129,6 +147,11 @@ bench-learning: setup torch
 	$(PYTHON) bench/learning.py rad-sac
 	$(PYTHON) bench/learning.py ppo
 
+## docs-tables: render every benchmark table of the README and docs/ from bench/results/*.json, and
+## docs/configuration.md's reference from the binary (tests/test_docs.py fails when they are stale)
+docs-tables: build
+	$(PYTHON) scripts/docs_tables.py --binary $(BIN)
+
 ## preview: docs/augment-preview.png, a grid of a dm_control frame under every augmentation
 preview: setup
 	$(BIN) augment-preview --env dmc/cartpole-balance --out docs/augment-preview.png
@@ -149,4 +172,4 @@ proto: $(STAMP)
 
 clean:
 	cargo clean
-	rm -rf $(VENV)
+	rm -rf $(VENV) dist

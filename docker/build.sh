@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Builds radserve's images from the repository: the server (radserve:$TAG) and the learner
-# (radserve-learner:$TAG). Usage: docker/build.sh [--local-bases] [--with-torch] [--tag TAG]
+# Builds radserve's images from the repository: the server (radserve:$TAG), the learner
+# (radserve-learner:$TAG), and the bare runtime both stand on (radserve-runtime:$TAG: the base image
+# with Mesa and the user, nothing of radserve; tests/cluster/test_wheels.py installs the wheels in
+# it). Usage: docker/build.sh [--local-bases] [--with-torch] [--tag TAG]
 #
 #   --local-bases   make the base images from Debian packages first (docker/base/make-bases.sh) and
 #                   build on them: nothing is pulled from a container registry
@@ -50,6 +52,7 @@ build() {  # image, then docker build's arguments
 }
 build "radserve:$tag"
 build "radserve-learner:$tag" --build-arg WITH_TORCH=$with_torch --target learner
+build "radserve-runtime:$tag" --target runtime
 rm -f "$log"
 find "$config" -mindepth 1 ! -name README.md -delete
-docker image ls --format '{{.Repository}}:{{.Tag}} {{.Size}}' | grep -E "^radserve(-learner)?:$tag " || true
+docker image ls --format '{{.Repository}}:{{.Tag}} {{.Size}}' | grep -E "^radserve(-learner|-runtime)?:$tag " || true

@@ -191,9 +191,9 @@ pub struct SimConfig {
     /// OpenGL platform for MuJoCo rendering: "egl" (default) or "osmesa".
     #[schemars(with = "String")]
     pub gl: GlBackend,
-    /// The virtualenv whose Python the workers embed. Unset: $VIRTUAL_ENV, then the virtualenv the
-    /// executable is installed in (the wheel's layout), then a `.venv` found walking up from the
-    /// executable (the layout `make setup` creates).
+    /// The virtualenv whose Python the workers embed. Unset: the virtualenv the executable is
+    /// installed in (the wheel's layout), then $VIRTUAL_ENV, then a `.venv` found walking up from
+    /// the executable (the layout `make setup` creates).
     pub venv: Option<PathBuf>,
     /// Seconds a worker may take to answer a reset, step or close before it is killed and replaced
     /// and the episodes it hosted end as truncated. Generous: a step of 64 default-look dm_control
@@ -355,15 +355,16 @@ impl Config {
         if let Some(venv) = &self.sim.venv {
             return Ok(venv.clone());
         }
-        if let Some(active) = std::env::var_os("VIRTUAL_ENV") {
-            return Ok(PathBuf::from(active));
-        }
         let exe = std::env::current_exe().context("locating the radserve executable")?;
-        // Installed from the wheel: the executable sits in a virtualenv's bin/, beside its python.
+        // Installed from the wheel: the executable sits in a virtualenv's bin/, beside its python,
+        // and that environment holds the simulators it was installed with, whichever one is active.
         if let Some(prefix) = exe.parent().and_then(Path::parent) {
             if prefix.join("pyvenv.cfg").exists() && prefix.join("bin/python").exists() {
                 return Ok(prefix.to_path_buf());
             }
+        }
+        if let Some(active) = std::env::var_os("VIRTUAL_ENV") {
+            return Ok(PathBuf::from(active));
         }
         for dir in exe.ancestors().skip(1) {
             let candidate = dir.join(".venv");
