@@ -8,7 +8,8 @@ threads. PyTorch is written here from the issue's semantics (per-sample paramete
 every frame of a stack), vectorized over the batch where PyTorch allows it (advanced indexing for
 crop/translate, one grouped conv2d for random convolution); it is not RAD's reference code, which is
 slower still. Prints ms per batch, GB/s of output, the ratio to a parallel copy of the same output
-bytes (measured by radserve in the same run), and the speed-up over PyTorch.
+bytes (measured by radserve in the same run), and the speed-up over PyTorch; a full run (no --filter)
+writes bench/results/augment_speed.json, which docs/augmentations.md renders.
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ import time
 from pathlib import Path
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import record  # noqa: E402  (bench/record.py: the results file)
 
 ROOT = Path(__file__).resolve().parent.parent
 LUMA = (0.2989, 0.587, 0.114)
@@ -230,6 +234,7 @@ def main() -> None:
     header = f"{'pipeline':<28} {'output':>16} {'radserve':>9} {'GB/s':>6} {'x copy':>7} {'torch':>9} {'speed-up':>9}"
     print(header)
     print("-" * len(header))
+    table_rows = []
     for row in rows:
         fn = TORCH[row["pipeline"]]
         x = torch.randint(0, 256, (args.batch, *row["input"]), dtype=torch.uint8, generator=generator)
@@ -242,6 +247,15 @@ def main() -> None:
         print(f"{name:<28} {output:>16} {ours * 1e3:>9.2f} {row['output_bytes'] / ours / 1e9:>6.2f} "
               f"{ours / row['copy_seconds']:>7.2f} {torch_s * 1e3:>9.1f} {torch_s / ours:>8.1f}x")
         sys.stdout.flush()
+        table_rows.append([f"`{name}`", output, record.cell(ours * 1e3, digits=2),
+                           record.cell(row["output_bytes"] / ours / 1e9, digits=2),
+                           record.cell(ours / row["copy_seconds"], digits=2), record.cell(torch_s * 1e3, digits=1),
+                           record.cell(torch_s / ours, digits=1, suffix="x")])
+    if not args.filter:
+        table = {"id": "augment_speed", "rows": table_rows,
+                 "columns": ["pipeline", "output", "radserve ms", "GB/s", "x copy", "PyTorch ms", "speed-up"],
+                 "note": f"Batch {args.batch}, {args.threads} threads on both sides, medians; torch {torch.__version__}."}
+        record.write("augment_speed", [table], {"batch": args.batch, "threads": args.threads, "budget": args.budget})
 
 
 if __name__ == "__main__":

@@ -13,7 +13,9 @@ against the reference pipeline, in one run.
 4. reference pipeline: in one Python process, a numpy replay buffer that stores obs and next_obs
    stacks separately (as RAD's reference does), sampled with numpy and augmented with PyTorch
    (bench/augment_speed.py's implementation) on the same cores.
-Also prints the bytes of memory per stored transition of both buffers.
+Also prints the bytes of memory per stored transition of both buffers. Each stream is measured
+--rounds times (medians, with the rounds' range); the tables go to bench/results/replay_stream.json
+(docs/performance.md renders them).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import radserve  # noqa: E402
+import record  # noqa: E402  (bench/record.py: the results file)
 
 
 def rate(stream, batches: int, warmup: int = 6) -> "tuple[float, int]":
@@ -76,6 +79,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=250, help="acting steps to fill the replay buffer")
     parser.add_argument("--envs", type=int, default=8)
     parser.add_argument("--threads", type=int, default=os.cpu_count())
+    parser.add_argument("--rounds", type=int, default=3, help="measurements of each stream (medians and ranges)")
     parser.add_argument("--no-reference", action="store_true", help="skip the PyTorch reference (no torch needed)")
     args = parser.parse_args()
 
@@ -94,11 +98,14 @@ def main() -> None:
         for name, augment in [("crop", "crop(84)"), ("translate", "translate(108)")]:
             for next_obs in (True, False):
                 common = dict(augment=augment, prefetch=4, include_next_obs=next_obs)
-                served, size = rate(client.sample_batches(envs.session_id, args.batch, **common), args.batches)
-                ceiling, _ = rate(client.sample_batches(envs.session_id, args.batch, repeat_first_batch=True, **common),
-                                  args.batches)
-                shared, _ = rate(client.sample_batches(envs.session_id, args.batch, delivery="shared_memory", **common),
-                                 args.batches)
+                served, ceiling, shared = [], [], []
+                for _ in range(args.rounds):
+                    rate_, size = rate(client.sample_batches(envs.session_id, args.batch, **common), args.batches)
+                    served.append(rate_)
+                    ceiling.append(rate(client.sample_batches(envs.session_id, args.batch, repeat_first_batch=True,
+                                                              **common), args.batches)[0])
+                    shared.append(rate(client.sample_batches(envs.session_id, args.batch, delivery="shared_memory",
+                                                             **common), args.batches)[0])
                 rows.append((name, "obs+next_obs" if next_obs else "obs only", size, served, ceiling, shared))
         envs.close()
 
@@ -107,21 +114,35 @@ def main() -> None:
         from augment_speed import crop, translate
 
         for name, fn in [("crop", lambda x: crop(x, 84)), ("translate", lambda x: translate(x, 108))]:
-            reference[name] = reference_rate(fn, min(stored, 4000), args.batch, max(3, args.batches // 8), args.threads)
+            reference[name] = [reference_rate(fn, min(stored, 4000), args.batch, max(3, args.batches // 8), args.threads)
+                               for _ in range(args.rounds)]
 
-    print(f"\nbatch {args.batch}, {args.threads} cores, batches per second into numpy (median of one run)")
-    header = (f"{'augment':<10} {'fields':<13} {'MB/batch':>9} {'grpc':>7} {'ceiling':>8} {'of ceiling':>10} "
-              f"{'GB/s':>6} {'shm':>7} {'GB/s':>6} {'shm/ceiling':>11} {'reference':>10}")
-    print(header)
-    print("-" * len(header))
+    table_rows = []
     for name, fields, size, served, ceiling, shared in rows:
         ref = reference.get(name) if fields == "obs+next_obs" else None
-        print(f"{name:<10} {fields:<13} {size / 1e6:>9.1f} {served:>7.1f} {ceiling:>8.1f} {served / ceiling:>10.2f} "
-              f"{served * size / 1e9:>6.2f} {shared:>7.1f} {shared * size / 1e9:>6.2f} {shared / ceiling:>11.2f} "
-              f"{f'{ref:.2f}' if ref else '-':>10}")
+        table_rows.append([
+            {"crop": "crop 100→84", "translate": "translate 100→108"}[name], fields, record.cell(size / 1e6, digits=1),
+            record.ranged(served, digits=1), record.ranged(ceiling, digits=1),
+            record.ranged([a / b for a, b in zip(served, ceiling)], digits=2),
+            record.ranged(shared, digits=1), record.cell(sorted(shared)[len(shared) // 2] * size / 1e9, digits=1),
+            record.ranged(ref, digits=2) if ref else "-",
+        ])
+    streams = {"id": "replay_stream", "rows": table_rows,
+               "columns": ["augment", "fields", "MB/batch", "gRPC", "gRPC ceiling", "gRPC / ceiling", "shared memory",
+                           "shared memory GB/s", "reference"],
+               "align": ["l", "l", "r", "r", "r", "r", "r", "r", "r"],
+               "note": f"Batches of {args.batch} per second into numpy in a Python learner, medians of {args.rounds} "
+                       f"rounds (their range); the server with 2 workers and {args.envs} envs."}
     reference_bytes = 2 * 9 * 100 * 100 + 6 * 4 + 4 + 1
-    print(f"\nmemory per transition: radserve {replay['memory_bytes'] / replay['capacity']:.0f} B "
-          f"({replay['frames_per_transition']:.4f} frames), reference {reference_bytes} B (6 frames)")
+    memory = {"id": "replay_memory", "columns": ["buffer", "bytes per transition", "frames per transition"],
+              "rows": [["radserve (frames stored once)", record.cell(replay["memory_bytes"] / replay["capacity"]),
+                        record.cell(replay["frames_per_transition"], digits=4)],
+                       ["reference (obs and next_obs stacks stored)", record.cell(reference_bytes), record.cell(6)]],
+              "note": "cheetah-run frames of 3x100x100, stacks of 3."}
+    for row in table_rows:
+        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in row))
+    record.write("replay_stream", [streams, memory], {"batch": args.batch, "batches": args.batches, "rounds": args.rounds,
+                                                      "envs": args.envs, "threads": args.threads})
 
 
 if __name__ == "__main__":

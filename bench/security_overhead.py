@@ -1,19 +1,19 @@
 """What authentication and TLS cost each path, in one run: two servers of the same build, one open
 (loopback, no token, no TLS) and one with a tokens file and TLS, measured in alternating rounds.
 
-    .venv/bin/python bench/security_overhead.py [--rounds 3]
+    .venv/bin/python bench/security_overhead.py [--rounds 3]     (make bench-security)
 
 Paths: gym CartPole acting (8 envs) through the shared-memory channel and through gRPC Step calls,
 and augmented minibatches (batch 256 of 3x64x64 ProcGen frames stacked 3, crop 64->56) through shared
 memory and through the gRPC byte stream. The shared-memory paths authenticate once, when the channel
 or stream opens; per step and per batch nothing else changes, so they should not move. Prints a
-table of medians and the secured/open ratio.
+table of medians (with the rounds' range) and the secured/open ratio, and writes it to
+bench/results/security_overhead.json (docs/performance.md and the README render it).
 """
 
 from __future__ import annotations
 
 import argparse
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -25,6 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "client-py"))
 import radserve  # noqa: E402
 from radserve.server import find_binary  # noqa: E402
+import record  # noqa: E402  (bench/record.py: the results file)
 
 
 def secured_server(folder: Path) -> "tuple[radserve.LocalServer, dict]":
@@ -97,10 +98,10 @@ def main() -> None:
             }
             sessions = {name: replay_session(client) for name, client in clients.items()}
             paths = {
-                "acting, shared memory (steps/s)": lambda c, s: acting_rate(c, "shared_memory", args.steps),
+                "acting, shared memory (gym CartPole x8, steps/s)": lambda c, s: acting_rate(c, "shared_memory", args.steps),
                 "acting, gRPC Step (steps/s)": lambda c, s: acting_rate(c, "grpc", args.steps // 3),
-                "batches, shared memory (batches/s)": lambda c, s: batch_rate(c, s.session_id, "shared_memory", args.batches),
-                "batches, gRPC stream (batches/s)": lambda c, s: batch_rate(c, s.session_id, "grpc", args.batches),
+                "batches, shared memory (256 x 9x56x56 crop, obs + next_obs, batches/s)": lambda c, s: batch_rate(c, s.session_id, "shared_memory", args.batches),
+                "batches, gRPC stream (same batches, batches/s)": lambda c, s: batch_rate(c, s.session_id, "grpc", args.batches),
             }
             results = {path: {name: [] for name in clients} for path in paths}
             for round_index in range(args.rounds):
@@ -110,11 +111,16 @@ def main() -> None:
                         results[path][name].append(measure(clients[name], sessions[name]))
             for envs in sessions.values():
                 envs.close()
-    print(f"\n{args.rounds} alternating rounds, medians; 1 worker per server, {radserve.__name__} client in one process")
-    print(f"| path | open | tokens + TLS | ratio |\n|---|---:|---:|---:|")
+    rows = []
     for path, by_server in results.items():
-        plain, secure = statistics.median(by_server["open"]), statistics.median(by_server["tokens+TLS"])
-        print(f"| {path} | {plain:,.0f} | {secure:,.0f} | {secure / plain:.2f} |")
+        ratios = [secure / plain for plain, secure in zip(by_server["open"], by_server["tokens+TLS"])]
+        rows.append([path, record.ranged(by_server["open"]), record.ranged(by_server["tokens+TLS"]),
+                     record.ranged(ratios, digits=2)])
+    table = {"id": "security_overhead", "columns": ["path", "open", "tokens + TLS", "tokens + TLS / open"], "rows": rows,
+             "note": f"Medians of {args.rounds} alternating rounds (their range), one worker per server."}
+    for row in rows:
+        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in row))
+    record.write("security_overhead", [table], {"rounds": args.rounds, "steps": args.steps, "batches": args.batches})
 
 
 if __name__ == "__main__":

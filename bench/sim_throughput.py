@@ -14,8 +14,8 @@ dmc2gym do; the row "baseline with cached Camera" gives the baseline the server'
 
 Rows marked "pipelined" split the envs into two sessions stepped with step_async/step_wait.
 
-Targets on a 2-core machine: dmc pixels >= 1.5x one process; dmc state and gym >= 1.3x; ProcGen >=
-0.5x of procgen's own vectorized in-process rate.
+A full run (every row, both transports) writes bench/results/sim_throughput.json, which
+docs/performance.md renders (`make docs-tables`); a partial one (--only, --delivery, --stream) only prints.
 """
 
 import argparse
@@ -33,6 +33,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 logging.getLogger("absl").setLevel(logging.ERROR)
 
 import radserve  # noqa: E402
+
+import record  # noqa: E402  (bench/record.py: the results file)
 
 
 def timed(step_fn, steps_per_call, seconds, warmup=2):
@@ -192,30 +194,30 @@ def main():
     args = parser.parse_args()
     s = args.seconds
     rows = [
-        # (label, env id, envs, server options, direct baseline, target ratio)
+        # (label, env id, envs, server options, direct baseline)
         ("dmc pixels cheetah-run (default look)", "dmc/cheetah-run", 4, {"frame_stack": 1},
-         lambda: dmc_direct("cheetah-run", 4, False, True, s), 1.5),
+         lambda: dmc_direct("cheetah-run", 4, False, True, s)),
         ("dmc pixels cheetah-run (default look), baseline with cached Camera", "dmc/cheetah-run", 4,
-         {"frame_stack": 1}, lambda: dmc_direct("cheetah-run", 4, False, True, s, True), None),
+         {"frame_stack": 1}, lambda: dmc_direct("cheetah-run", 4, False, True, s, True)),
         ("dmc pixels cheetah-run (fast look)", "dmc/cheetah-run", 4, {"frame_stack": 1, "render_profile": "fast"},
-         lambda: dmc_direct("cheetah-run", 4, True, True, s), 1.5),
+         lambda: dmc_direct("cheetah-run", 4, True, True, s)),
         ("dmc pixels cheetah-run (fast look), baseline with cached Camera", "dmc/cheetah-run", 4,
-         {"frame_stack": 1, "render_profile": "fast"}, lambda: dmc_direct("cheetah-run", 4, True, True, s, True), None),
+         {"frame_stack": 1, "render_profile": "fast"}, lambda: dmc_direct("cheetah-run", 4, True, True, s, True)),
         ("dmc state cheetah-run", "dmc/cheetah-run", 16, {"pixels": False},
-         lambda: dmc_direct("cheetah-run", 16, False, False, s), 1.3),
+         lambda: dmc_direct("cheetah-run", 16, False, False, s)),
         ("dmc state cheetah-run, pipelined 2 x 8", "dmc/cheetah-run", 16, {"pixels": False},
-         lambda: dmc_direct("cheetah-run", 16, False, False, s), 1.3),
+         lambda: dmc_direct("cheetah-run", 16, False, False, s)),
         ("gym HalfCheetah-v5", "gym/HalfCheetah-v5", 16, {},
-         lambda: gym_direct("HalfCheetah-v5", 16, s), 1.3),
+         lambda: gym_direct("HalfCheetah-v5", 16, s)),
         ("gym HalfCheetah-v5, pipelined 2 x 8", "gym/HalfCheetah-v5", 16, {},
-         lambda: gym_direct("HalfCheetah-v5", 16, s), 1.3),
+         lambda: gym_direct("HalfCheetah-v5", 16, s)),
         ("procgen bigfish", "procgen/bigfish", 64, {},
-         lambda: procgen_direct("bigfish", 64, s), 0.5),
+         lambda: procgen_direct("bigfish", 64, s)),
         ("procgen bigfish, pipelined 2 x 32", "procgen/bigfish", 64, {},
-         lambda: procgen_direct("bigfish", 64, s), 0.5),
+         lambda: procgen_direct("bigfish", 64, s)),
         # procgen's own pool of 4 threads stepping each worker's vector of games, for comparison
         ("procgen bigfish (num_threads=4)", "procgen/bigfish", 64, {"num_threads": 4},
-         lambda: procgen_direct("bigfish", 64, s), 0.5),
+         lambda: procgen_direct("bigfish", 64, s)),
     ]
     rows = [row for row in rows if args.only in row[0]]
     deliveries = ["grpc", "shared_memory"] if args.delivery == "both" else [args.delivery]
@@ -226,7 +228,7 @@ def main():
         # The server builds its catalog in a background worker for ~15 s after starting; measuring
         # during that time would give the first rows less CPU than the others.
         client.list_envs()
-        for label, env_id, num_envs, options, direct, target in rows:
+        for label, env_id, num_envs, options, direct in rows:
             acting = served_pipelined if "pipelined" in label else served
             # Rounds alternate server and baseline, so that a slow spell of this noisy machine lands on
             # both sides of a round's ratio rather than on one side of the whole row.
@@ -237,26 +239,24 @@ def main():
                 direct_rates.append(direct())
                 served_text = ", ".join(f"{r[-1]:.0f} ({d})" for d, r in rates.items())
                 print(f"{label}, round {round_ + 1}: {served_text} vs {direct_rates[-1]:.0f} steps/s", flush=True)
-            results.append((label, num_envs, rates, direct_rates, target))
+            results.append((label, num_envs, rates, direct_rates))
     names = {"grpc": "gRPC" + (" stream" if args.stream else ""), "shared_memory": "shared memory"}
-    print(f"\nradserve with {args.workers} workers vs one Python process, {os.cpu_count()} cores, synchronous acting "
-          f"unless pipelined\n")
-    print("| workload | envs | " + " | ".join(f"{names[d]} steps/s" for d in deliveries) + " | one process steps/s | "
-          + " | ".join(f"ratio ({names[d]})" for d in deliveries) + " | target |")
-    print("|---|---:|" + "---:|" * (2 * len(deliveries) + 2))
-    for label, num_envs, rates, direct_rates, target in results:
-        served_text = " | ".join(f"{np.median(rates[d]):.0f}" for d in deliveries)
-        ratio_text = " | ".join(ratio_cell(rates[d], direct_rates) for d in deliveries)
-        target_text = f"{target}x" if target else "-"
-        print(f"| {label} | {num_envs} | {served_text} | {np.median(direct_rates):.0f} | {ratio_text} | {target_text} |")
-    if args.rounds > 1:
-        print(f"\nsteps/s: medians of {args.rounds} rounds; ratio: median of the rounds' ratios (lowest-highest)")
+    columns = (["workload", "envs"] + [f"{names[d]} steps/s" for d in deliveries] + ["one process steps/s"]
+               + [f"{names[d]} / one process" for d in deliveries])
+    table_rows = []
+    for label, num_envs, rates, direct_rates in results:
+        ratios = [record.ranged([a / b for a, b in zip(rates[d], direct_rates)], digits=2, suffix="x") for d in deliveries]
+        table_rows.append([label, str(num_envs)] + [record.ranged(rates[d]) for d in deliveries]
+                          + [record.ranged(direct_rates)] + ratios)
+    table = {"id": "sim_throughput", "columns": columns, "rows": table_rows,
+             "note": f"radserve with {args.workers} workers, synchronous acting unless pipelined; medians of "
+                     f"{args.rounds} rounds of {args.seconds:g} s per side (their range), server and baseline alternating."}
+    print("\n" + " | ".join(columns))
+    for row in table_rows:
+        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in row))
+    if not args.only and args.delivery == "both" and not args.stream and not args.server_env:
+        record.write("sim_throughput", [table], {"seconds": args.seconds, "rounds": args.rounds, "workers": args.workers})
 
-
-def ratio_cell(served_rates, direct_rates):
-    ratios = [a / b for a, b in zip(served_rates, direct_rates)]
-    text = f"{np.median(ratios):.2f}x"
-    return text + (f" ({min(ratios):.2f}-{max(ratios):.2f})" if len(ratios) > 1 else "")
 
 if __name__ == "__main__":
     main()

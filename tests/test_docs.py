@@ -1,0 +1,36 @@
+"""The generated parts of the docs are current, and the README stays a manual: every benchmark table
+shown in the README and docs/ is the rendering of its results file (bench/results/), the
+configuration reference is what the binary prints, and the README keeps to its length."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+from radserve.server import find_binary
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_tables_and_the_configuration_reference_are_rendered_from_their_sources():
+    checked = subprocess.run([sys.executable, str(ROOT / "scripts" / "docs_tables.py"), "--check", "--binary", find_binary()],
+                             capture_output=True, text=True)
+    assert checked.returncode == 0, checked.stderr + checked.stdout
+
+
+def test_a_stale_table_is_found(tmp_path):
+    """The check itself fails on a page whose table differs from its results file."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import docs_tables
+
+    rendered = docs_tables.tables()
+    assert rendered, "bench/results/ holds no table"
+    some_id = sorted(rendered)[0]
+    page = f"intro\n<!-- BEGIN table:{some_id} -->\n| stale | 1 |\n<!-- END table:{some_id} -->\n"
+    fresh = docs_tables.render_page(page, rendered, find_binary(), "page.md")
+    assert fresh != page and rendered[some_id] in fresh
+    assert docs_tables.render_page(fresh, rendered, find_binary(), "page.md") == fresh
+
+
+def test_the_readme_is_a_manual_of_at_most_250_lines():
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 250, f"README.md has {len(lines)} lines: move detail into docs/"
