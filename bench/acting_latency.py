@@ -18,7 +18,8 @@ acting would), so that the acting thread's latency is the server's, not the clie
 With several binaries (a build before a change and after it), or one binary with and without settings
 (`--binary target/release/radserve --binary target/release/radserve@RADSERVE__AUGMENT__NICE=10`: the
 variables after `@` are set for that server only), rounds alternate between them: these machines are
-noisy, compare ratios within one run.
+noisy, compare ratios within one run. The table goes to bench/results/acting_latency.json
+(docs/performance.md renders it) unless --no-results.
 """
 
 import argparse
@@ -31,6 +32,8 @@ import time
 import numpy as np
 
 import radserve
+
+import record  # noqa: E402  (bench/record.py: the results file)
 
 DRAIN = dict(batch_size=128, augment="color_jitter", prefetch=4)
 
@@ -126,6 +129,7 @@ def main():
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--drain-in-process", action="store_true",
                         help="drain from a thread of the acting process (its GIL is then shared)")
+    parser.add_argument("--no-results", action="store_true", help="print only; leave bench/results/ as it is")
     args = parser.parse_args()
     variants = []
     for text in args.binary or ["target/release/radserve"]:
@@ -134,21 +138,31 @@ def main():
     results = {}
     for round_index in range(args.rounds):
         for binary, env in variants:
-            label = " ".join([binary] + [f"{name}={value}" for name, value in env.items()])
+            settings = " ".join(f"{name}={value}" for name, value in env.items()) or "defaults"
+            several_binaries = len({path for path, _ in variants}) > 1
+            label = f"{binary} {settings}" if several_binaries else settings
             for case, row in measure(binary, env, args.steps, args.drain_in_process).items():
                 results.setdefault((label, case), []).append(row)
             print(f"round {round_index + 1}/{args.rounds} {label} done", file=sys.stderr, flush=True)
 
-    print("| build | acting | quiet p50 / p99 ms | while draining p50 / p99 ms | p99 ratio | batches/s drained |")
-    print("|---|---|---:|---:|---:|---:|")
-    for (binary, case), rows in results.items():
+    table_rows = []
+    for (label, case), rows in results.items():
         quiet = [t for row in rows for t in row[0]]
         busy = [t for row in rows for t in row[1]]
-        rate = statistics.median(row[2] for row in rows)
         ratios = [percentile(row[1], 99) / percentile(row[0], 99) for row in rows]
-        print(f"| {binary} | {case} | {percentile(quiet, 50):.2f} / {percentile(quiet, 99):.2f} | "
-              f"{percentile(busy, 50):.2f} / {percentile(busy, 99):.2f} | {statistics.median(ratios):.1f}x "
-              f"[{min(ratios):.1f}-{max(ratios):.1f}] | {rate:.0f} |")
+        table_rows.append([label, case, f"{percentile(quiet, 50):.2f} / {percentile(quiet, 99):.2f}",
+                           f"{percentile(busy, 50):.2f} / {percentile(busy, 99):.2f}",
+                           record.ranged(ratios, digits=1, suffix="x"), record.ranged([row[2] for row in rows])])
+        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in table_rows[-1]))
+    if not args.no_results:
+        table = {"id": "acting_latency", "rows": table_rows, "align": ["l", "l", "r", "r", "r", "r"],
+                 "columns": ["server", "acting", "quiet p50 / p99 ms", "while draining p50 / p99 ms", "p99 ratio",
+                             "batches/s drained"],
+                 "note": f"One Step over gRPC, {args.steps} steps per case (a quarter for pixels) quiet and while "
+                         f"draining colour-jitter batches of 128 from {'a thread' if args.drain_in_process else 'a process'}"
+                         f"; percentiles over all {args.rounds} rounds, ratio and rate: median (range) of the rounds."}
+        record.write("acting_latency", [table], {"rounds": args.rounds, "steps": args.steps,
+                                                 "drain_in_process": args.drain_in_process})
 
 
 if __name__ == "__main__":

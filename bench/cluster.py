@@ -1,6 +1,7 @@
 """Sharding over server containers: steps/s of one sharded session and batches/s of sharded
 crop(84) 512x9x84x84 obs+next_obs batches over 1, 2 and 3 server containers, with one local
-radserve process (no containers) beside them, in alternating rounds; prints a Markdown table.
+radserve process (no containers) beside them, in alternating rounds; prints the table and writes it
+to bench/results/cluster.json (docs/performance.md renders it).
 
     python bench/cluster.py [--rounds 3]        (make bench-cluster builds the images first)
 
@@ -123,21 +124,24 @@ def main() -> None:
             docker("rm", "-f", *containers, check=False)
         docker("network", "rm", network, check=False)
 
-    def cell(values: "list[float]", digits: int) -> str:
-        return f"{statistics.median(values):,.{digits}f} ({min(values):,.{digits}f}-{max(values):,.{digits}f})"
+    import record  # bench/record.py: the results file (imported here: the learner container needs none of it)
 
     baseline = results["one local process (no container)"]
     base_steps = statistics.median(r["steps_per_s"] for r in baseline)
     base_batches = statistics.median(r["batches_per_s"] for r in baseline)
-    print(f"\n{STATE_ENV} x{STATE_ENVS} acting (zero actions) and crop(84) {BATCH}x9x84x84 obs+next_obs batches, "
-          f"median (range) of {args.rounds} alternating rounds, 1 worker per server, 2 cores in all\n")
-    print("| servers | steps/s | vs local | batches/s | vs local |")
-    print("|---|---:|---:|---:|---:|")
+    rows = []
     for label, runs in results.items():
         steps = [r["steps_per_s"] for r in runs]
         batches = [r["batches_per_s"] for r in runs]
-        print(f"| {label} | {cell(steps, 0)} | {statistics.median(steps) / base_steps:.2f} | {cell(batches, 1)} | "
-              f"{statistics.median(batches) / base_batches:.2f} |")
+        rows.append([label, record.ranged(steps), record.cell(statistics.median(steps) / base_steps, digits=2),
+                     record.ranged(batches, digits=1), record.cell(statistics.median(batches) / base_batches, digits=2)])
+        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in rows[-1]))
+    table = {"id": "cluster", "rows": rows,
+             "columns": ["servers (gRPC unless said)", f"{STATE_ENV} x{STATE_ENVS} steps/s", "vs local",
+                         f"crop(84) {BATCH}x9x84x84 obs+next_obs batches/s", "vs local"],
+             "note": f"Median (range) of {args.rounds} alternating rounds, one worker per server; every server and the "
+                     f"learner share this machine's cores."}
+    record.write("cluster", [table], {"rounds": args.rounds, "tag": args.tag})
 
 
 if __name__ == "__main__":
