@@ -153,7 +153,7 @@ def main():
         table_rows.append([label, case, f"{percentile(quiet, 50):.2f} / {percentile(quiet, 99):.2f}",
                            f"{percentile(busy, 50):.2f} / {percentile(busy, 99):.2f}",
                            record.ranged(ratios, digits=1, suffix="x"), record.ranged([row[2] for row in rows])])
-        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in table_rows[-1]))
+        print(record.plain(table_rows[-1]))
     if not args.no_results:
         table = {"id": "acting_latency", "rows": table_rows, "align": ["l", "l", "r", "r", "r", "r"],
                  "columns": ["server", "acting", "quiet p50 / p99 ms", "while draining p50 / p99 ms", "p99 ratio",

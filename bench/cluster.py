@@ -135,7 +135,7 @@ def main() -> None:
         batches = [r["batches_per_s"] for r in runs]
         rows.append([label, record.ranged(steps), record.cell(statistics.median(steps) / base_steps, digits=2),
                      record.ranged(batches, digits=1), record.cell(statistics.median(batches) / base_batches, digits=2)])
-        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in rows[-1]))
+        print(record.plain(rows[-1]))
     table = {"id": "cluster", "rows": rows,
              "columns": ["servers (gRPC unless said)", f"{STATE_ENV} x{STATE_ENVS} steps/s", "vs local",
                          f"crop(84) {BATCH}x9x84x84 obs+next_obs batches/s", "vs local"],

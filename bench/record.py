@@ -68,6 +68,11 @@ def ranged(values, digits: int = 0, suffix: str = "") -> dict:
                                                                                                   suffix=suffix)
 
 
+def plain(row: list) -> str:
+    """A table row as one line of plain text (the figures without their ranges), for the terminal."""
+    return " | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in row)
+
+
 def write(name: str, tables: "list[dict]", settings: "dict | None" = None, path: "Path | None" = None,
           command: "str | None" = None) -> Path:
     """Writes the results file of bench `name`: the command that ran (this script's command line unless

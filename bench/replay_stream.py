@@ -140,7 +140,7 @@ def main() -> None:
                        ["reference (obs and next_obs stacks stored)", record.cell(reference_bytes), record.cell(6)]],
               "note": "cheetah-run frames of 3x100x100, stacks of 3."}
     for row in table_rows:
-        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in row))
+        print(record.plain(row))
     record.write("replay_stream", [streams, memory], {"batch": args.batch, "batches": args.batches, "rounds": args.rounds,
                                                       "envs": args.envs, "threads": args.threads})
 

@@ -119,7 +119,7 @@ def main() -> None:
     table = {"id": "security_overhead", "columns": ["path", "open", "tokens + TLS", "tokens + TLS / open"], "rows": rows,
              "note": f"Medians of {args.rounds} alternating rounds (their range), one worker per server."}
     for row in rows:
-        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in row))
+        print(record.plain(row))
     record.write("security_overhead", [table], {"rounds": args.rounds, "steps": args.steps, "batches": args.batches})
 
 

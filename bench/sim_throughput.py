@@ -253,7 +253,7 @@ def main():
                      f"{args.rounds} rounds of {args.seconds:g} s per side (their range), server and baseline alternating."}
     print("\n" + " | ".join(columns))
     for row in table_rows:
-        print(" | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in row))
+        print(record.plain(row))
     if not args.only and args.delivery == "both" and not args.stream and not args.server_env:
         record.write("sim_throughput", [table], {"seconds": args.seconds, "rounds": args.rounds, "workers": args.workers})
 
