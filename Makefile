@@ -33,12 +33,12 @@ build: $(STAMP)
 
 ## demo: a server on localhost and RAD-SAC (translate) learning dm_control's cartpole-swingup from
 ## pixels through it, with a progress bar (64x64 frames translated to 72x72, a 16-filter encoder,
-## batch 32, 24k environment steps; the README's table says how long; docs/learning.md); ends with one line: the
+## batch 32, 40k environment steps, 10 evaluation episodes every 8k; the README's table says how long; docs/learning.md); ends with one line: the
 ## evaluation return at the start and at the end, the curve runs/demo/<run>/curve.png and the
 ## augmentation preview grid.
 DEMO_ENV ?= dmc/cartpole-swingup
-DEMO_FLAGS ?= --env $(DEMO_ENV) --image-size 64 --aug "translate(72)" --num-filters 16 --total-env-steps 24000 \
-	--init-steps 125 --batch-size 32 --eval-every 4000 --eval-episodes 5 --render-profile fast --log-every 50
+DEMO_FLAGS ?= --env $(DEMO_ENV) --image-size 64 --aug "translate(72)" --num-filters 16 --total-env-steps 40000 \
+	--init-steps 125 --batch-size 32 --eval-every 8000 --eval-episodes 10 --render-profile fast --log-every 50
 demo: setup torch
 	$(PYTHON) client-py/examples/sac_pixels.py $(DEMO_FLAGS) --runs-dir runs/demo
 	$(BIN) augment-preview --env $(DEMO_ENV) --out runs/demo/augment-preview.png > /dev/null
