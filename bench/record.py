@@ -1,7 +1,7 @@
 """Results files of the benchmarks: each bench script writes `bench/results/<name>.json` through
 `record.write` (what ran, on which machine, at which commit, and its tables as figures with their
-ranges), and `scripts/docs_tables.py` (`make docs-tables`) renders every table into the README and docs/ where a
-`<!-- BEGIN table:<id> -->` marker asks for it. Nothing in the docs is typed by hand.
+ranges), and `scripts/docs_tables.py` (`make docs-tables`) renders every table into the README and
+docs/ where a `<!-- BEGIN table:<id> -->` marker asks for it. Nothing in the docs is typed by hand.
 
 A table is {"id", "columns", "rows", "align"?, "note"?}; a cell is a string, a number, or
 {"value", "low"?, "high"?, "digits"?, "suffix"?}: a median and the range of the rounds it came from.
@@ -13,6 +13,7 @@ import datetime
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -60,12 +61,10 @@ def cell(value: float, low: "float | None" = None, high: "float | None" = None, 
 
 
 def ranged(values, digits: int = 0, suffix: str = "") -> dict:
-    """The median of `values` with their range."""
-    ordered = sorted(values)
-    middle = len(ordered) // 2
-    median = ordered[middle] if len(ordered) % 2 else (ordered[middle - 1] + ordered[middle]) / 2
-    return cell(median, ordered[0], ordered[-1], digits, suffix) if len(ordered) > 1 else cell(median, digits=digits,
-                                                                                                  suffix=suffix)
+    """The median of `values` with their range (none for a single value)."""
+    values = list(values)
+    low, high = (min(values), max(values)) if len(values) > 1 else (None, None)
+    return cell(statistics.median(values), low, high, digits, suffix)
 
 
 def plain(row: list) -> str:

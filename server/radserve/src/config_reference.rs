@@ -25,12 +25,20 @@ impl Key {
     }
 }
 
-/// A TOML literal of a JSON value (strings as JSON strings, which TOML reads the same).
+/// A TOML literal of a JSON value (strings as JSON strings, which TOML reads the same; a table as an
+/// inline table, whose `key = value` syntax is TOML's, not JSON's).
 fn toml_literal(value: &Value) -> Option<String> {
     match value {
         Value::Null => None,
         Value::Array(items) => Some(format!("[{}]", items.iter().filter_map(toml_literal).collect::<Vec<_>>().join(", "))),
-        Value::Bool(_) | Value::Number(_) | Value::String(_) | Value::Object(_) => Some(value.to_string()),
+        Value::Object(entries) => {
+            let fields: Vec<String> = entries
+                .iter()
+                .filter_map(|(name, entry)| toml_literal(entry).map(|literal| format!("{name} = {literal}")))
+                .collect();
+            Some(format!("{{ {} }}", fields.join(", ")))
+        }
+        Value::Bool(_) | Value::Number(_) | Value::String(_) => Some(value.to_string()),
     }
 }
 
@@ -151,6 +159,12 @@ mod tests {
         // Every section of the tree, every field of Limits (from core) included.
         let limits = keys.iter().filter(|key| key.section == "limits").count();
         assert_eq!(limits, serde_json::to_value(radserve_core::Limits::default()).unwrap().as_object().unwrap().len());
+    }
+
+    #[test]
+    fn tables_are_written_as_toml_inline_tables() {
+        let value = serde_json::json!({"limits": {"max": 3, "name": "a"}, "unset": null});
+        assert_eq!(toml_literal(&value).unwrap(), r#"{ limits = { max = 3, name = "a" } }"#);
     }
 
     #[test]
