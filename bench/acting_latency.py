@@ -96,10 +96,11 @@ def measure(binary, server_env, steps, in_process):
     env = {"RADSERVE__SIM__VENV": sys.prefix, **server_env}
     with radserve.LocalServer(workers=2, binary=binary, env=env) as server:
         client = radserve.Client(server.address)
-        pixels = client.make_vec("dmc/cartpole-balance", num_envs=1, seed=0, replay_capacity=5000, render_profile="fast")
+        pixels = client.make_vec("dmc/cartpole-balance", num_envs=1, seed=0, autoreset_mode="SameStep",
+                                 replay_capacity=5000, render_profile="fast")
         pixel_actions = np.random.default_rng(0).uniform(-1, 1, (64, 1, 1)).astype(np.float32)
         latencies(pixels, 300, pixel_actions)  # fills the buffer
-        state = client.make_vec("gym/CartPole-v1", num_envs=1, seed=0)
+        state = client.make_vec("gym/CartPole-v1", num_envs=1, seed=0, autoreset_mode="SameStep")
         state_actions = np.random.default_rng(0).integers(0, 2, (64, 1))
         for case, envs, actions in [("own buffer (dmc pixels)", pixels, pixel_actions),
                                     ("other session (CartPole)", state, state_actions)]:

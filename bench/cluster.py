@@ -35,7 +35,7 @@ def measure(addresses: str, delivery: str = "grpc") -> dict:
     import radserve
 
     client = radserve.Client(addresses)
-    envs = client.make_vec(STATE_ENV, num_envs=STATE_ENVS, seed=0, delivery=delivery)
+    envs = client.make_vec(STATE_ENV, num_envs=STATE_ENVS, seed=0, autoreset_mode="SameStep", delivery=delivery)
     envs.reset(seed=0)
     actions = np.zeros((STATE_ENVS,) + envs.single_action_space.shape, dtype=np.float32)
     for _ in range(50):
@@ -46,7 +46,8 @@ def measure(addresses: str, delivery: str = "grpc") -> dict:
     steps_per_s = STEPS * STATE_ENVS / (time.perf_counter() - start)
     envs.close()
 
-    pixels = client.make_vec(PIXEL_ENV, num_envs=6, seed=0, replay_capacity=3000, delivery=delivery, **PIXEL_OPTIONS)
+    pixels = client.make_vec(PIXEL_ENV, num_envs=6, seed=0, autoreset_mode="SameStep",
+                             replay_capacity=3000, delivery=delivery, **PIXEL_OPTIONS)
     pixels.reset(seed=0)
     for _ in range(120):
         pixels.step(pixels.action_space.sample())

@@ -53,7 +53,8 @@ def main():
     with radserve.LocalServer(workers=args.workers) as server:
         client = radserve.Client(server.address)
         client.list_envs()  # the catalog worker is gone once this answers
-        envs = client.make_vec(args.env_id, num_envs=args.num_envs, seed=0, delivery=args.delivery,
+        envs = client.make_vec(args.env_id, num_envs=args.num_envs, seed=0, autoreset_mode="SameStep",
+                               delivery=args.delivery,
                                **dict(args.option))
         envs.reset()
         actions = random_actions(envs.single_action_space, args.num_envs)

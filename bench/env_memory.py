@@ -50,17 +50,17 @@ def main():
             time.sleep(1.0)
             pid = worker_pid(server.process.pid)
             base = rss(pid)
-            one = client.make_vec(env_id, num_envs=1, seed=0, **options)
+            one = client.make_vec(env_id, num_envs=1, seed=0, autoreset_mode="SameStep", **options)
             one.reset()
             after_one = rss(pid)
-            many = client.make_vec(env_id, num_envs=args.envs, seed=1, **options)
+            many = client.make_vec(env_id, num_envs=args.envs, seed=1, autoreset_mode="SameStep", **options)
             many.reset()
             for _ in range(3):
                 many.step(np.stack([many.single_action_space.sample() for _ in range(args.envs)]))
             after_many = rss(pid)
             per_env = (after_many - after_one) / args.envs
             # One more session of one env: what a session (a worker group) costs beside its envs.
-            extra = client.make_vec(env_id, num_envs=1, seed=100, **options)
+            extra = client.make_vec(env_id, num_envs=1, seed=100, autoreset_mode="SameStep", **options)
             extra.reset()
             per_session = rss(pid) - after_many - per_env
             print(f"{label:<22} {per_env / 2**20:>14.1f} {per_session / 2**20:>18.1f} {(after_one - base) / 2**20:>16.1f}",

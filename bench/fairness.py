@@ -33,13 +33,15 @@ def measure(binary, seconds):
     # A binary copied out of the checkout finds no .venv above it: point it at this interpreter's.
     with radserve.LocalServer(workers=2, binary=binary, env={"RADSERVE__SIM__VENV": sys.prefix}) as server:
         client = radserve.Client(server.address)
-        envs = client.make_vec("dmc/cheetah-run", num_envs=4, seed=0, replay_capacity=10_000, render_profile="fast")
+        envs = client.make_vec("dmc/cheetah-run", num_envs=4, seed=0, autoreset_mode="SameStep",
+                               replay_capacity=10_000, render_profile="fast")
         envs.reset()
         for _ in range(150):
             envs.step(np.random.default_rng(0).uniform(-1, 1, (4, 6)).astype(np.float32))
         sid = envs.session_id
         # The attacker has a session of its own (its replay buffer's lock is not the victim's).
-        other = client.make_vec("dmc/cheetah-run", num_envs=4, seed=9, replay_capacity=10_000, render_profile="fast")
+        other = client.make_vec("dmc/cheetah-run", num_envs=4, seed=9, autoreset_mode="SameStep",
+                                replay_capacity=10_000, render_profile="fast")
         other.reset()
         for _ in range(150):  # 600 transitions: one batch of 512 is there to sample
             other.step(np.random.default_rng(1).uniform(-1, 1, (4, 6)).astype(np.float32))

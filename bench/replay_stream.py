@@ -85,7 +85,8 @@ def main() -> None:
 
     rows = []
     with radserve.LocalServer(workers=2) as server, radserve.Client(server.address) as client:
-        envs = client.make_vec("dmc/cheetah-run", num_envs=args.envs, seed=0, replay_capacity=100_000,
+        envs = client.make_vec("dmc/cheetah-run", num_envs=args.envs, seed=0, autoreset_mode="SameStep",
+                               replay_capacity=100_000,
                                render_profile="fast")
         envs.reset()
         for _ in range(args.steps):

@@ -46,7 +46,7 @@ def secured_server(folder: Path) -> "tuple[radserve.LocalServer, dict]":
 
 
 def acting_rate(client, delivery: str, steps: int) -> float:
-    envs = client.make_vec("gym/CartPole-v1", num_envs=8, seed=0, delivery=delivery)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=8, seed=0, autoreset_mode="SameStep", delivery=delivery)
     envs.reset(seed=0)
     actions = np.zeros(8, np.int64)
     for _ in range(50):
@@ -74,7 +74,8 @@ def batch_rate(client, session_id: str, delivery: str, batches: int) -> float:
 
 
 def replay_session(client):
-    envs = client.make_vec("procgen/coinrun", num_envs=8, seed=0, replay_capacity=20_000, frame_stack=3)
+    envs = client.make_vec("procgen/coinrun", num_envs=8, seed=0, autoreset_mode="SameStep",
+                           replay_capacity=20_000, frame_stack=3)
     envs.reset(seed=0)
     rng = np.random.default_rng(0)
     for _ in range(300):

@@ -142,7 +142,8 @@ def random_actions(space, num_envs, count=64):
 
 
 def served(client, env_id, num_envs, seconds, stream, delivery, **options):
-    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, stream=stream, delivery=delivery, **options)
+    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, autoreset_mode="SameStep",
+                           stream=stream, delivery=delivery, **options)
     envs.reset()
     actions = random_actions(envs.single_action_space, num_envs)
     counter = iter(range(1 << 62))
@@ -159,7 +160,8 @@ def served_pipelined(client, env_id, num_envs, seconds, stream, delivery, **opti
     """num_envs split into two sessions, stepped EnvPool-style: one half's step is in flight while the
     other half's reply is read and its next actions are made (step_async / step_wait)."""
     half = num_envs // 2
-    pair = [client.make_vec(env_id, num_envs=half, seed=0, stream=stream, delivery=delivery, **options)
+    pair = [client.make_vec(env_id, num_envs=half, seed=0, autoreset_mode="SameStep",
+                            stream=stream, delivery=delivery, **options)
             for _ in range(2)]
     for envs in pair:
         envs.reset()

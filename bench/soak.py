@@ -44,15 +44,20 @@ def client_main(address, slot, sessions, counters, seed):
 
     def open_session(kind):
         if kind == "grpc-acting":
-            envs = client.make_vec("gym/CartPole-v1", num_envs=8, seed=rng.randrange(1 << 30))
+            envs = client.make_vec("gym/CartPole-v1", num_envs=8, seed=rng.randrange(1 << 30),
+                                   autoreset_mode="SameStep")
         elif kind == "shm-acting":
-            envs = client.make_vec("gym/Pendulum-v1", num_envs=8, seed=rng.randrange(1 << 30), delivery="shared_memory")
+            envs = client.make_vec("gym/Pendulum-v1", num_envs=8, seed=rng.randrange(1 << 30),
+                                   autoreset_mode="SameStep", delivery="shared_memory")
         elif kind == "procgen-replay":
-            envs = client.make_vec("procgen/bigfish", num_envs=4, seed=rng.randrange(1 << 30), replay_capacity=2000)
+            envs = client.make_vec("procgen/bigfish", num_envs=4, seed=rng.randrange(1 << 30),
+                                   autoreset_mode="SameStep", replay_capacity=2000)
         elif kind == "state-replay":
-            envs = client.make_vec("gym/Pendulum-v1", num_envs=4, seed=rng.randrange(1 << 30), replay_capacity=5000)
+            envs = client.make_vec("gym/Pendulum-v1", num_envs=4, seed=rng.randrange(1 << 30),
+                                   autoreset_mode="SameStep", replay_capacity=5000)
         else:
-            envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=rng.randrange(1 << 30), rollout_steps=32)
+            envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=rng.randrange(1 << 30),
+                                   autoreset_mode="SameStep", rollout_steps=32)
         envs.reset()
         return kind, envs
 

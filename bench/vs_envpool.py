@@ -222,7 +222,8 @@ def radserve_run(client, server_pids, env_id: str, options: dict, num_envs: int,
     session's send/recv (batch_size half the envs, as EnvPool's async side here), one call per batch."""
     batch = num_envs // 2 if asynchronous else num_envs
     extra = {"batch_size": batch} if asynchronous else {}
-    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, delivery=delivery, engine=engine, **options, **extra)
+    envs = client.make_vec(env_id, num_envs=num_envs, seed=0, autoreset_mode="SameStep",
+                           delivery=delivery, engine=engine, **options, **extra)
     actions = random_actions(envs.single_action_space, batch)
     counter = iter(range(1 << 62))
     if asynchronous:

@@ -16,10 +16,14 @@ class EnvContract:
     max_steps_to_episode_end = 50
     # How the client acts: gRPC, or shared memory with the server (same host).
     delivery = "grpc"
+    # The contract is the server's: an episode's end resets its env in the same step (SameStep; the
+    # client's other modes are gymnasium's, checked against SyncVectorEnv in test_gymnasium_contract).
+    autoreset_mode = "SameStep"
 
     def make(self, client, seed=0, **extra):
         envs = client.make_vec(
-            self.env_id, num_envs=self.num_envs, seed=seed, delivery=self.delivery, **{**self.options, **extra}
+            self.env_id, num_envs=self.num_envs, seed=seed, delivery=self.delivery,
+            autoreset_mode=self.autoreset_mode, **{**self.options, **extra}
         )
         assert envs.delivery == self.delivery
         return envs

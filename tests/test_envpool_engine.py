@@ -42,7 +42,8 @@ def test_spaces_match_the_native_engine(client):
 
 def test_a_dm_control_episode_lasts_as_long_as_dm_controls(client):
     # cheetah-run: 1000 control steps; action repeat 4 (the paper's) makes 250 agent steps.
-    envs = client.make_vec("dmc/cheetah-run", num_envs=2, seed=1, engine="envpool", pixels=False)
+    envs = client.make_vec("dmc/cheetah-run", num_envs=2, seed=1, engine="envpool", pixels=False,
+                           autoreset_mode="SameStep")
     try:
         envs.reset()
         actions = random_actions(envs.single_action_space, 2)
@@ -118,7 +119,7 @@ def test_procgen_options_reach_envpools_procgen(client):
 def test_sessions_and_seeded_resets_are_reproducible(client):
     runs = []
     for _ in range(2):
-        envs = client.make_vec("gym/CartPole-v1", num_envs=3, seed=5, engine="envpool")
+        envs = client.make_vec("gym/CartPole-v1", num_envs=3, seed=5, engine="envpool", autoreset_mode="SameStep")
         try:
             actions = random_actions(envs.single_action_space, 3, seed=9)
             first = envs.reset(seed=40)[0]
@@ -393,7 +394,7 @@ def _action(env, t):
 def _sync_trajectories(client, num_envs, steps, engine):
     """Per env: its `steps` results (obs, reward, terminated, truncated, final obs or None) of a
     synchronous session, the first being its reset."""
-    envs = client.make_vec("gym/CartPole-v1", num_envs=num_envs, seed=4, engine=engine)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=num_envs, seed=4, engine=engine, autoreset_mode="SameStep")
     try:
         obs, _ = envs.reset()
         record = [[(obs[i], 0.0, False, False, None)] for i in range(num_envs)]

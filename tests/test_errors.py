@@ -117,7 +117,7 @@ def test_health_reports_serving(server):
 
 def test_a_dead_worker_ends_its_episodes_and_is_replaced(server, client, catalog):
     # `catalog` first: the transient worker that builds it must be gone before workers are counted.
-    victim_session = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0)
+    victim_session = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0, autoreset_mode="SameStep")
     bystander = client.make_vec("gym/CartPole-v1", num_envs=1, seed=0)
     try:
         victim_session.reset()

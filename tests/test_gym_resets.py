@@ -9,7 +9,7 @@ import radserve
 
 
 def test_a_seeded_reset_is_continued_by_the_autoresets_after_it(client):
-    envs = client.make_vec("gym/CartPole-v1", num_envs=1, seed=0)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=1, seed=0, autoreset_mode="SameStep")
     reference = gymnasium.make("CartPole-v1")
     try:
         obs, _ = envs.reset(seed=100)

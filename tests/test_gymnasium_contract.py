@@ -110,6 +110,37 @@ def test_disabled_mode_refuses_to_step_an_ended_env(client):
         envs.close()
 
 
+def test_the_default_autoreset_mode_is_gymnasiums(client):
+    """make_vec without autoreset_mode gives gymnasium's default, NEXT_STEP, which gymnasium's vector
+    observation wrappers require (they refuse SAME_STEP); EnvPool's asynchronous mode, which resets in
+    the ending step only, defaults to SAME_STEP."""
+    from gymnasium.wrappers import vector as wrappers
+
+    envs = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0)
+    same = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0, autoreset_mode="SameStep")
+    asynchronous = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, batch_size=2)
+    try:
+        assert envs.metadata["autoreset_mode"] is AutoresetMode.NEXT_STEP
+        assert gymnasium.make_vec("CartPole-v1", num_envs=2).metadata["autoreset_mode"] is AutoresetMode.NEXT_STEP
+        wrapped = wrappers.FlattenObservation(envs)
+        wrapped.reset(seed=0)
+        ended = False
+        for _ in range(100):  # pushing one way ends CartPole's episodes within ~10 steps
+            obs, _, terminated, truncated, infos = wrapped.step(np.zeros(2, np.int64))
+            if ended:  # the step after an end: the new episode's first observation, reward 0
+                break
+            ended = bool((terminated | truncated).any())
+            assert "final_obs" not in infos
+        assert ended
+        with pytest.raises(ValueError, match="NEXT_STEP"):
+            wrappers.FlattenObservation(same)
+        assert asynchronous.metadata["autoreset_mode"] is AutoresetMode.SAME_STEP
+    finally:
+        envs.close()
+        same.close()
+        asynchronous.close()
+
+
 @pytest.mark.parametrize("delivery", ["grpc", "shared_memory"])
 def test_gymnasium_vector_wrappers_run_on_radserve(client, delivery):
     """The wrappers the issue names, on a NEXT_STEP env (which they require), and RecordEpisodeStatistics

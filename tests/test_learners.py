@@ -6,12 +6,14 @@ They need the learners' extra (torch); `make test` installs it before running th
 RADSERVE_REQUIRE_TORCH=1 so that a missing torch fails instead of skipping.
 """
 
+import json
 import math
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 if os.environ.get("RADSERVE_REQUIRE_TORCH") != "1":
@@ -96,3 +98,39 @@ def test_an_unknown_augmentation_is_refused_before_training(tmp_path):
                             capture_output=True, text=True, timeout=120)
     assert result.returncode != 0
     assert "ras_x" in result.stderr and "ras_s" in result.stderr, result.stderr[-2000:]
+
+
+GYMNASIUM_SCRIPT = Path(__file__).resolve().parent / "scripts" / "ppo_continuous_action.py"
+
+
+def run_gymnasium_script(out: Path, *flags: str) -> dict:
+    result = subprocess.run([sys.executable, str(GYMNASIUM_SCRIPT), "--env-id", "Hopper-v5", "--total-timesteps",
+                             "3072", "--num-steps", "1024", "--out", str(out), *flags],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return json.loads(out.read_text())
+
+
+def test_a_gymnasium_script_runs_with_only_its_env_line_changed(tmp_path, server):
+    """A PPO script in the shape of CleanRL's ppo_continuous_action.py, whose wrappers are gymnasium's
+    vector wrappers (FlattenObservation and NormalizeObservation require NextStep autoreset), run twice
+    from the same seed: on gymnasium's own SyncVectorEnv and on radserve with make_vec's defaults, the
+    env line the only difference. radserve's default autoreset is gymnasium's, so the wrappers accept it;
+    and as its envs step as gymnasium's do, the two runs train alike: the same episodes, with returns and
+    losses equal up to float32 rounding (radserve serves MuJoCo states as float32, gymnasium as float64,
+    so the policy's inputs differ in their last bits)."""
+    local = run_gymnasium_script(tmp_path / "gymnasium.json")
+    remote = run_gymnasium_script(tmp_path / "radserve.json", "--radserve", server.address)
+    assert remote["autoreset_mode"] == local["autoreset_mode"] == "NextStep"
+    assert remote["global_step"] == 3072
+    episodes = remote["episodes"]
+    # A random Hopper falls within tens of steps: RecordEpisodeStatistics saw many episodes end.
+    assert len(episodes["return"]) >= 20, episodes
+    assert sum(episodes["length"]) <= 3072 and all(length >= 1 for length in episodes["length"])
+    # The wrapper's returns are radserve's own figures for the same episodes (the env's rewards,
+    # under the reward normalisation that comes after RecordEpisodeStatistics).
+    assert np.allclose(episodes["return"], episodes["radserve_return"], rtol=1e-5, atol=1e-5)
+    # Step for step the same episodes, losses and learning as on gymnasium's own vector env.
+    assert episodes["length"] == local["episodes"]["length"]
+    assert np.allclose(episodes["return"], local["episodes"]["return"], rtol=1e-4)
+    assert np.allclose(remote["losses"], local["losses"], rtol=1e-3, atol=1e-6)

@@ -42,7 +42,7 @@ def test_a_real_server_exposes_what_its_sessions_do():
         assert value(families, "radserve_build", "_info", version=radserve.__version__, api="radserve.v1") == 1
         baseline = value(families, "radserve_env_steps", "_total", family="gym")
 
-        envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, replay_capacity=1000)
+        envs = client.make_vec("gym/CartPole-v1", num_envs=4, seed=0, replay_capacity=1000, autoreset_mode="SameStep")
         envs.reset(seed=0)
         for _ in range(25):
             envs.step(np.zeros(4, np.int64))

@@ -17,7 +17,7 @@ def direct_frame(env):
 
 def test_frames_rewards_and_episode_ends_equal_one_game_envs_seeded_s_plus_i(client):
     game, seed, num_envs, steps = "starpilot", 7, 4, 400
-    envs = client.make_vec(f"procgen/{game}", num_envs=num_envs, seed=seed)
+    envs = client.make_vec(f"procgen/{game}", num_envs=num_envs, seed=seed, autoreset_mode="SameStep")
     direct = [ProcgenGym3Env(num=1, env_name=game, rand_seed=seed + i, distribution_mode="easy")
               for i in range(num_envs)]
     rng = np.random.default_rng(0)

@@ -40,7 +40,8 @@ def samples(batch):
 @pytest.fixture(scope="module")
 def cartpole(client):
     """CartPole with stacks of 3: short random episodes, so stacks cross many episode starts."""
-    envs = client.make_vec("gym/CartPole-v1", num_envs=3, seed=5, replay_capacity=5000, frame_stack=3)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=3, seed=5, replay_capacity=5000, frame_stack=3,
+                           autoreset_mode="SameStep")
     seen = act(envs, 150, seed=5)
     yield envs, seen
     envs.close()
@@ -48,7 +49,8 @@ def cartpole(client):
 
 @pytest.fixture(scope="module")
 def cheetah(client):
-    envs = client.make_vec("dmc/cheetah-run", num_envs=2, seed=3, replay_capacity=1000, render_profile="fast")
+    envs = client.make_vec("dmc/cheetah-run", num_envs=2, seed=3, replay_capacity=1000, render_profile="fast",
+                           autoreset_mode="SameStep")
     seen = act(envs, 40, seed=3)
     yield envs, seen
     envs.close()
@@ -214,7 +216,7 @@ def test_a_client_that_leaves_releases_its_producer(client, cartpole):
 
 def test_rollout_minibatches_cover_every_step_and_env_once_per_epoch(client):
     steps, num_envs = 32, 4
-    envs = client.make_vec("procgen/bigfish", num_envs=num_envs, seed=2, rollout_steps=steps)
+    envs = client.make_vec("procgen/bigfish", num_envs=num_envs, seed=2, rollout_steps=steps, autoreset_mode="SameStep")
     try:
         with pytest.raises(radserve.FailedPreconditionError, match="needs 32 steps"):
             client.sample_batches(envs.session_id, 16, source="rollout")
@@ -313,7 +315,7 @@ def test_shared_memory_batches_equal_the_grpc_ones(client, cheetah, source):
         envs, session = None, cheetah[0].session_id
         request = dict(augment="crop(84)|flip(p=0.5)", max_batches=5, seed=9, prefetch=1)
     else:
-        envs = client.make_vec("procgen/bigfish", num_envs=3, seed=4, rollout_steps=8)
+        envs = client.make_vec("procgen/bigfish", num_envs=3, seed=4, rollout_steps=8, autoreset_mode="SameStep")
         act(envs, 8)
         session = envs.session_id
         # 24 transitions in batches of 10: the last batch of each epoch is short.

@@ -12,6 +12,7 @@ import warnings
 
 import numpy as np
 import pytest
+from gymnasium.vector import AutoresetMode
 
 import radserve
 from radserve.sharded import ShardedVectorEnv, apportion, merge_infos
@@ -95,6 +96,7 @@ def test_a_sharded_session_equals_a_single_server_one(servers, sharded, env_id, 
 def test_step_async_is_one_outstanding_step_per_server(sharded):
     envs = sharded.make_vec("gym/CartPole-v1", num_envs=6, seed=0)
     try:
+        assert envs.metadata["autoreset_mode"] is AutoresetMode.NEXT_STEP  # gymnasium's default, as unsharded
         envs.reset(seed=0)
         envs.step_async(np.zeros(6, dtype=np.int64))
         with pytest.raises(RuntimeError):
@@ -144,7 +146,7 @@ def test_a_lost_server_is_named_or_survived_and_comes_back(servers):
     strict = radserve.Client(addresses)
     lenient = radserve.Client(addresses, on_server_loss="continue", reconnect_backoff=0.2, reconnect_backoff_max=0.5)
     first = strict.make_vec("gym/CartPole-v1", num_envs=6, seed=0)
-    second = lenient.make_vec("gym/CartPole-v1", num_envs=6, seed=0, replay_capacity=600)
+    second = lenient.make_vec("gym/CartPole-v1", num_envs=6, seed=0, replay_capacity=600, autoreset_mode="SameStep")
     first.reset(seed=0)
     second.reset(seed=0)
     actions = np.zeros(6, dtype=np.int64)

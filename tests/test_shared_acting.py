@@ -109,7 +109,7 @@ def test_errors_are_the_same_and_change_nothing(client):
 
 def test_a_dead_worker_ends_its_episodes_with_the_reason(server, client, catalog):
     # `catalog` first: the transient worker that builds it must be gone before workers are counted.
-    envs = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0, delivery="shared_memory")
+    envs = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0, delivery="shared_memory", autoreset_mode="SameStep")
     try:
         envs.reset()
         os.kill(worker_pids(server.process.pid)[0], signal.SIGKILL)

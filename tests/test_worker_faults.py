@@ -96,7 +96,8 @@ def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it
 
 def test_a_step_whose_deadline_passed_while_waiting_is_never_sent(strict_server):
     client = radserve.Client(strict_server.address)
-    envs = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0)
+    # SameStep: the env whose worker was killed is stepped again at once (NextStep would skip it).
+    envs = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0, autoreset_mode="SameStep")
     try:
         envs.reset(seed=0)
         stuck = _pool_workers(strict_server)[0]

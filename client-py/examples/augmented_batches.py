@@ -65,7 +65,8 @@ def act(envs, stop: threading.Event, counters: dict, seed: int) -> None:
 
 def run(args: Args, address: str) -> None:
     client = radserve.Client(address)
-    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, replay_capacity=args.replay_capacity,
+    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
+                           replay_capacity=args.replay_capacity,
                            observation_view="center_crop(84)", render_profile=args.render_profile,
                            delivery=args.delivery)
     print(f"{args.env}: {args.num_envs} envs acting on {envs.single_observation_space}; "

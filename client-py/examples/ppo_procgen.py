@@ -199,13 +199,14 @@ def train(args: Args, address: str) -> RunLog:
 
     client = radserve.Client(address)
     game = {"distribution_mode": args.distribution_mode}
-    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, rollout_steps=args.num_steps,
+    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
+                           rollout_steps=args.num_steps,
                            observation_view=view, num_levels=args.num_levels, start_level=args.start_level,
                            delivery=args.delivery, **game)
     # Zero-shot: the full level distribution, seeded away from the training envs.
     eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 16), seed=args.seed + 10_000,
                                 observation_view=view, num_levels=0, start_level=args.start_level + 1_000_000,
-                                delivery=args.delivery, **game)
+                                autoreset_mode="SameStep", delivery=args.delivery, **game)
     obs_shape, num_actions = envs.single_observation_space.shape, int(envs.single_action_space.n)
     agent = Agent(obs_shape, num_actions, args.amp).to(device)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)

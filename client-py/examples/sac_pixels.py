@@ -293,10 +293,11 @@ def train(args: Args, address: str) -> RunLog:
 
     client = radserve.Client(address)
     # Acting sees the evaluation view (the centre of what the learner trains on); replay keeps raw frames.
-    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, replay_capacity=args.replay_capacity,
+    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
+                           replay_capacity=args.replay_capacity,
                            observation_view=view, delivery=args.delivery, **options)
     eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 10), seed=args.seed + 10_000,
-                                observation_view=view, delivery=args.delivery, **options)
+                                autoreset_mode="SameStep", observation_view=view, delivery=args.delivery, **options)
     action_repeat = int(envs.info.options["action_repeat"])
     obs_shape = envs.single_observation_space.shape
     low, high = envs.single_action_space.low, envs.single_action_space.high

@@ -256,10 +256,11 @@ def train(args: Args, address: str) -> RunLog:
         torch.set_num_threads(args.torch_threads)
     torch.manual_seed(args.seed)
     client = radserve.Client(address)
-    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, delivery=args.delivery,
+    envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
+                           delivery=args.delivery,
                            replay_capacity=min(args.buffer_size, max(args.total_steps, args.batch_size)))
     eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 10), seed=args.seed + 10_000,
-                                delivery=args.delivery)
+                                autoreset_mode="SameStep", delivery=args.delivery)
     obs_space, action_space = envs.single_observation_space, envs.single_action_space
     if len(obs_space.shape) != 1:
         raise SystemExit(f"{args.env} observes {obs_space.shape}; sac_state.py takes flat state vectors "

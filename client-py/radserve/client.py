@@ -223,16 +223,18 @@ class Client:
         replay_capacity: "int | None" = None,
         rollout_steps: "int | None" = None,
         observation_view: str = "",
-        autoreset_mode: "str | Any" = "SameStep",
+        autoreset_mode: "str | Any | None" = None,
         channels_last: bool = False,
         **options: Any,
     ):
         """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
 
-        `autoreset_mode` is gymnasium's (`gymnasium.vector.AutoresetMode` or its value): "SameStep"
-        (the default: the ending step returns the next episode's first observation, the last one in
-        `infos["final_obs"]`), "NextStep" (gymnasium's default, which its observation wrappers need:
-        the ending step returns the last observation, the next step the first one) or "Disabled"
+        `autoreset_mode` is gymnasium's (`gymnasium.vector.AutoresetMode` or its value): "NextStep"
+        (the default, as gymnasium's, which its observation wrappers need: the ending step returns
+        the last observation, the next step the first one and ignores that env's action), "SameStep"
+        (the ending step returns the next episode's first observation, the last one in
+        `infos["final_obs"]`: no step is spent on a reset; radserve's learners use it, and it is the
+        only mode, and the default, of a session with `batch_size` below `num_envs`) or "Disabled"
         (ended envs wait for `reset(options={"reset_mask": mask})`).
 
         Environment i is seeded with `seed + i`. `options` override the env's defaults (see

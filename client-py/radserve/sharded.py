@@ -121,7 +121,7 @@ class ShardedVectorEnv(VectorEnv):
     """
 
     def __init__(self, client, request: "pb.CreateSessionRequest", *, stream: bool = False, delivery: str = "grpc",
-                 autoreset_mode: "AutoresetMode | str" = AutoresetMode.SAME_STEP, channels_last: bool = False):
+                 autoreset_mode: "AutoresetMode | str | None" = None, channels_last: bool = False):
         self._client = client
         self._settings = dict(stream=stream, delivery=delivery, autoreset_mode=autoreset_mode,
                               channels_last=channels_last)

@@ -72,17 +72,33 @@ def _bools(mask) -> "list[bool]":
     return [] if mask is None else [bool(value) for value in mask]
 
 
+def resolve_autoreset_mode(mode: "AutoresetMode | str | None", is_async: bool = False) -> AutoresetMode:
+    """`make_vec`'s `autoreset_mode` as gymnasium's enum. None (the default) is gymnasium's own default,
+    NEXT_STEP, which its vector observation wrappers require; a session in EnvPool's asynchronous mode
+    resets an env in the step that ends its episode, so there None is SAME_STEP, its only mode."""
+    if mode is None:
+        return AutoresetMode.SAME_STEP if is_async else AutoresetMode.NEXT_STEP
+    try:
+        return AutoresetMode(mode)
+    except ValueError:
+        raise InvalidArgumentError(
+            f"autoreset_mode must be a gymnasium.vector.AutoresetMode or one of "
+            f"{[value.value for value in AutoresetMode]}, got {mode!r}") from None
+
+
 class RemoteVectorEnv(VectorEnv):
     """`num_envs` environments living in a radserve server, stepped together.
 
     Autoreset follows gymnasium's `AutoresetMode` (`metadata["autoreset_mode"]`), chosen at
     `make_vec(autoreset_mode=...)`, and behaves as gymnasium's SyncVectorEnv does in that mode:
 
-    - SAME_STEP (default): when an episode ends, the returned observation of that env already starts
+    - NEXT_STEP (the default, as gymnasium's): the step that ends an episode returns its last
+      observation; the next step ignores that env's action and returns the first observation of its
+      next episode, reward 0, no flags.
+    - SAME_STEP (the default of a session in EnvPool's asynchronous mode, its only mode; radserve's
+      learners choose it): when an episode ends, the returned observation of that env already starts
       the next episode; `infos["final_obs"][i]` holds the last observation of the ended one
       (`infos["_final_obs"]` the mask) and `infos["final_info"]` the ended episodes' infos.
-    - NEXT_STEP: the step that ends an episode returns its last observation; the next step ignores
-      that env's action and returns the first observation of its next episode, reward 0, no flags.
     - DISABLED: an ended env must be reset with `reset(options={"reset_mask": mask})` before it is
       stepped again.
 
@@ -103,19 +119,18 @@ class RemoteVectorEnv(VectorEnv):
     """
 
     def __init__(self, transport: Transport, info, *, stream: bool = False, delivery: str = "grpc",
-                 autoreset_mode: "AutoresetMode | str" = AutoresetMode.SAME_STEP, channels_last: bool = False):
+                 autoreset_mode: "AutoresetMode | str | None" = None, channels_last: bool = False):
         check_delivery(delivery)
-        try:
-            self.autoreset_mode = AutoresetMode(autoreset_mode)
-        except ValueError:
-            raise InvalidArgumentError(
-                f"autoreset_mode must be a gymnasium.vector.AutoresetMode or one of "
-                f"{[mode.value for mode in AutoresetMode]}, got {autoreset_mode!r}") from None
+        # EnvPool's asynchronous mode (option batch_size below num_envs): async_reset, send, recv.
+        batch_size = int(info.options.get("batch_size", 0) or 0)
+        self.num_envs = info.num_envs
+        self.batch_size = batch_size if 0 < batch_size < self.num_envs else self.num_envs
+        self.is_async = self.batch_size < self.num_envs
+        self.autoreset_mode = resolve_autoreset_mode(autoreset_mode, self.is_async)
         self.metadata = {"autoreset_mode": self.autoreset_mode}
         self._transport = transport
         self.info = info
         self.session_id = info.session_id
-        self.num_envs = info.num_envs
         self.single_observation_space = info.observation_space
         # Image observations as [H, W, C] (the transpose is made here, on the way out).
         self._channels_last = bool(channels_last)
@@ -129,10 +144,6 @@ class RemoteVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self._action_dtype = np.dtype(np.int64) if info.action_space.shape == () else info.action_space.dtype
-        # EnvPool's asynchronous mode (option batch_size below num_envs): async_reset, send, recv.
-        batch_size = int(info.options.get("batch_size", 0) or 0)
-        self.batch_size = batch_size if 0 < batch_size < self.num_envs else self.num_envs
-        self.is_async = self.batch_size < self.num_envs
         # Whether a step without ended episodes or infos is returned as the server wrote it (_shared_result).
         self._plain_mode = self.autoreset_mode == AutoresetMode.SAME_STEP and not self._channels_last
         if self.is_async and self.autoreset_mode != AutoresetMode.SAME_STEP:

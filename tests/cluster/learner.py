@@ -33,9 +33,10 @@ class Learner:
         self.strict = radserve.Client(self.addresses)
         self.lenient = radserve.Client(self.addresses, on_server_loss="continue", reconnect_backoff=0.5,
                                        reconnect_backoff_max=2.0)
-        self.strict_envs = self.strict.make_vec("gym/CartPole-v1", num_envs=6, seed=0)
+        self.strict_envs = self.strict.make_vec("gym/CartPole-v1", num_envs=6, seed=0, autoreset_mode="SameStep")
         self.strict_envs.reset(seed=0)
-        self.envs = self.lenient.make_vec(ENV, num_envs=6, seed=0, replay_capacity=3000, delivery="auto", **OPTIONS)
+        self.envs = self.lenient.make_vec(ENV, num_envs=6, seed=0, autoreset_mode="SameStep",
+                                          replay_capacity=3000, delivery="auto", **OPTIONS)
         self.envs.reset(seed=0)
         for _ in range(20):
             self._step()
@@ -142,7 +143,8 @@ class Learner:
     def same_host(self) -> dict:
         """In a server's network namespace: shared-memory acting and batches."""
         client = radserve.Client("127.0.0.1:50051")
-        envs = client.make_vec(ENV, num_envs=2, seed=0, replay_capacity=500, delivery="shared_memory", **OPTIONS)
+        envs = client.make_vec(ENV, num_envs=2, seed=0, autoreset_mode="SameStep",
+                               replay_capacity=500, delivery="shared_memory", **OPTIONS)
         envs.reset(seed=0)
         for _ in range(20):
             envs.step(envs.action_space.sample())
