@@ -3,6 +3,7 @@ dm_env's EnvironmentTestMixin: each family only instantiates the class with its 
 
 import numpy as np
 import pytest
+from gymnasium import spaces
 
 import radserve
 
@@ -30,7 +31,7 @@ class EnvContract:
 
     def random_actions(self, envs, rng):
         space = envs.single_action_space
-        if isinstance(space, radserve.client.spaces.Discrete):
+        if isinstance(space, spaces.Discrete):
             return rng.integers(0, space.n, size=self.num_envs)
         return rng.uniform(space.low, space.high, size=(self.num_envs,) + space.shape).astype(np.float32)
 
@@ -144,7 +145,7 @@ class EnvContract:
             envs.reset()
             with pytest.raises(radserve.InvalidArgumentError, match="of shape"):
                 envs.step(self.random_actions(envs, rng)[:1])
-            if isinstance(envs.single_action_space, radserve.client.spaces.Discrete):
+            if isinstance(envs.single_action_space, spaces.Discrete):
                 bad = np.full(self.num_envs, envs.single_action_space.n)
                 match = "outside"
             else:

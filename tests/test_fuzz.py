@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import radserve
-from radserve._proto import radserve_pb2 as pb
-from radserve._proto import radserve_pb2_grpc as pb_grpc
+from radserve.proto import radserve_pb2 as pb
+from radserve.proto import radserve_pb2_grpc as pb_grpc
 
 EXAMPLES = int(os.environ.get("RADSERVE_FUZZ_EXAMPLES", "100"))
 

@@ -8,7 +8,7 @@ import grpc
 import pytest
 
 import radserve
-from radserve._proto import radserve_pb2 as pb
+from radserve.proto import radserve_pb2 as pb
 
 
 def _raw_call(server, method):

@@ -331,7 +331,7 @@ def test_shared_memory_batches_equal_the_grpc_ones(client, cheetah, source):
             got.append(copies(batch))
         # Run out without close(): the stream ends its request iterator itself (no thread left
         # waiting on it).
-        assert stream._closed
+        assert stream.closed
     finally:
         if envs is not None:
             envs.close()
@@ -378,7 +378,7 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
 
     # The first request must say what to sample.
     pb = radserve.batches.pb
-    method = client._transport.channel.stream_stream("/radserve.v1.RadServe/SampleBatchesShared",
+    method = client.transports[0].channel.stream_stream("/radserve.v1.RadServe/SampleBatchesShared",
                                            request_serializer=pb.SharedSampleRequest.SerializeToString,
                                            response_deserializer=pb.SharedSampleResponse.FromString)
     with pytest.raises(grpc.RpcError) as refused:
@@ -400,7 +400,7 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
     def unreachable(region):
         raise radserve.SharedMemoryError(f"cannot receive the server's batch memory over {region.socket!r}")
 
-    monkeypatch.setattr(radserve.batches, "_map_region", unreachable)
+    monkeypatch.setattr(radserve.batches, "map_region", unreachable)
     with pytest.raises(radserve.SharedMemoryError, match="cannot receive"):
         client.sample_batches(envs.session_id, 8, delivery="shared_memory")
     with client.sample_batches(envs.session_id, 8, delivery="auto", max_batches=1) as stream:
@@ -443,10 +443,10 @@ def test_shared_memory_token_is_checked():
         region = radserve.batches.pb.SharedMemoryRegion(socket=_hand_over(fd), size=8192, token=b"\x01" * 16,
                                                         slots=1, slot_bytes=4096)
         with pytest.raises(radserve.SharedMemoryError, match="not the batch memory the server described"):
-            radserve.batches._map_region(region)
+            radserve.batches.map_region(region)
         with mmap.mmap(fd, 8192) as memory:
             memory[:32] = b"radserve-batches" + b"\x01" * 16
         region.socket = _hand_over(fd)
-        assert radserve.batches._map_region(region)[:16] == b"radserve-batches"
+        assert radserve.batches.map_region(region)[:16] == b"radserve-batches"
     finally:
         os.close(fd)

@@ -214,9 +214,34 @@ def test_a_lost_server_is_named_or_survived_and_comes_back(servers):
         lenient.close()
 
 
-def test_addresses_name_one_or_several_servers():
-    from radserve._transport import resolve
+def test_a_sharded_env_refuses_the_resets_a_plain_env_refuses(servers, sharded):
+    """The same checks, sharded or not: a mask is a numpy bool array of num_envs marking at least one env
+    (a list, an all-False mask and ints are refused), seeds are ints, one per env or None."""
+    with radserve.Client(servers[0].address) as single:
+        plain = single.make_vec("gym/CartPole-v1", num_envs=6, seed=0)
+        spread = sharded.make_vec("gym/CartPole-v1", num_envs=6, seed=0)
+        try:
+            for envs in (plain, spread):
+                envs.reset(seed=0)
+                bad_masks = ([True] * 6, np.zeros(6, bool), np.ones(6, np.int64), np.ones(5, bool))
+                for mask in bad_masks:
+                    with pytest.raises(radserve.InvalidArgumentError, match="reset_mask"):
+                        envs.reset(options={"reset_mask": mask})
+                for seed in (-1, [1, None, 2, 3, 4, 5], [5, 6], 2.5, "5", True):
+                    with pytest.raises(radserve.InvalidArgumentError, match="seed"):
+                        envs.reset(seed=seed)
+            # What both take, both do alike.
+            mask = np.array([True, False, False, True, False, True])
+            np.testing.assert_array_equal(plain.reset(seed=[3, 4, 5, 6, 7, 8])[0], spread.reset(seed=[3, 4, 5, 6, 7, 8])[0])
+            np.testing.assert_array_equal(plain.reset(options={"reset_mask": mask})[0],
+                                          spread.reset(options={"reset_mask": mask})[0])
+        finally:
+            plain.close()
+            spread.close()
 
+
+def test_addresses_name_one_or_several_servers():
+    resolve = radserve.resolve_addresses
     assert resolve("a:1") == ["a:1"]
     assert resolve(["a:1", "b:2"]) == ["a:1", "b:2"]
     assert resolve("a:1, b:2") == ["a:1", "b:2"]

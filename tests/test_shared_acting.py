@@ -16,7 +16,7 @@ import pytest
 
 import radserve
 from radserve import _acting
-from radserve._proto import radserve_pb2 as pb
+from radserve.proto import radserve_pb2 as pb
 from _procs import worker_pids
 
 REQUEST = struct.Struct("<cB6xQ")
@@ -141,11 +141,11 @@ def _ask(sock, request: bytes):
 def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client):
     envs = client.make_vec("gym/CartPole-v1", num_envs=2)
     try:
-        channel = client._transport.stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
+        channel = client.transports[0].stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
         assert channel.size > channel.episode_length_offset and len(channel.token) == 16
         # One channel per session at a time.
         with pytest.raises(radserve.FailedPreconditionError, match="already has"):
-            client._transport.call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
+            client.transports[0].call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
         # A connection without the token is dropped; the rightful client can still take the channel.
         stranger = _connect(channel, b"x" * 16)
         assert stranger.recv(1) == b""
@@ -187,7 +187,7 @@ def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client
         sock.close()
         for _ in range(100):
             try:
-                client._transport.call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
+                client.transports[0].call("ShareActing", pb.ShareActingRequest(session_id=envs.session_id))
                 break
             except radserve.FailedPreconditionError:
                 time.sleep(0.05)
@@ -199,7 +199,7 @@ def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client
 
 def test_unknown_or_closed_sessions(client):
     with pytest.raises(radserve.NotFoundError, match="unknown session"):
-        client._transport.call("ShareActing", pb.ShareActingRequest(session_id="nope"))
+        client.transports[0].call("ShareActing", pb.ShareActingRequest(session_id="nope"))
     envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="shared_memory")
     envs.reset()
     client.close_session(envs.session_id)
@@ -301,7 +301,7 @@ def test_another_user_gets_no_descriptor_even_with_the_token(client):
     so even the right token (which another user could only have stolen) hands nothing over."""
     envs = client.make_vec("gym/CartPole-v1", num_envs=1)
     try:
-        channel = client._transport.stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
+        channel = client.transports[0].stub.ShareActing(pb.ShareActingRequest(session_id=envs.session_id))
         stranger = "\n".join([
             "import socket, sys",
             "s = socket.socket(socket.AF_UNIX)",

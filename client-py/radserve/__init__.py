@@ -1,12 +1,17 @@
 """radserve: reinforcement-learning simulators served over gRPC.
 
-Public names only; the generated gRPC code lives in the private `radserve._proto` package.
+Public names only. `radserve.proto` holds the generated messages and stubs of the gRPC API
+(`radserve.v1`), for callers who speak it directly.
 """
 
 from ._version import __version__
+from ._security import TlsConfig
+from ._transport import resolve as resolve_addresses
 from .batches import Batch, BatchStream, SharedBatchStream
-from .client import Client, EnvInfo, ServerInfo, SessionInfo, SessionSummary
+from .client import Client
 from .errors import (
+    CancelledError,
+    DeadlineExceededError,
     FailedPreconditionError,
     InternalError,
     InvalidArgumentError,
@@ -17,16 +22,18 @@ from .errors import (
     SharedMemoryError,
     UnauthenticatedError,
     UnavailableError,
+    UnimplementedError,
 )
-from ._security import TlsConfig
 from .server import LocalServer
 from .sharded import ShardedBatchStream, ShardedVectorEnv
+from .types import EnvInfo, ServerInfo, SessionInfo, SessionSummary
 from .vector import RemoteVectorEnv
 
 __all__ = [
-    "__version__", "Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "SharedBatchStream", "RemoteVectorEnv",
-    "ShardedVectorEnv", "ShardedBatchStream", "LocalServer", "TlsConfig",
+    "__version__", "Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream",
+    "SharedBatchStream", "RemoteVectorEnv", "ShardedVectorEnv", "ShardedBatchStream", "LocalServer", "TlsConfig",
+    "resolve_addresses",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",
-    "UnauthenticatedError", "PermissionDeniedError",
+    "UnauthenticatedError", "PermissionDeniedError", "DeadlineExceededError", "CancelledError", "UnimplementedError",
 ]

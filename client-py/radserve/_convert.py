@@ -5,7 +5,7 @@ from gymnasium import spaces
 
 from ._proto import radserve_pb2 as pb
 
-_NUMPY_DTYPES = {
+NUMPY_DTYPES = {
     pb.DTYPE_UINT8: np.dtype(np.uint8),
     pb.DTYPE_INT32: np.dtype("<i4"),
     pb.DTYPE_INT64: np.dtype("<i8"),
@@ -13,12 +13,12 @@ _NUMPY_DTYPES = {
     pb.DTYPE_FLOAT64: np.dtype("<f8"),
     pb.DTYPE_BOOL: np.dtype(np.bool_),
 }
-_PROTO_DTYPES = {dtype.name: code for code, dtype in _NUMPY_DTYPES.items()}
+_PROTO_DTYPES = {dtype.name: code for code, dtype in NUMPY_DTYPES.items()}
 
 
 def to_numpy(tensor: "pb.Tensor") -> np.ndarray:
     """A read-only array over the message's bytes (no copy beyond the one protobuf made)."""
-    return np.frombuffer(tensor.data, dtype=_NUMPY_DTYPES[tensor.dtype]).reshape(tuple(tensor.shape))
+    return np.frombuffer(tensor.data, dtype=NUMPY_DTYPES[tensor.dtype]).reshape(tuple(tensor.shape))
 
 
 def to_tensor(array: np.ndarray) -> "pb.Tensor":
@@ -35,7 +35,7 @@ def to_space(space: "pb.Space") -> spaces.Space:
         return spaces.Discrete(space.discrete.n)
     box = space.box
     shape = tuple(box.shape)
-    dtype = _NUMPY_DTYPES[box.dtype]
+    dtype = NUMPY_DTYPES[box.dtype]
 
     def bound(values):
         values = np.asarray(values, dtype=np.float64)

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import grpc
 
+from .errors import InvalidArgumentError
+
 #: The environment variable a token is read from when `Client(token=...)` is not given.
 TOKEN_VARIABLE = "RADSERVE_TOKEN"
 
@@ -33,7 +35,7 @@ class TlsConfig:
 
     def credentials(self) -> grpc.ChannelCredentials:
         if (self.cert is None) != (self.key is None):
-            raise ValueError("TlsConfig: cert and key come together (a client certificate and its private key)")
+            raise InvalidArgumentError("TlsConfig: cert and key come together (a client certificate and its private key)")
         return grpc.ssl_channel_credentials(root_certificates=_pem(self.ca), private_key=_pem(self.key),
                                             certificate_chain=_pem(self.cert))
 

@@ -17,7 +17,7 @@ import grpc
 from ._proto import radserve_pb2 as pb
 from ._proto import radserve_pb2_grpc as pb_grpc
 from ._security import TlsConfig, _target, open_channel
-from .errors import SharedMemoryError, UnavailableError, from_rpc_error
+from .errors import InvalidArgumentError, SharedMemoryError, UnavailableError, from_rpc_error
 
 # Large batches of frames must fit; the server bounds them itself.
 CHANNEL_OPTIONS = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
@@ -37,7 +37,7 @@ def _close_sessions_at_exit() -> None:
 
 def check_delivery(delivery: str) -> None:
     if delivery not in DELIVERIES:
-        raise ValueError(f"delivery must be one of {DELIVERIES}, got {delivery!r}")
+        raise InvalidArgumentError(f"delivery must be one of {DELIVERIES}, got {delivery!r}")
 
 
 def resolve(addresses: "str | list[str] | tuple[str, ...]") -> "list[str]":
@@ -48,7 +48,7 @@ def resolve(addresses: "str | list[str] | tuple[str, ...]") -> "list[str]":
         addresses = [entry.strip() for entry in addresses.split(",") if entry.strip()]
     if isinstance(addresses, (list, tuple)):
         if not addresses:
-            raise ValueError("Client needs at least one address")
+            raise InvalidArgumentError("Client needs at least one address")
         return [address for entry in addresses for address in resolve(entry)]
     if not isinstance(addresses, str):
         raise TypeError(f"an address is a string or a list of strings, got {addresses!r}")
@@ -58,7 +58,7 @@ def resolve(addresses: "str | list[str] | tuple[str, ...]") -> "list[str]":
     target = addresses[len("dns:"):].lstrip("/").split("/")[-1]
     host, _, port = target.rpartition(":")
     if not host or not port.isdigit():
-        raise ValueError(f"a dns: address is dns:///host:port, got {addresses!r}")
+        raise InvalidArgumentError(f"a dns: address is dns:///host:port, got {addresses!r}")
     try:
         found = socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
     except socket.gaierror as error:

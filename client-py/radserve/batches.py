@@ -20,7 +20,7 @@ from typing import Iterator
 import grpc
 import numpy as np
 
-from ._convert import _NUMPY_DTYPES
+from ._convert import NUMPY_DTYPES
 from ._proto import radserve_pb2 as pb
 from ._shm import receive_server_memory
 from .errors import SharedMemoryError, from_rpc_error
@@ -139,7 +139,7 @@ def iterate_batches(stream, error=from_rpc_error) -> Iterator[Batch]:
                     if name not in buffers and name in OPTIONAL_FIELDS:
                         continue
                     raw, dtype, shape = buffers[name]
-                    arrays[name] = raw.view(_NUMPY_DTYPES[dtype]).reshape(shape)
+                    arrays[name] = raw.view(NUMPY_DTYPES[dtype]).reshape(shape)
                 arrays["terminated"] = arrays["terminated"].astype(bool)
                 arrays["truncated"] = arrays["truncated"].astype(bool)
                 buffers = {}
@@ -176,7 +176,7 @@ _SHARED_MAGIC = b"radserve-batches"
 _END_OF_REQUESTS = None
 
 
-def _map_region(region: "pb.SharedMemoryRegion") -> mmap.mmap:
+def map_region(region: "pb.SharedMemoryRegion") -> mmap.mmap:
     """Map the server's batch memory and check that it is the memory the server described."""
     hint = ("shared-memory batches need the learner on the server's host, in its network namespace, as a user "
             "the server allows; use delivery='grpc' otherwise")
@@ -209,7 +209,7 @@ class SharedBatchStream:
             self.close()
             raise error(failure) from None
         try:
-            self._memory = _map_region(first.region)
+            self._memory = map_region(first.region)
         except SharedMemoryError:
             self.close()
             raise
@@ -232,15 +232,20 @@ class SharedBatchStream:
             raise self._error(failure) from None
         arrays = {}
         for name, tensor in message.shared.items():
-            dtype = np.dtype(_NUMPY_DTYPES[tensor.dtype])
+            dtype = np.dtype(NUMPY_DTYPES[tensor.dtype])
             shape = tuple(tensor.shape)
             count = int(np.prod(shape))
             arrays[name] = np.frombuffer(self._memory, dtype=dtype, count=count, offset=tensor.offset).reshape(shape)
         for name, tensor in message.tensors.items():
-            array = np.frombuffer(tensor.data, dtype=_NUMPY_DTYPES[tensor.dtype]).reshape(tuple(tensor.shape))
+            array = np.frombuffer(tensor.data, dtype=NUMPY_DTYPES[tensor.dtype]).reshape(tuple(tensor.shape))
             arrays[name] = array.astype(bool) if name in ("terminated", "truncated") else array.copy()
         self._held = message.batch_index
         return Batch(index=message.batch_index, **arrays)
+
+    @property
+    def closed(self) -> bool:
+        """Whether the stream has ended its requests (closed, or run out)."""
+        return self._closed
 
     def close(self) -> None:
         if not self._closed:

@@ -1,117 +1,19 @@
 """The radserve client: environments listed, sessions created, vector environments handed out."""
 
 import weakref
-from dataclasses import dataclass, field
 from typing import Any
-
-from gymnasium import spaces
 
 from . import _convert
 from ._proto import radserve_pb2 as pb
 from ._security import TlsConfig
 from ._transport import Transport, check_delivery, resolve
+from .batches import SHARING, open_batch_stream
 from .errors import InvalidArgumentError, RadServeError
+from .sharded import SERVER_LOSS, ShardedBatchStream, ShardedVectorEnv
+from .types import EnvInfo, ServerInfo, SessionInfo, SessionSummary
+from .vector import open_vector_env
 
-
-@dataclass(frozen=True)
-class EnvInfo:
-    """One environment id of the server's catalog, with its spaces under the default options."""
-
-    id: str
-    family: str
-    observation_space: "spaces.Space | None"
-    action_space: "spaces.Space | None"
-    default_options: dict = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class ServerInfo:
-    """What a server says it is (rpc ServerInfo)."""
-
-    address: str
-    version: str
-    """its release, e.g. "0.1.0" (`radserve --version`)"""
-    api: str
-    """the gRPC API it implements, "radserve.v1" """
-
-
-@dataclass(frozen=True)
-class SessionInfo:
-    session_id: str
-    env_id: str
-    num_envs: int
-    seed: int
-    options: dict
-    observation_space: spaces.Space
-    action_space: spaces.Space
-    frame_stack: int
-    autoreset_mode: str
-    total_env_steps: int
-    episodes_completed: int
-    replay: "dict | None" = None
-
-    @staticmethod
-    def from_proto(message: "pb.SessionInfo") -> "SessionInfo":
-        return SessionInfo(
-            session_id=message.session_id,
-            env_id=message.env_id,
-            num_envs=message.num_envs,
-            seed=message.seed,
-            options={k: _convert.from_option_value(v) for k, v in message.options.items()},
-            observation_space=_convert.to_space(message.observation_space),
-            action_space=_convert.to_space(message.action_space),
-            frame_stack=message.frame_stack,
-            autoreset_mode=message.autoreset_mode,
-            total_env_steps=message.total_env_steps,
-            episodes_completed=message.episodes_completed,
-            replay={
-                "capacity": message.replay.capacity,
-                "size": message.replay.size,
-                "inserts": message.replay.inserts,
-                "samples": message.replay.samples,
-                "batches": message.replay.batches,
-                "batches_per_second": message.replay.batches_per_second,
-                "memory_bytes": message.replay.memory_bytes,
-                "frames_per_transition": message.replay.frames_per_transition,
-                "active_streams": message.replay.active_streams,
-                "rollout_steps": message.replay.rollout_steps or None,
-            }
-            if message.HasField("replay")
-            else None,
-        )
-
-
-@dataclass(frozen=True)
-class SessionSummary:
-    """One open session as `Client.list_sessions()` reports it."""
-
-    session_id: str
-    env_id: str
-    num_envs: int
-    memory_bytes: int
-    # The principal that created it ("local" on a server without authentication).
-    owner: str
-    idle_seconds: float
-    open_streams: int
-    age_seconds: float
-    idle_timeout_seconds: float
-    # The address of the server that holds it.
-    server: str = ""
-
-    @staticmethod
-    def from_proto(message: "pb.SessionSummary", idle_timeout_seconds: float, server: str = "") -> "SessionSummary":
-        return SessionSummary(
-            session_id=message.session_id,
-            env_id=message.env_id,
-            num_envs=message.num_envs,
-            memory_bytes=message.memory_bytes,
-            owner=message.owner,
-            idle_seconds=message.idle_seconds,
-            open_streams=message.open_streams,
-            age_seconds=message.age_seconds,
-            idle_timeout_seconds=idle_timeout_seconds,
-            server=server,
-        )
+__all__ = ["Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary"]
 
 
 class Client:
@@ -143,13 +45,11 @@ class Client:
     def __init__(self, address: "str | list[str]", *, token: "str | None" = None,
                  tls: "TlsConfig | bool | None" = None, wait_ready: float = 10.0, on_server_loss: str = "raise",
                  reconnect_backoff: float = 1.0, reconnect_backoff_max: float = 30.0):
-        from .sharded import SERVER_LOSS
-
         if on_server_loss not in SERVER_LOSS:
-            raise ValueError(f"on_server_loss must be one of {SERVER_LOSS}, got {on_server_loss!r}")
+            raise InvalidArgumentError(f"on_server_loss must be one of {SERVER_LOSS}, got {on_server_loss!r}")
         self.addresses = resolve(address)
         if len(set(self.addresses)) != len(self.addresses):
-            raise ValueError(f"each server is named once, got {self.addresses}")
+            raise InvalidArgumentError(f"each server is named once, got {self.addresses}")
         self.address = address if isinstance(address, str) else self.addresses[0]
         self.on_server_loss = on_server_loss
         self.reconnect_backoff = (float(reconnect_backoff), float(reconnect_backoff_max))
@@ -251,8 +151,6 @@ class Client:
         `channels_last=True` returns image observations as `[H, W, C]` (gymnasium's pixel layout, which
         `gymnasium.wrappers.vector.GrayscaleObservation` needs) instead of the server's `[C, H, W]`.
         """
-        from .vector import open_vector_env
-
         request = pb.CreateSessionRequest(
             env_id=env_id,
             num_envs=num_envs,
@@ -266,14 +164,13 @@ class Client:
         settings = dict(stream=stream, delivery=delivery, autoreset_mode=autoreset_mode, channels_last=channels_last)
         check_delivery(delivery)
         if len(self._transports) > 1:
-            from .sharded import ShardedVectorEnv
-
             if options.get("batch_size"):
                 raise InvalidArgumentError(
                     "batch_size (EnvPool's asynchronous mode) is for a session on one server; a client of "
                     f"{len(self._transports)} servers steps its envs together (leave batch_size at 0)")
 
-            envs = ShardedVectorEnv(self, request, **settings)
+            envs = ShardedVectorEnv(self.transports, request, on_server_loss=self.on_server_loss,
+                                    reconnect_backoff=self.reconnect_backoff, **settings)
             self._sharded[envs.session_id] = envs
             return envs
         return open_vector_env(self._transport, request, **settings)
@@ -321,14 +218,12 @@ class Client:
         Errors in the request are raised before the first batch. `close()` the stream (or use it in a
         `with` block) to stop it early.
         """
-        from .batches import SHARING, open_batch_stream
-
         check_delivery(delivery)
         if sharing not in SHARING:
-            raise ValueError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
+            raise InvalidArgumentError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
         sources = {"replay": pb.SOURCE_REPLAY, "rollout": pb.SOURCE_ROLLOUT}
         if source not in sources:
-            raise ValueError(f"source must be one of {sorted(sources)}, got {source!r}")
+            raise InvalidArgumentError(f"source must be one of {sorted(sources)}, got {source!r}")
         request = pb.SampleBatchesRequest(
             session_id=session_id,
             batch_size=batch_size,
@@ -349,8 +244,6 @@ class Client:
         )
         sharded = self._sharded.get(session_id)
         if sharded is not None:
-            from .sharded import ShardedBatchStream
-
             return ShardedBatchStream(sharded, request, delivery)
         return open_batch_stream(self._for_session(session_id), request, delivery)
 

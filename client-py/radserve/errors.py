@@ -47,6 +47,21 @@ class PermissionDeniedError(RadServeError):
     """The token is known, but its principal may not make this call (a monitor token acting)."""
 
 
+class DeadlineExceededError(RadServeError):
+    """The call's deadline passed before the server answered (a timeout given to the call, or the
+    server's own limit on a call that waits, such as a worker that does not answer in time)."""
+
+
+class CancelledError(RadServeError):
+    """The call was cancelled before it completed (by this client, or by the server when it
+    shut down or the stream's peer went away)."""
+
+
+class UnimplementedError(RadServeError):
+    """The server does not implement the call or the option (an older server, or a request that
+    radserve does not support, named in the message)."""
+
+
 class SharedMemoryError(RadServeError):
     """Shared memory (minibatches or acting) cannot be used here: the server's memory could not be
     handed over (the client is on another host, in another network namespace, or runs as a user the
@@ -62,6 +77,9 @@ _BY_CODE = {
     grpc.StatusCode.INTERNAL: InternalError,
     grpc.StatusCode.UNAUTHENTICATED: UnauthenticatedError,
     grpc.StatusCode.PERMISSION_DENIED: PermissionDeniedError,
+    grpc.StatusCode.DEADLINE_EXCEEDED: DeadlineExceededError,
+    grpc.StatusCode.CANCELLED: CancelledError,
+    grpc.StatusCode.UNIMPLEMENTED: UnimplementedError,
 }
 
 

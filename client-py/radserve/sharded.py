@@ -36,8 +36,8 @@ from gymnasium.vector.utils import batch_space
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport
 from .batches import FIELDS, Batch, open_batch_stream
-from .errors import NotFoundError, RadServeError, UnavailableError
-from .vector import RemoteVectorEnv, open_vector_env
+from .errors import InvalidArgumentError, NotFoundError, RadServeError, UnavailableError
+from .vector import RemoteVectorEnv, check_reset_mask, check_seeds, open_vector_env
 
 SERVER_LOSS = ("raise", "continue")
 # A server is lost when it cannot be reached, or when it no longer knows the session (it restarted).
@@ -120,21 +120,25 @@ class ShardedVectorEnv(VectorEnv):
     See the module's documentation for what happens when a server is lost.
     """
 
-    def __init__(self, client, request: "pb.CreateSessionRequest", *, stream: bool = False, delivery: str = "grpc",
-                 autoreset_mode: "AutoresetMode | str | None" = None, channels_last: bool = False):
-        self._client = client
+    def __init__(self, transports: "list[Transport]", request: "pb.CreateSessionRequest", *, stream: bool = False,
+                 delivery: str = "grpc", autoreset_mode: "AutoresetMode | str | None" = None,
+                 channels_last: bool = False, on_server_loss: str = "raise",
+                 reconnect_backoff: "tuple[float, float]" = (1.0, 30.0)):
+        if on_server_loss not in SERVER_LOSS:
+            raise InvalidArgumentError(f"on_server_loss must be one of {SERVER_LOSS}, got {on_server_loss!r}")
         self._settings = dict(stream=stream, delivery=delivery, autoreset_mode=autoreset_mode,
                               channels_last=channels_last)
-        self.on_server_loss = client.on_server_loss
+        self.on_server_loss = on_server_loss
         # Shards reconnected in this call (their rows are placeholders once more), and the losses
         # step_async found (None while no step is outstanding).
         self._returned_rows: "list[Shard]" = []
         self._pending_losses: "list | None" = None
-        self._backoff_first, self._backoff_max = client.reconnect_backoff
+        self._backoff_first, self._backoff_max = reconnect_backoff
         self.num_envs = request.num_envs
         if self.num_envs < 1:
-            raise ValueError(f"num_envs must be at least 1, got {self.num_envs}")
-        transports = client.transports
+            raise InvalidArgumentError(f"num_envs must be at least 1, got {self.num_envs}")
+        transports = list(transports)
+        self.num_servers = len(transports)
         sizes = apportion(self.num_envs, [1] * len(transports))
         capacity = request.replay.capacity if request.HasField("replay") else 0
         self.shards: "list[Shard]" = []
@@ -161,7 +165,7 @@ class ShardedVectorEnv(VectorEnv):
             if shard.env.single_observation_space != first.single_observation_space or \
                     shard.env.single_action_space != first.single_action_space:
                 self.close()
-                raise RadServeError(f"servers {first._transport.address} and {shard.transport.address} give "
+                raise RadServeError(f"servers {self.shards[0].transport.address} and {shard.transport.address} give "
                                     f"{request.env_id} different spaces: run the same radserve version everywhere")
         self.autoreset_mode = first.autoreset_mode
         self.metadata = {"autoreset_mode": self.autoreset_mode}
@@ -213,18 +217,9 @@ class ShardedVectorEnv(VectorEnv):
         `options["reset_mask"]` resets only the marked envs."""
         self._check_open()
         options = dict(options or {})
-        mask = options.pop("reset_mask", None)
-        if mask is not None:
-            mask = np.asarray(mask)
-            if mask.dtype != np.bool_ or mask.shape != (self.num_envs,):
-                from .errors import InvalidArgumentError
-
-                raise InvalidArgumentError(
-                    f"options['reset_mask'] must be a numpy bool array of shape ({self.num_envs},), got {mask!r}")
-        if isinstance(seed, (list, tuple, np.ndarray)) and len(seed) != self.num_envs:
-            from .errors import InvalidArgumentError
-
-            raise InvalidArgumentError(f"reset got {len(seed)} seeds for {self.num_envs} envs")
+        # The plain env's checks, before any server is asked: the same refusals, sharded or not.
+        mask = check_reset_mask(options.pop("reset_mask", None), self.num_envs)
+        check_seeds(seed, self.num_envs)
         returned = self._reconnect_due()
         parts, lost = [], []
         for shard in self.shards:
@@ -259,8 +254,6 @@ class ShardedVectorEnv(VectorEnv):
         self._check_open()
         actions = np.asarray(actions)
         if actions.ndim == 0 or actions.shape[0] != self.num_envs:
-            from .errors import InvalidArgumentError
-
             raise InvalidArgumentError(f"actions must have one row per env ({self.num_envs}), got shape "
                                        f"{list(actions.shape)}")
         if self._pending_losses is not None:
@@ -476,7 +469,7 @@ class ShardedBatchStream:
             shard_request.session_id = shard.env.session_id
             shard_request.batch_size = share
             # Different draws on every server (and after every re-plan), reproducible from `seed`.
-            shard_request.seed = request.seed + shard.server + len(envs._client.addresses) * (self._plans - 1)
+            shard_request.seed = request.seed + shard.server + envs.num_servers * (self._plans - 1)
             if request.HasField("min_size"):
                 shard_request.min_size = max(share, math.ceil(request.min_size * shard.size / total_envs))
             try:

@@ -15,6 +15,7 @@ from ._acting import SharedActing
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport, check_delivery
 from .errors import FailedPreconditionError, InvalidArgumentError, RadServeError
+from .types import SessionInfo
 
 
 class _Step(NamedTuple):
@@ -70,6 +71,51 @@ _SCALARS = frozenset((int, float, bool))
 
 def _bools(mask) -> "list[bool]":
     return [] if mask is None else [bool(value) for value in mask]
+
+
+def check_reset_mask(mask, num_envs: int) -> "np.ndarray | None":
+    """`reset(options={"reset_mask": mask})`'s mask, checked: None, or a numpy bool array of `num_envs`
+    marking at least one env (gymnasium's own rule), for a plain and a sharded env alike."""
+    if mask is None:
+        return None
+    if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_ or mask.shape != (num_envs,):
+        raise InvalidArgumentError(
+            f"options['reset_mask'] must be a numpy bool array of shape ({num_envs},), got {mask!r}")
+    if not mask.any():
+        raise InvalidArgumentError("options['reset_mask'] must mark at least one env")
+    return mask
+
+
+def check_seeds(seed, num_envs: int) -> "tuple[int | None, list[int] | None]":
+    """`reset(seed=...)` as (a session seed, or one seed per env), checked: an int (env i gets seed + i),
+    a list of one int per env, or None (each env's random stream goes on)."""
+    if seed is None:
+        return None, None
+    if isinstance(seed, (list, tuple, np.ndarray)):
+        seeds = list(seed)
+        if len(seeds) != num_envs:
+            raise InvalidArgumentError(f"reset got {len(seeds)} seeds for {num_envs} envs")
+        if all(entry is None for entry in seeds):
+            return None, None
+        if any(entry is None for entry in seeds):
+            raise InvalidArgumentError(
+                f"a list of seeds is all ints or all None (to leave one env unseeded, reset the others with "
+                f"options={{'reset_mask': ...}}), got {seeds}")
+        for entry in seeds:
+            _check_seed(entry)
+        seeds = [int(entry) for entry in seeds]
+        if all(entry == seeds[0] + i for i, entry in enumerate(seeds)):
+            return seeds[0], None
+        return None, seeds
+    _check_seed(seed)
+    return int(seed), None
+
+
+def _check_seed(seed) -> None:
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise InvalidArgumentError(f"seed must be an int, a list of ints or None, got {seed!r}")
+    if not 0 <= int(seed) < 1 << 64:
+        raise InvalidArgumentError(f"seed must be a non-negative integer, got {seed}")
 
 
 def resolve_autoreset_mode(mode: "AutoresetMode | str | None", is_async: bool = False) -> AutoresetMode:
@@ -203,8 +249,8 @@ class RemoteVectorEnv(VectorEnv):
         one int per env, or None (each env's random stream goes on)."""
         self._check_idle("reset")
         options = dict(options or {})
-        mask = self._reset_mask(options.pop("reset_mask", None))
-        seed, env_seeds = self._session_seed(seed)
+        mask = check_reset_mask(options.pop("reset_mask", None), self.num_envs)
+        seed, env_seeds = check_seeds(seed, self.num_envs)
         requested = np.ones(self.num_envs, dtype=bool) if mask is None else mask
         # Ended envs were reset by the server in the step that ended them: an unseeded reset takes
         # that reset instead of a second one, as gymnasium's env resets once.
@@ -242,46 +288,6 @@ class RemoteVectorEnv(VectorEnv):
         if self._channels_last:
             return np.ascontiguousarray(np.moveaxis(obs, -3, -1))
         return obs.copy()
-
-    def _reset_mask(self, mask) -> "np.ndarray | None":
-        if mask is None:
-            return None
-        if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_ or mask.shape != (self.num_envs,):
-            raise InvalidArgumentError(
-                f"options['reset_mask'] must be a numpy bool array of shape ({self.num_envs},), got {mask!r}")
-        if not mask.any():
-            raise InvalidArgumentError("options['reset_mask'] must mark at least one env")
-        return mask
-
-    def _session_seed(self, seed) -> "tuple[int | None, list[int] | None]":
-        """(a session seed, or one seed per env) for `seed` (an int, None, or one per env), checked."""
-        if seed is None:
-            return None, None
-        if isinstance(seed, (list, tuple, np.ndarray)):
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise InvalidArgumentError(f"reset got {len(seeds)} seeds for {self.num_envs} envs")
-            if all(entry is None for entry in seeds):
-                return None, None
-            if any(entry is None for entry in seeds):
-                raise InvalidArgumentError(
-                    f"a list of seeds is all ints or all None (to leave one env unseeded, reset the others with "
-                    f"options={{'reset_mask': ...}}), got {seeds}")
-            for entry in seeds:
-                self._check_seed(entry)
-            seeds = [int(entry) for entry in seeds]
-            if all(entry == seeds[0] + i for i, entry in enumerate(seeds)):
-                return seeds[0], None
-            return None, seeds
-        self._check_seed(seed)
-        return int(seed), None
-
-    @staticmethod
-    def _check_seed(seed) -> None:
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-            raise InvalidArgumentError(f"seed must be an int, a list of ints or None, got {seed!r}")
-        if not 0 <= int(seed) < 1 << 64:
-            raise InvalidArgumentError(f"seed must be a non-negative integer, got {seed}")
 
     def _skip(self) -> "np.ndarray | None":
         """The envs this step must not step (NEXT_STEP: those that ended in the last step)."""
@@ -379,7 +385,7 @@ class RemoteVectorEnv(VectorEnv):
         """Starts every env's reset (env i re-seeded with seed + i when `seed` is given); their first
         observations come back through recv(), batch_size at a time (reward 0, no flags)."""
         self._check_async("async_reset")
-        seed = None if seed is None else self._session_seed(seed)[0]
+        seed = None if seed is None else check_seeds(seed, self.num_envs)[0]
         if self._shared is not None:
             self._shared.send(b"A", seed)
             self._shared.receive()
@@ -664,8 +670,6 @@ class RemoteVectorEnv(VectorEnv):
 
     def describe(self):
         """The session as the server sees it (steps taken, episodes completed, options)."""
-        from .client import SessionInfo
-
         return SessionInfo.from_proto(
             self._transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=self.session_id)))
 
@@ -686,8 +690,6 @@ class RemoteVectorEnv(VectorEnv):
 
 def open_vector_env(transport: Transport, request: "pb.CreateSessionRequest", **settings) -> RemoteVectorEnv:
     """A new session on one server, as a RemoteVectorEnv (`settings`: its keyword arguments)."""
-    from .client import SessionInfo
-
     info = SessionInfo.from_proto(transport.create_session(request))
     try:
         return RemoteVectorEnv(transport, info, **settings)

@@ -11,7 +11,7 @@ from gymnasium import spaces
 
 import radserve
 from radserve import _convert
-from radserve._proto import radserve_pb2 as pb
+from radserve.proto import radserve_pb2 as pb
 from radserve.errors import from_rpc_error
 
 CLIENT = Path(__file__).resolve().parents[1]
@@ -57,6 +57,11 @@ def test_status_codes_map_to_typed_errors():
     assert isinstance(error, radserve.NotFoundError) and isinstance(error, radserve.RadServeError)
     assert str(error) == "unknown environment id" and error.code == grpc.StatusCode.NOT_FOUND
     assert type(from_rpc_error(_FakeRpcError(grpc.StatusCode.DATA_LOSS, "x"))) is radserve.RadServeError
+    for code, cls in [(grpc.StatusCode.DEADLINE_EXCEEDED, radserve.DeadlineExceededError),
+                      (grpc.StatusCode.CANCELLED, radserve.CancelledError),
+                      (grpc.StatusCode.UNIMPLEMENTED, radserve.UnimplementedError)]:
+        error = from_rpc_error(_FakeRpcError(code, "why"))
+        assert type(error) is cls and error.code == code and str(error) == "why"
 
 
 def test_generated_stubs_are_up_to_date(tmp_path):
