@@ -26,6 +26,9 @@ that long before sleeping on it.
 
 First it times a pipe round trip between two processes on different CPUs and on one CPU: on a VM
 whose idle vCPUs halt at once, waking a process on another CPU is what a cross-process step costs.
+
+A run of every row with radserve and no polling writes bench/results/acting_bounds.json, which
+docs/performance.md renders (`make docs-tables`).
 """
 
 import argparse
@@ -34,7 +37,6 @@ import json
 import mmap
 import os
 import socket
-import statistics
 import subprocess
 import sys
 import time
@@ -44,6 +46,7 @@ from types import SimpleNamespace
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import record  # noqa: E402  (bench/record.py: the results file)
 import vs_envpool  # noqa: E402  (the same workloads, EnvPool virtualenv and timing)
 
 # Bytes of the memory the learner and the child share (every row's arrays fit: bigfish x64 needs ~1 MB).
@@ -232,10 +235,6 @@ def best_of(row, sides, rounds: int) -> "list[float]":
     return [max(row[side][i]["rate"] for side in sides if row[side]) for i in range(rounds)]
 
 
-def ratio_text(values) -> str:
-    return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rounds", type=int, default=3)
@@ -253,12 +252,12 @@ def main() -> None:
         return
     vs_envpool.ensure_envpool()
     cpus = sorted(os.sched_getaffinity(0))
-    print("\npipe round trip between two processes, median of 5:\n")
-    print("| processes on | us |")
-    print("|---|---:|")
+    pipe_rows = []
     if len(cpus) > 1:
-        print(f"| two CPUs | {statistics.median(pipe_round_trip(cpus[:2]) for _ in range(5)) * 1e6:.1f} |")
-    print(f"| one CPU | {statistics.median(pipe_round_trip([cpus[0]] * 2) for _ in range(5)) * 1e6:.1f} |")
+        pipe_rows.append(["two CPUs", record.ranged([pipe_round_trip(cpus[:2]) * 1e6 for _ in range(5)], 1)])
+    pipe_rows.append(["one CPU", record.ranged([pipe_round_trip([cpus[0]] * 2) * 1e6 for _ in range(5)], 1)])
+    pipe_table = {"id": "acting_bounds_pipe", "columns": ["processes on", "pipe round trip (us)"], "rows": pipe_rows,
+                  "note": "One byte each way between two processes, median (range) of 5 runs of 20,000."}
     sides = ["in-process sync", "in-process async", "one hop sync", "one hop async"]
     if not args.no_radserve:
         sides += ["radserve native", "radserve envpool"]
@@ -289,22 +288,36 @@ def main() -> None:
                     row[side].append(result)
                     print(f"round {round_ + 1} {label} x{num_envs}: {side} {result['rate']:,.0f} steps/s, "
                           f"{result['cpu'] * 1e6:,.0f} us CPU/step", file=sys.stderr)
-    print(f"\nEnvPool 1.2.5 (2 threads) in-process and behind one shared-memory hop"
-          + ("" if args.no_radserve else ", and radserve (2 workers, synchronous session, shared-memory acting)")
-          + f", 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s\n")
-    print("| workload | envs | " + " | ".join(sides) + " | one hop best / in-process best |"
-          + ("" if args.no_radserve else " radserve best / one hop best |"))
-    print("|---|---:|" + "---:|" * (len(sides) + 1 + (not args.no_radserve)))
+    heads = {"in-process sync": "EnvPool sync", "in-process async": "EnvPool async", "one hop sync": "one hop sync",
+             "one hop async": "one hop async", "radserve native": "radserve native",
+             "radserve envpool": "radserve envpool engine"}
+    columns = ["workload", "envs"] + [heads[side] for side in sides] + ["one hop best / in-process best"]
+    if not args.no_radserve:
+        columns.append("radserve best / one hop best")
+    table_rows = []
     for label, *_, num_envs in rows:
         row = results[label]
         best = best_of(row, ["in-process sync", "in-process async"], args.rounds)
         hop = best_of(row, ["one hop sync", "one hop async"], args.rounds)
-        line = (f"| {label} | {num_envs} | " + " | ".join(vs_envpool.rate_cell(row[side]) for side in sides)
-                + f" | {ratio_text([h / b for h, b in zip(hop, best)])} |")
+        cells = [label, str(num_envs)] + [record.ranged([r["rate"] for r in row[side]]) for side in sides]
+        cells.append(record.ranged([h / b for h, b in zip(hop, best)], 2, "x"))
         if not args.no_radserve:
             ours = best_of(row, ["radserve native", "radserve envpool"], args.rounds)
-            line += f" {ratio_text([r / h for r, h in zip(ours, hop)])} |"
-        print(line)
+            cells.append(record.ranged([r / h for r, h in zip(ours, hop)], 2, "x"))
+        table_rows.append(cells)
+    table = {"id": "acting_bounds", "columns": columns, "rows": table_rows,
+             "note": f"Env steps/s: EnvPool 1.2.5 (2 threads) in-process and behind one shared-memory hop"
+                     + ("" if args.no_radserve else ", and radserve (2 workers, synchronous session, shared memory)")
+                     + f"; median (range) of {args.rounds} alternating rounds of {args.seconds:g} s; the ratios "
+                       "take each round's better mode."}
+    for each in (pipe_table, table):
+        print("\n" + " | ".join(each["columns"]))
+        for cells in each["rows"]:
+            print(record.plain(cells))
+    if not args.only and not args.no_radserve and args.spin_us == "0,0":
+        record.write("acting_bounds", [pipe_table, table], {"rounds": args.rounds, "seconds": args.seconds,
+                                                            "workers": 2, "envpool": vs_envpool.ENVPOOL})
+
 
 if __name__ == "__main__":
     main()

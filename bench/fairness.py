@@ -5,18 +5,24 @@ cancelled; and one heavy stream's rate alone (what splitting batches into pool j
     .venv/bin/python bench/fairness.py [--binary A --binary B ...] [--rounds 3] [--seconds 4]
 
 With several binaries (e.g. a build before a change and after it), rounds alternate between them
-and the table shows each one's median and range: these machines are noisy, compare in one run.
+and the table shows each one's median and range: these machines are noisy, compare in one run. A run
+on the build alone writes bench/results/fairness.json (docs/reliability.md).
 """
 
 import argparse
+import os
 import statistics
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
 import radserve
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import record  # noqa: E402  (bench/record.py: the results file)
 
 ATTACK = "|".join(["color_jitter"] * 8)  # eight stages: the most a pipeline may have
 
@@ -105,12 +111,22 @@ def main():
                   flush=True)
     print()
     print(f"{'binary':<40} {'heavy alone':>14} {'victim alone':>14} {'under attack':>14} {'1 s after':>14}  (batches/s, median [range])")
+    table_rows = []
     for binary, rows in results.items():
         cells = []
         for key in ("heavy", "alone", "attacked", "after"):
             values = [row[key] for row in rows]
             cells.append(f"{statistics.median(values):6.1f} [{min(values):.0f}-{max(values):.0f}]")
         print(f"{binary[-40:]:<40} " + " ".join(f"{cell:>14}" for cell in cells))
+        table_rows.append([os.path.relpath(binary, record.ROOT) if len(binaries) > 1 else "this build"]
+                          + [record.ranged([row[key] for row in rows]) for key in ("heavy", "alone", "attacked", "after")])
+    if not args.binary:
+        record.write("fairness", [{
+            "id": "fairness", "rows": table_rows,
+            "columns": ["build", "heavy stream alone (crop 512, obs+next_obs)", "victim alone (crop, batch 32)",
+                        "victim while another session draws 8x colour jitter at 512", "victim 1 s after"],
+            "note": f"Batches/s, median (range) of {args.rounds} rounds of {args.seconds:g} s; 2 workers, dm_control "
+                    "cheetah with the fast look."}], {"rounds": args.rounds, "seconds": args.seconds})
 
 
 if __name__ == "__main__":

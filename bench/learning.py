@@ -1,6 +1,6 @@
 """Evidence that the example learners learn through radserve (issue 5): each check runs the learners
-as a user would, reads their metrics.csv, appends a row per run to the results table in
-docs/learning.md, and draws the runs' evaluation curves side by side in docs/learning/<check>.png.
+as a user would, reads their metrics.csv, appends a row per run to bench/results/learning.json (the
+table docs/learning.md renders: `make docs-tables`), and draws the runs' evaluation curves side by side in docs/learning/<check>.png.
 
     python bench/learning.py sac-state      # SAC + RAS-S on gym/InvertedPendulum-v5, target >= 900 in 20k steps
     python bench/learning.py rad-sac        # RAD-SAC translate vs pixel SAC on dmc/cartpole-balance, >= 600 in 80k
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import subprocess
 import sys
@@ -27,8 +28,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "client-py"))
 from radserve.runs import plot_curves, read_metrics  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "bench"))
+import record  # noqa: E402  (bench/record.py: the results file)
+
 EXAMPLES = ROOT / "client-py" / "examples"
-DOCS = ROOT / "docs" / "learning.md"
 FIGURES = ROOT / "docs" / "learning"
 
 
@@ -84,16 +87,20 @@ def rises(values: np.ndarray) -> bool:
     return len(values) >= 3 and values[-third:].mean() > values[:third].mean()
 
 
+COLUMNS = ["date", "check", "run", "flags", "env steps", "final eval", "best eval", "first step >= target",
+           "target met", "wall"]
+
+
 def append_row(row: "list[str]") -> None:
-    header = ("| date | check | run | flags | env steps | final eval | best eval | first step >= target | target met | wall |\n"
-              "|---|---|---|---|---|---|---|---|---|---|\n")
-    text = DOCS.read_text() if DOCS.exists() else ""
-    marker = "<!-- results: bench/learning.py appends below -->\n"
-    if marker not in text:
-        if "## Results" not in text:
-            text += "\n## Results\n"
-        text += "\n" + marker + header
-    DOCS.write_text(text + "| " + " | ".join(row) + " |\n")
+    """Adds a run's row to bench/results/learning.json, whose table docs/learning.md renders: these runs
+    take up to hours each, so the table is a log of runs (each row dated), not one run's figures."""
+    path = record.RESULTS / "learning.json"
+    rows = json.loads(path.read_text())["tables"][0]["rows"] if path.exists() else []
+    rows.append(row)
+    record.write("learning", [{"id": "learning", "columns": COLUMNS, "rows": rows, "align": ["l"] * len(COLUMNS),
+                               "note": "One row per run, appended by each run (the date column says when it ran; "
+                                       "the rows marked GPU ran through bench/gpu on the device named)."}],
+                 command="python bench/learning.py CHECK [--extra FLAGS]")
 
 
 def main() -> None:

@@ -13,6 +13,7 @@ import datetime
 import json
 import os
 import platform
+import shlex
 import statistics
 import subprocess
 import sys
@@ -69,7 +70,12 @@ def ranged(values, digits: int = 0, suffix: str = "") -> dict:
 
 def plain(row: list) -> str:
     """A table row as one line of plain text (the figures without their ranges), for the terminal."""
-    return " | ".join(str(cell["value"] if isinstance(cell, dict) else cell) for cell in row)
+    def text(cell) -> str:
+        if isinstance(cell, dict):
+            return f"{cell['value']:,.{cell.get('digits', 0)}f}{cell.get('suffix', '')}"
+        return str(cell)
+
+    return " | ".join(text(cell) for cell in row)
 
 
 def write(name: str, tables: "list[dict]", settings: "dict | None" = None, path: "Path | None" = None,
@@ -78,7 +84,7 @@ def write(name: str, tables: "list[dict]", settings: "dict | None" = None, path:
     given), settings, machine, commit, tables."""
     path = path or RESULTS / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    command = command or " ".join([".venv/bin/python", os.path.relpath(sys.argv[0], ROOT), *sys.argv[1:]])
+    command = command or shlex.join([".venv/bin/python", os.path.relpath(sys.argv[0], ROOT), *sys.argv[1:]])
     document = {
         "bench": name,
         "command": command,

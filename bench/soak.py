@@ -9,7 +9,8 @@ Sessions of killed clients are left behind on purpose and closed by the server's
 (`limits.session_idle_timeout_s`, set short here). Each client's sessions rotate through the kinds a
 learner opens: CartPole through gRPC, Pendulum through shared-memory acting, a ProcGen game with a
 replay buffer sampled with `crop(56)`, a Pendulum with a replay buffer sampled with `ras_m`, and a
-CartPole rollout sampled in epochs. Prints a table every `--report-every` seconds and a summary.
+CartPole rollout sampled in epochs. Prints a table every `--report-every` seconds and a summary; a
+run of at least 10 minutes on the build writes bench/results/soak.json (docs/reliability.md).
 """
 
 import argparse
@@ -23,7 +24,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 import radserve  # noqa: E402
+import record  # noqa: E402  (bench/record.py: the results file)
 from _procs import worker_pids  # noqa: E402
 
 KINDS = ["grpc-acting", "shm-acting", "procgen-replay", "state-replay", "rollout"]
@@ -200,6 +203,23 @@ def main():
     print(f"  throughput median: {statistics.median(r['steps_per_s'] for r in warm):.0f} env steps/s, "
           f"{statistics.median(r['batches_per_s'] for r in warm):.1f} batches/s")
     print(f"  errors {rows[-1]['errors']:.0f}, refusals (RESOURCE_EXHAUSTED) {rows[-1]['refused']:.0f}")
+
+    # The docs' table: a row at about each quarter of the run, and the server after every client left.
+    shown = sorted({rows[min(len(rows) - 1, round(i * (len(rows) - 1) / 4))]["minute"] for i in range(5)})
+    table_rows = [[f"{row['minute']:.1f}", round(row["rss"]), row["fds"], row["workers"], round(row["worker_rss"]),
+                   row["sessions"], round(row["steps_per_s"]), round(row["batches_per_s"]), round(row["errors"])]
+                  for row in rows if row["minute"] in shown]
+    table_rows.append(["all clients gone, one lease later", round(after["rss"]), after["fds"], after["workers"],
+                       round(after["worker_rss"]), after["sessions"], "", "", ""])
+    table = {"id": "soak", "columns": ["minute", "server RSS MiB", "server fds", "workers", "workers' RSS MiB",
+                                        "sessions", "env steps/s", "batches/s", "errors"], "rows": table_rows,
+             "note": f"{args.clients} clients of {args.sessions} sessions, one SIGKILLed every {args.kill_every:g} s "
+                     f"({kills} in all), lease {args.idle_timeout} s, {args.workers} workers; server "
+                     f"{'alive at the end' if code is None else f'exited {code}'}."}
+    if args.binary is None and args.minutes >= 10:
+        record.write("soak", [table], {"clients": args.clients, "sessions": args.sessions, "minutes": args.minutes,
+                                       "kill_every": args.kill_every, "idle_timeout": args.idle_timeout,
+                                       "workers": args.workers})
 
 
 if __name__ == "__main__":

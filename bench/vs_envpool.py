@@ -25,6 +25,10 @@ the server and its workers; EnvPool: its one process) and divides by the steps.
 
 EnvPool's pixel path needs the system EGL library preloaded (LD_PRELOAD) and its ProcGen the Qt 5
 GUI library (Debian's libqt5gui5, installed here when missing).
+
+A run of every workload writes bench/results/vs_envpool.json, a --policy-ms run
+bench/results/vs_envpool_policy.json (the ratio table only); docs/performance.md renders them
+(`make docs-tables`).
 """
 
 import argparse
@@ -37,6 +41,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import record  # noqa: E402  (bench/record.py: the results file)
 
 ROOT = Path(__file__).resolve().parents[1]
 VENV = ROOT / ".venv-envpool"
@@ -77,22 +84,6 @@ def choose(actions):
     if POLICY["seconds"]:
         time.sleep(POLICY["seconds"])
     return actions
-
-
-def rate_cell(runs) -> str:
-    """Median (range) of the runs' rates, or "-" for a side not run."""
-    rates = [r["rate"] for r in runs]
-    if not rates:
-        return "-"
-    return f"{statistics.median(rates):,.0f} ({min(rates):,.0f}-{max(rates):,.0f})"
-
-
-def ratio_cell(runs, baseline_runs) -> str:
-    """Median (range) of each round's rate over the baseline's in the same round."""
-    values = [a["rate"] / b["rate"] for a, b in zip(runs, baseline_runs)]
-    if not values:
-        return "-"
-    return f"{statistics.median(values):.2f}x ({min(values):.2f}-{max(values):.2f})"
 
 
 def random_actions(space, batch: int) -> "list[np.ndarray]":
@@ -252,7 +243,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=4.0)
-    parser.add_argument("--only", default="", help="only the workloads whose label contains this")
+    parser.add_argument("--only", default="",
+                        help="only the workloads whose label contains this (several: separated by commas)")
+    parser.add_argument("--results", default="",
+                        help="write bench/results/NAME.json (default: vs_envpool on a run of every workload, "
+                             "vs_envpool_policy with --policy-ms; any other run with --only writes none)")
     parser.add_argument("--policy-ms", type=float, default=0.0,
                         help="the learner's time to choose each call's actions (slept), overlapped by the async modes")
     parser.add_argument("--envpool-worker", help=argparse.SUPPRESS)
@@ -271,7 +266,7 @@ def main() -> None:
              "radserve+EnvPool async shm", "radserve+EnvPool async grpc", "EnvPool sync", "EnvPool async",
              "EnvPool repeat"]
     results: "dict[str, dict[str, list[dict]]]" = {}
-    workloads = [w for w in WORKLOADS if args.only in w[0]]
+    workloads = [w for w in WORKLOADS if any(part in w[0] for part in args.only.split(","))]
     with radserve.LocalServer(workers=2) as server:
         client = radserve.Client(server.address)
         client.list_envs()  # the catalog is built
@@ -305,71 +300,79 @@ def main() -> None:
     def best_mode(row):
         return max(("EnvPool sync", "EnvPool async"), key=lambda side: med(row[side]))
 
-    print(f"\nradserve (2 workers; engine native, and engine envpool for the state rows) vs EnvPool 1.2.5 "
-          f"(2 threads), 2 cores, median (range) of {args.rounds} alternating rounds of {args.seconds:g} s"
-          + (f", {args.policy_ms:g} ms per call to choose actions" if args.policy_ms else "") + "\n")
-    print("env steps/s:\n")
-    print("| workload | envs | radserve shm | radserve gRPC | radserve async shm | radserve async gRPC | "
-          "radserve+EnvPool shm | radserve+EnvPool gRPC | radserve+EnvPool async shm | radserve+EnvPool async gRPC | EnvPool sync | "
-          "EnvPool async |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for label, env_id, options, task, envpool_options, num_envs in workloads:
-        row = results[label]
-        print(f"| {label} | {num_envs} | " + " | ".join(rate_cell(row[side]) for side in sides if side != "EnvPool repeat") + " |")
-    print("\nagainst EnvPool's best mode (ratio of each round's rates), and CPU per env step (us, every process):\n")
-    print("| workload | shm | gRPC | async shm | async gRPC | +EnvPool shm | +EnvPool gRPC | +EnvPool async shm | "
-          "+EnvPool async gRPC | CPU shm, async shm, +EnvPool shm, +EnvPool async shm, EnvPool best |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for label, env_id, options, task, envpool_options, num_envs in workloads:
+    def rates(runs):
+        return record.ranged([r["rate"] for r in runs]) if runs else "-"
+
+    def ratios(runs, baseline_runs):
+        """Each round's rate over the baseline's in the same round."""
+        return record.ranged([a["rate"] / b["rate"] for a, b in zip(runs, baseline_runs)], 2, "x") if runs else "-"
+
+    # The docs' two runs: every workload without a policy, and the policy's ratio on the rows it is about.
+    name = args.results or ("vs_envpool_policy" if args.policy_ms else "" if args.only else "vs_envpool")
+    prefix = name or "vs_envpool"
+    setting = (f"radserve with 2 workers (engine native, and engine envpool on the state rows) against EnvPool "
+               f"1.2.5 with 2 threads; median (range) of {args.rounds} alternating rounds of {args.seconds:g} s"
+               + (f"; every side spends {args.policy_ms:g} ms choosing each call's actions" if args.policy_ms else ""))
+    radserve_sides = [side for side in sides if side.startswith("radserve")]
+    heads = {"radserve shm": "shm", "radserve grpc": "gRPC", "radserve async shm": "async shm",
+             "radserve async grpc": "async gRPC", "radserve+EnvPool shm": "+EnvPool shm",
+             "radserve+EnvPool grpc": "+EnvPool gRPC", "radserve+EnvPool async shm": "+EnvPool async shm",
+             "radserve+EnvPool async grpc": "+EnvPool async gRPC", "EnvPool sync": "EnvPool sync",
+             "EnvPool async": "EnvPool async"}
+    shown = [side for side in sides if side in heads]
+    pixels = [label for label, *_ in workloads if "pixels" in label]
+    look = "; ".join(f"{label}: mean pixel of the first observations, radserve "
+                     f"{med(results[label]['radserve shm'], 'mean_pixel'):.1f}, EnvPool "
+                     f"{med(results[label]['EnvPool sync'], 'mean_pixel'):.1f}" for label in pixels)
+    rate_table = {"id": prefix, "columns": ["workload", "envs"] + [heads[side] for side in shown],
+                  "rows": [[label, str(num_envs)] + [rates(results[label][side]) for side in shown]
+                           for label, *_, num_envs in workloads],
+                  "note": f"Env steps/s: {setting}. " + (look + "." if look else "")}
+    ratio_rows = []
+    for label, *_, num_envs in workloads:
         row = results[label]
         best = best_mode(row)
+        ratio_rows.append([label] + [ratios(row[side], row[best]) for side in radserve_sides]
+                          + [f"{best.split()[1]}, {med(row[best]):,.0f}"])
+    ratio_table = {"id": f"{prefix}_ratio", "columns": ["workload"] + [heads[side] for side in radserve_sides]
+                   + ["EnvPool's best (mode, steps/s)"], "rows": ratio_rows,
+                   "note": f"Each round's rate over EnvPool's best mode in that round: {setting}."}
 
-        def ratio(side):
-            return ratio_cell(row[side], row[best])
+    def split(row, side):
+        if not row[side]:
+            return "-"
+        return " / ".join(f"{med(row[side], key) * 1e6:,.0f}" for key in ("cpu_client", "cpu_server", "cpu_workers"))
 
-        cpu = ", ".join(f"{med(row[side], 'cpu') * 1e6:,.0f}" if row[side] else "-"
-                        for side in ("radserve shm", "radserve async shm", "radserve+EnvPool shm",
-                                     "radserve+EnvPool async shm", best))
-        print(f"| {label} | {ratio('radserve shm')} | {ratio('radserve grpc')} | {ratio('radserve async shm')} | "
-              f"{ratio('radserve async grpc')} | "
-              f"{ratio('radserve+EnvPool shm')} | "
-              f"{ratio('radserve+EnvPool grpc')} | {ratio('radserve+EnvPool async shm')} | "
-              f"{ratio('radserve+EnvPool async grpc')} | {cpu} ({best.split()[1]}) |")
-    print("\nCPU per env step of each process through shared memory (us, medians): client, server, workers\n")
-    print("| workload | envs | native | native async | +EnvPool | +EnvPool async |")
-    print("|---|---:|---:|---:|---:|---:|")
-    for label, env_id, options, task, envpool_options, num_envs in workloads:
-        row = results[label]
-
-        def split(side):
-            if not row[side]:
-                return "-"
-            return " / ".join(f"{med(row[side], key) * 1e6:,.0f}" for key in ("cpu_client", "cpu_server", "cpu_workers"))
-
-        print(f"| {label} | {num_envs} | {split('radserve shm')} | {split('radserve async shm')} | "
-              f"{split('radserve+EnvPool shm')} | "
-              f"{split('radserve+EnvPool async shm')} |")
+    cpu_table = {"id": f"{prefix}_cpu", "columns": ["workload", "envs", "shm", "async shm", "+EnvPool shm",
+                                                    "+EnvPool async shm", "EnvPool best"],
+                 "rows": [[label, str(num_envs)] + [split(results[label], side) for side in
+                          ("radserve shm", "radserve async shm", "radserve+EnvPool shm", "radserve+EnvPool async shm")]
+                          + [f"{med(results[label][best_mode(results[label])], 'cpu') * 1e6:,.0f}"]
+                          for label, *_, num_envs in workloads],
+                 "note": "CPU per env step in us (user+system over the timed window), radserve's through shared "
+                         "memory as client / server / workers, EnvPool's its one process."}
+    # With a policy's time in the loop the question is only the ratio (the docs show that table alone).
+    tables = [ratio_table] if args.policy_ms else [rate_table, ratio_table, cpu_table]
     repeated = [w for w in workloads if w[0] in TRUE_REPEAT]
-    if repeated:
-        print("\nAgainst EnvPool doing the same action repeat (one control step per call, rewards of each; "
-              "sync, the same actions each call):\n")
-        print("| workload | envs | EnvPool, repeat by calls | radserve shm / it | +EnvPool shm / it | "
-              "EnvPool frame_skip best / it |")
-        print("|---|---:|---:|---:|---:|---:|")
-        for label, env_id, options, task, envpool_options, num_envs in repeated:
-            row = results[label]
-
-            def against(side):
-                return ratio_cell(row[side], row["EnvPool repeat"])
-
-            print(f"| {label} | {num_envs} | {rate_cell(row['EnvPool repeat'])} | "
-                  f"{against('radserve shm')} | {against('radserve+EnvPool shm')} | {against(best_mode(row))} |")
-    pixels = [label for label, *_ in workloads if "pixels" in label]
-    for label in pixels:
-        row = results[label]
-        print(f"\n{label}: mean pixel of the first observations, radserve {med(row['radserve shm'], 'mean_pixel'):.1f}, "
-              f"EnvPool {med(row['EnvPool sync'], 'mean_pixel'):.1f}")
-
+    if repeated and not args.policy_ms:
+        tables.append({
+            "id": f"{prefix}_repeat",
+            "columns": ["workload", "envs", "EnvPool, repeat by calls (steps/s)", "radserve shm / it",
+                        "+EnvPool shm / it", "EnvPool frame_skip best / it"],
+            "rows": [[label, str(num_envs), rates(results[label]["EnvPool repeat"]),
+                      ratios(results[label]["radserve shm"], results[label]["EnvPool repeat"]),
+                      ratios(results[label]["radserve+EnvPool shm"], results[label]["EnvPool repeat"]),
+                      ratios(results[label][best_mode(results[label])], results[label]["EnvPool repeat"])]
+                     for label, *_, num_envs in repeated],
+            "note": "EnvPool doing radserve's action repeat: frame_skip 1, 1000-step episodes, four calls with the "
+                    "same actions per agent step, sync."})
+    for table in tables:
+        print("\n" + " | ".join(table["columns"]))
+        for row in table["rows"]:
+            print(record.plain(row))
+    if name:
+        record.write(name, tables, {"rounds": args.rounds, "seconds": args.seconds, "policy_ms": args.policy_ms,
+                                    "only": args.only, "workers": 2, "envpool": ENVPOOL})
 
 if __name__ == "__main__":
     main()
