@@ -8,6 +8,7 @@
 // placed on purpose (the Status mapping, the worker protocol), never fall into a `_` arm.
 #![warn(clippy::wildcard_enum_match_arm)]
 
+pub mod actions;
 pub mod bounds;
 pub mod budget;
 pub mod catalog;

@@ -24,7 +24,8 @@ use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
 
 use radserve_core::bounds::{check_count, check_len, MAX_ID_BYTES, MAX_OPTIONS, MAX_OPTION_NAME_BYTES, MAX_OPTION_TEXT_BYTES};
-use radserve_core::session::{Session, MAX_SEED};
+use radserve_core::actions::{validate_actions, MAX_SEED};
+use radserve_core::session::Session;
 use radserve_core::{DType, LeaseHold, OptionValue, Options, Principal, ResetSpec, SessionExtras, SessionManager, Space};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
@@ -597,7 +598,7 @@ fn action_bytes(actions: &HashMap<u64, dm::Tensor>, space: &Space) -> Result<Vec
     }
     let elements = space.num_elements().max(1);
     let data = if count == 1 && elements > 1 { data.repeat(elements) } else { data };
-    radserve_core::session::validate_actions(space, 1, dtype, &{
+    validate_actions(space, 1, dtype, &{
         let mut batch = vec![1];
         batch.extend_from_slice(space.shape());
         batch

@@ -1,0 +1,284 @@
+//! A session: a vector of environments of one id, in groups hosted by the simulators, whose
+//! observations are frame-stacked here in the server (frames travel from the simulators once).
+//!
+//! Autoreset is "same-step" (EnvPool, gymnasium's `AutoresetMode.SAME_STEP`): the step that ends an
+//! episode returns the first observation of the next one, and the last observation of the ended
+//! episode separately, as `final_obs`.
+
+use std::collections::VecDeque;
+use std::sync::atomic::AtomicU64;
+use std::sync::{Arc, RwLock};
+
+use radserve_augment::ImagePlan;
+use radserve_replay::ReplayBuffer;
+
+use crate::catalog::{async_batch, engine_is_envpool, EnvId, Options};
+use crate::error::CoreError;
+use crate::metrics::CoreMetrics;
+use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, PendingStep, ResetInfos, SimulatorError, Simulators};
+use crate::space::Space;
+
+mod async_mode;
+mod recovery;
+mod stacking;
+mod sync;
+
+/// What a step that ends an episode returns (gymnasium's `AutoresetMode` names the same choices).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AutoresetMode {
+    /// The ending step already returns the next episode's first observation, and the ended
+    /// episode's last one as `final_obs` (EnvPool; gymnasium's `SAME_STEP`).
+    SameStep,
+}
+
+impl AutoresetMode {
+    /// The name clients see (`SessionInfo.autoreset_mode`).
+    pub fn name(self) -> &'static str {
+        match self {
+            AutoresetMode::SameStep => "same-step",
+        }
+    }
+}
+
+/// The counters of a session that change as it acts, readable without its lock.
+#[derive(Debug, Default)]
+pub struct SessionStats {
+    pub seed: AtomicU64,
+    pub total_env_steps: AtomicU64,
+    pub episodes_completed: AtomicU64,
+}
+
+/// What a reset resets and how it seeds (gymnasium's `reset(seed=..., options={"reset_mask": ...})`).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ResetSpec {
+    /// Re-seed env i with `seed + i`.
+    pub seed: Option<u64>,
+    /// Or one seed per env (`num_envs` of them).
+    pub env_seeds: Option<Vec<u64>>,
+    /// Reset only these envs (`num_envs` entries, at least one true); None: every env.
+    pub mask: Option<Vec<bool>>,
+}
+
+pub struct SessionConfig {
+    pub env: EnvId,
+    pub num_envs: usize,
+    pub seed: u64,
+    /// Resolved options (defaults included).
+    pub options: Options,
+    pub frame_stack: usize,
+}
+
+/// An episode that ended in a step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodeEnd {
+    pub env_index: usize,
+    pub episode_return: f64,
+    pub episode_length: u64,
+    pub terminated: bool,
+    pub truncated: bool,
+    pub error: Option<String>,
+}
+
+#[derive(Debug, Default)]
+pub struct StepOutcome {
+    /// [num_envs, *observation shape], raw bytes.
+    pub obs: Vec<u8>,
+    pub rewards: Vec<f64>,
+    pub terminated: Vec<bool>,
+    pub truncated: Vec<bool>,
+    pub episodes: Vec<EpisodeEnd>,
+    /// [episodes.len(), *observation shape]: the last observation of each ended episode.
+    pub final_obs: Vec<u8>,
+    /// The envs' own info dicts (JSON text from the simulators), for the envs that returned any.
+    pub infos: Vec<EnvInfo>,
+}
+
+/// An env's own info dicts from one step: the step's, and (when the step ended its episode) the
+/// reset's, as JSON text the simulator wrote; the server only carries them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct EnvInfo {
+    pub env_index: usize,
+    pub step: Option<String>,
+    pub reset: Option<String>,
+}
+
+pub struct Session {
+    pub config: SessionConfig,
+    /// One frame of one environment.
+    pub frame_spec: EnvSpec,
+    /// One (stacked) observation of one environment.
+    pub observation_space: Space,
+    groups: Vec<Box<dyn EnvGroup>>,
+    layout: FrameLayout,
+    /// The stacked observation of every env, oldest frame first.
+    stacks: Vec<u8>,
+    episode_returns: Vec<f64>,
+    episode_lengths: Vec<u64>,
+    /// Each env's seed: what it was last seeded with (seed + i at creation).
+    seeds: Vec<u64>,
+    needs_reset: bool,
+    pub total_env_steps: u64,
+    pub episodes_completed: u64,
+    /// Step calls so far: the step index recorded with each transition.
+    pub step_calls: u64,
+    /// Where every frame and transition is recorded, when the session keeps a replay buffer.
+    replay: Option<Arc<RwLock<ReplayBuffer>>>,
+    /// What Describe reads while a step holds the session (no lock needed).
+    pub stats: Arc<SessionStats>,
+    /// The evaluation view observations are returned through (replay keeps the raw frames).
+    view: Option<ImagePlan>,
+    /// The reset info dicts of the envs the last reset reset (env index, JSON text).
+    reset_infos: Vec<(usize, String)>,
+    /// Where its steps and resets are counted (the manager's, shared by every session).
+    metrics: Arc<CoreMetrics>,
+    /// Asynchronous mode: envs sent an action (or reset) whose result `recv` has not returned yet.
+    in_flight: Vec<bool>,
+    /// Asynchronous mode: envs whose next result is a reset's first frame, not a step.
+    resetting: Vec<bool>,
+    /// The native engine's asynchronous mode (groups of `batch_size` envs, each sent and returned
+    /// whole): each group's step in flight.
+    group_steps: Vec<Option<PendingStep>>,
+    /// The same: groups whose async reset is done and not yet returned by `recv`, with their reset
+    /// infos, in order.
+    group_resets: VecDeque<(usize, ResetInfos)>,
+}
+
+impl Session {
+    /// Builds the environments in the simulators (env i seeded seed + i) and waits for their first
+    /// reset before stepping.
+    pub async fn create(simulators: &dyn Simulators, config: SessionConfig) -> Result<Session, CoreError> {
+        let mut worker_options = config.options.clone();
+        worker_options.remove(crate::catalog::FRAME_STACK);
+        let seeds = (0..config.num_envs as u64).map(|i| config.seed + i).collect();
+        let (frame_spec, groups) =
+            simulators.create_groups(&config.env, &worker_options, seeds).await.map_err(|error| match error {
+                SimulatorError::Refused(message) => CoreError::CreateFailed { env_id: config.env.full(), message },
+                other @ (SimulatorError::Failed(_)
+                | SimulatorError::Lost(_)
+                | SimulatorError::Unavailable(_)
+                | SimulatorError::OutOfResources(_)) => other.into(),
+            })?;
+        let layout = FrameLayout { frame_bytes: frame_spec.observation.num_bytes() };
+        let (config_seed, config_num_envs) = (config.seed, config.num_envs);
+        // EnvPool's asynchronous mode runs in one process (EnvPool's); the native engine's steps groups
+        // of batch_size envs whole.
+        let misfit = match async_batch(&config.options, config.num_envs) {
+            Some(_) if engine_is_envpool(&config.options) => (groups.len() != 1).then(|| {
+                format!(
+                    "a session of engine 'envpool' with a batch_size below num_envs must be hosted by one simulator \
+                     process; {} hosts it in {}",
+                    config.env.full(),
+                    groups.len()
+                )
+            }),
+            Some(batch) => groups.iter().any(|group| group.envs().len() != batch).then(|| {
+                format!(
+                    "a session with batch_size {batch} steps its envs in groups of {batch}; {} built groups of {:?} envs",
+                    config.env.full(),
+                    groups.iter().map(|group| group.envs().len()).collect::<Vec<_>>()
+                )
+            }),
+            None => None,
+        };
+        if let Some(message) = misfit {
+            let mut groups = groups;
+            for group in &mut groups {
+                group.close().await;
+            }
+            return Err(CoreError::InvalidSession(message));
+        }
+        let group_count = groups.len();
+        Ok(Session {
+            observation_space: frame_spec.observation.stacked(config.frame_stack),
+            stacks: vec![0; config.num_envs * config.frame_stack * layout.frame_bytes],
+            episode_returns: vec![0.0; config.num_envs],
+            episode_lengths: vec![0; config.num_envs],
+            seeds: (0..config.num_envs as u64).map(|i| config_seed + i).collect(),
+            config,
+            frame_spec,
+            groups,
+            layout,
+            needs_reset: true,
+            total_env_steps: 0,
+            episodes_completed: 0,
+            step_calls: 0,
+            replay: None,
+            stats: Arc::new(SessionStats { seed: AtomicU64::new(config_seed), ..SessionStats::default() }),
+            view: None,
+            reset_infos: Vec::new(),
+            metrics: Arc::default(),
+            in_flight: vec![false; config_num_envs],
+            resetting: vec![false; config_num_envs],
+            group_steps: (0..group_count).map(|_| None).collect(),
+            group_resets: VecDeque::new(),
+        })
+    }
+
+    /// Count this session's steps and resets in `metrics` (the manager's) from now on.
+    pub fn with_metrics(mut self, metrics: Arc<CoreMetrics>) -> Session {
+        self.metrics = metrics;
+        self
+    }
+
+    pub fn num_envs(&self) -> usize {
+        self.config.num_envs
+    }
+
+    /// Whether the session must be reset (every env) before it steps: new, or after a failed step.
+    pub fn needs_reset(&self) -> bool {
+        self.needs_reset
+    }
+
+    /// The reset info dicts (env index, JSON text) of the envs the last reset reset, for those that
+    /// returned a non-empty one.
+    pub fn reset_infos(&self) -> &[(usize, String)] {
+        &self.reset_infos
+    }
+
+    /// Steps taken in each env's current episode (0: at an episode's first observation).
+    pub fn episode_lengths(&self) -> &[u64] {
+        &self.episode_lengths
+    }
+
+    /// Every env's current stacked observation `[num_envs, ...]`, as the last reset or step returned
+    /// it (through the view, if any); None before the first reset.
+    pub fn observations(&self) -> Option<Vec<u8>> {
+        (!self.needs_reset).then(|| self.viewed(&self.stacks))
+    }
+
+    /// Record every frame and transition from now on into `replay` (from the next reset).
+    pub fn attach_replay(&mut self, replay: Arc<RwLock<ReplayBuffer>>) {
+        self.replay = Some(replay);
+    }
+
+    pub fn replay(&self) -> Option<&Arc<RwLock<ReplayBuffer>>> {
+        self.replay.as_ref()
+    }
+
+    /// The seeds of the envs of group `index`.
+    fn group_seeds(&self, index: usize) -> Vec<u64> {
+        self.groups[index].envs().map(|env| self.seeds[env]).collect()
+    }
+
+    fn end_episode(&mut self, env: usize, terminated: bool, truncated: bool, error: Option<String>) -> EpisodeEnd {
+        self.episodes_completed += 1;
+        let episode = EpisodeEnd {
+            env_index: env,
+            episode_return: self.episode_returns[env],
+            episode_length: self.episode_lengths[env],
+            terminated,
+            truncated,
+            error,
+        };
+        self.episode_returns[env] = 0.0;
+        self.episode_lengths[env] = 0;
+        episode
+    }
+
+    /// Releases the environments in their simulators.
+    pub async fn close(&mut self) {
+        for mut group in self.groups.drain(..) {
+            group.close().await;
+        }
+    }
+}
