@@ -198,13 +198,13 @@ async fn a_shared_sample_stream_that_never_starts_is_ended() {
     let (sender, receiver) = tokio::sync::mpsc::channel::<proto::SharedSampleRequest>(1);
     let started = Instant::now();
     let call = client.sample_batches_shared(tokio_stream::wrappers::ReceiverStream::new(receiver));
-    let status = tokio::time::timeout(radserve_service::handlers::FIRST_MESSAGE_TIMEOUT * 2, call)
+    let status = tokio::time::timeout(radserve_service::sample_streams::FIRST_MESSAGE_TIMEOUT * 2, call)
         .await
         .expect("the server ends the call")
         .unwrap_err();
     assert_eq!(status.code(), Code::DeadlineExceeded, "{status:?}");
     assert!(status.message().contains("no SharedSampleRequest with `start` arrived within 10 s"), "{}", status.message());
-    assert!(started.elapsed() >= radserve_service::handlers::FIRST_MESSAGE_TIMEOUT);
+    assert!(started.elapsed() >= radserve_service::sample_streams::FIRST_MESSAGE_TIMEOUT);
     drop(sender);
     still_serves(&mut client).await;
 }

@@ -193,6 +193,14 @@ where
     }
 }
 
+/// Who made the request: the authentication layer puts the principal in every request it lets
+/// through, so a request without one never passed it.
+pub(crate) fn caller<T>(request: &tonic::Request<T>) -> crate::error::Result<Principal> {
+    request.extensions().get::<Principal>().cloned().ok_or_else(|| {
+        ServiceError::Unauthenticated("this request did not pass the server's authentication layer".into())
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,5 +1,5 @@
 //! The gRPC face of radserve. Handlers here only validate and convert messages, call the core
-//! (`radserve_sim`), and map its errors to statuses; no logic lives in the transport.
+//! (`radserve_core`), and map its errors to statuses; no logic lives in the transport.
 
 // Errors and messages are matched in full in the crates that map them: a new variant must be
 // placed on purpose (the Status mapping, the worker protocol), never fall into a `_` arm.
@@ -9,10 +9,13 @@ pub mod acting;
 pub mod auth;
 pub mod codec;
 pub mod convert;
+mod deadline;
 pub mod dm_env_rpc;
 pub mod error;
 pub mod handoff;
 pub mod handlers;
+pub mod sample_streams;
+pub mod streams;
 
 pub mod proto {
     tonic::include_proto!("radserve.v1");
@@ -38,7 +41,8 @@ pub mod pb {
 
 pub use dm_env_rpc::EnvironmentService;
 pub use pb::dm_env_rpc::v1::environment_server::EnvironmentServer;
-pub use handlers::{RadServeService, StreamStopper};
+pub use handlers::RadServeService;
+pub use streams::StreamStopper;
 pub use proto::rad_serve_server::RadServeServer;
 
 /// The server's release (the workspace's one version, Cargo.toml): ServerInfo, `--version` and

@@ -20,8 +20,11 @@ use crate::space::Space;
 
 mod async_mode;
 mod recovery;
+mod single;
 mod stacking;
 mod sync;
+
+pub use single::{EnvEnd, EnvStep};
 
 /// What a step that ends an episode returns (gymnasium's `AutoresetMode` names the same choices).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -233,17 +236,6 @@ impl Session {
     /// returned a non-empty one.
     pub fn reset_infos(&self) -> &[(usize, String)] {
         &self.reset_infos
-    }
-
-    /// Steps taken in each env's current episode (0: at an episode's first observation).
-    pub fn episode_lengths(&self) -> &[u64] {
-        &self.episode_lengths
-    }
-
-    /// Every env's current stacked observation `[num_envs, ...]`, as the last reset or step returned
-    /// it (through the view, if any); None before the first reset.
-    pub fn observations(&self) -> Option<Vec<u8>> {
-        (!self.needs_reset).then(|| self.viewed(&self.stacks))
     }
 
     /// Record every frame and transition from now on into `replay` (from the next reset).
