@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/envpool_calls.py [--rounds 5] [--seconds 2]
 
-Builds the worker's EnvpoolGroup (server/sim/python/radserve_worker.py) for each workload twice with the
+Builds the worker's EnvpoolGroup (server/sim/python/radserve_worker/envpool_engine.py) for each workload twice with the
 same seeds, one calling EnvPool's raw `_send`/`_recv` (what the worker does) and one its public
 `step`/`reset` (the wrapper: action conversion, state tree, info dict), and times `Group.step` of each
 in alternating rounds. No server, client or pipes: only what the worker spends per step. EnvPool runs
@@ -10,7 +10,7 @@ with 2 threads, as it does in a 2-worker server.
 """
 
 import argparse
-import importlib.util
+import importlib
 import statistics
 import sys
 import time
@@ -32,11 +32,11 @@ WORKLOADS = [
 
 
 def worker_module():
-    path = ROOT / "server" / "sim" / "python" / "radserve_worker.py"
-    spec = importlib.util.spec_from_file_location("radserve_worker", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """The worker's entry points, from the package the worker embeds."""
+    package_dir = str(ROOT / "server" / "sim" / "python")
+    if package_dir not in sys.path:
+        sys.path.insert(0, package_dir)
+    return importlib.import_module("radserve_worker.adapters")
 
 
 def group(worker, family, name, options, n, raw):

@@ -219,15 +219,16 @@ def test_what_envpool_cannot_host_is_refused_with_the_reason(client):
 
 
 def _worker_module():
-    """The worker's adapters (server/sim/python/radserve_worker.py), imported as the worker imports them."""
-    import importlib.util
+    """The worker's entry points (server/sim/python/radserve_worker/adapters.py), from the package the
+    worker embeds."""
+    import importlib
+    import sys
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "server" / "sim" / "python" / "radserve_worker.py"
-    spec = importlib.util.spec_from_file_location("radserve_worker_under_test", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    package_dir = str(Path(__file__).resolve().parents[1] / "server" / "sim" / "python")
+    if package_dir not in sys.path:
+        sys.path.insert(0, package_dir)
+    return importlib.import_module("radserve_worker.adapters")
 
 
 PROCGEN_DEFAULTS = {"num_levels": 0, "start_level": 0, "distribution_mode": "easy", "restrict_themes": False,

@@ -1,6 +1,6 @@
 """The server's ProcGen frames for seed s are procgen's own: env i plays what a one-game
 `ProcgenGym3Env(num=1, rand_seed=s+i)` plays for the same actions, through episode ends, although the
-worker steps its games as one procgen vector (radserve_worker.ProcgenGroup)."""
+worker steps its games as one procgen vector (radserve_worker.procgen_games.ProcgenGroup)."""
 
 import contextlib
 import io

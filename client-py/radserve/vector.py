@@ -35,7 +35,7 @@ class _Step(NamedTuple):
 
 
 def _numpy_value(tagged: dict):
-    """A JSON object as the worker wrote it (radserve_worker.info_json): numpy values rebuilt."""
+    """A JSON object as the worker wrote it (radserve_worker.common.info_json): numpy values rebuilt."""
     if "__numpy__" in tagged:
         dtype = np.dtype(tagged["__numpy__"])
         if "shape" in tagged:

@@ -171,7 +171,7 @@ pub const MAX_ASYNC_GROUPS: usize = 32;
 
 /// "native": the simulators' own Python packages (dm_control, gymnasium, procgen), results equal to
 /// theirs; "envpool": EnvPool's C++ ports of the same tasks (dm_control state tasks, MuJoCo-gym and
-/// classic control, ProcGen), faster per step, results EnvPool's (radserve_worker.py, EnvpoolGroup).
+/// classic control, ProcGen), faster per step, results EnvPool's (radserve_worker/envpool_engine.py, EnvpoolGroup).
 const ENGINES: &[&str] = &["native", "envpool"];
 const DISTRIBUTION_MODES: &[&str] = &["easy", "hard", "extreme", "memory", "exploration"];
 
@@ -208,7 +208,7 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
             option("paint_vel_info", Bool(false), Rule::Any),
             option("use_generated_assets", Bool(false), Rule::Any),
             // procgen's own stepping threads for a worker's vector of games; 0 (radserve's default, not
-            // procgen's 4) steps them on the worker's thread (radserve_worker.py).
+            // procgen's 4) steps them on the worker's thread (radserve_worker/procgen_games.py).
             option("num_threads", Int(0), Rule::IntRange(0, 64)),
             option(FRAME_STACK, Int(1), Rule::IntRange(1, MAX_FRAME_STACK)),
         ],

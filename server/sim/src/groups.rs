@@ -188,7 +188,7 @@ impl Simulators for WorkerPool {
         seeds: Vec<u64>,
     ) -> Result<(EnvSpec, Vec<Box<dyn EnvGroup>>), SimulatorError> {
         // engine="envpool": one worker hosts the session and EnvPool's own threads, one per worker process
-        // of the pool, step its envs in parallel (radserve_worker.py reads `envpool_threads`). One pipe
+        // of the pool, step its envs in parallel (radserve_worker/envpool_engine.py reads `envpool_threads`). One pipe
         // round trip per step instead of one per worker: HalfCheetah x16 ran 20-30% faster than split
         // over two workers of one EnvPool thread each (docs/performance.md, "The EnvPool engine").
         let envpool = engine_is_envpool(options);

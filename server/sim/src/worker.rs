@@ -26,7 +26,18 @@ use radserve_shm::MemFile;
 
 use crate::protocol::{self, EnvSpec, GroupConfig, GroupInfo, Request, Response, StepResult};
 
-const ADAPTERS_SOURCE: &str = include_str!("../python/radserve_worker.py");
+/// The worker's Python package (server/sim/python/radserve_worker/), embedded in the binary: its
+/// modules in the order they import each other, the package first and the entry points last.
+const ADAPTERS: [(&str, &str); 8] = [
+    ("radserve_worker", include_str!("../python/radserve_worker/__init__.py")),
+    ("radserve_worker.common", include_str!("../python/radserve_worker/common.py")),
+    ("radserve_worker.group", include_str!("../python/radserve_worker/group.py")),
+    ("radserve_worker.dmc", include_str!("../python/radserve_worker/dmc.py")),
+    ("radserve_worker.gymnasium_tasks", include_str!("../python/radserve_worker/gymnasium_tasks.py")),
+    ("radserve_worker.procgen_games", include_str!("../python/radserve_worker/procgen_games.py")),
+    ("radserve_worker.envpool_engine", include_str!("../python/radserve_worker/envpool_engine.py")),
+    ("radserve_worker.adapters", include_str!("../python/radserve_worker/adapters.py")),
+];
 
 /// Which OpenGL platform MuJoCo renders with. EGL is the default; OSMesa is pure software.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -160,14 +171,37 @@ struct HostedGroup {
     frames: Option<MemFile>,
 }
 
+/// Loads the embedded package module by module (each goes into `sys.modules` as it loads, so the
+/// later ones import the earlier ones as from files) and returns its entry points, `adapters`.
+fn load_adapters(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
+    let mut package: Option<Bound<'_, PyModule>> = None;
+    let mut module = None;
+    for (name, source) in ADAPTERS {
+        let file = match name.split_once('.') {
+            Some((_, leaf)) => format!("radserve_worker/{leaf}.py"),
+            None => "radserve_worker/__init__.py".to_string(),
+        };
+        let cstring = |text: &str| CString::new(text).map_err(|err| PyValueError::new_err(err.to_string()));
+        let loaded = PyModule::from_code(py, &cstring(source)?, &cstring(&file)?, &cstring(name)?)?;
+        match &package {
+            // A package: its modules are found as its attributes.
+            None => {
+                loaded.setattr("__path__", pyo3::types::PyList::empty(py))?;
+                package = Some(loaded.clone());
+            }
+            Some(package) => package.setattr(name.rsplit('.').next().unwrap_or(name), &loaded)?,
+        }
+        if name == "radserve_worker.common" {
+            // The native frame copy replaces the numpy fallback of the same name.
+            loaded.add_function(pyo3::wrap_pyfunction!(crate::pixels::hwc_to_chw, &loaded)?)?;
+        }
+        module = Some(loaded);
+    }
+    module.ok_or_else(|| PyValueError::new_err("the worker's package has no modules"))
+}
+
 fn serve(py: Python<'_>, input: &mut BufReader<File>, output: &mut BufWriter<File>, fds: &UnixStream) -> Result<(), String> {
-    let source = CString::new(ADAPTERS_SOURCE).map_err(|err| err.to_string())?;
-    let module = PyModule::from_code(py, &source, c"radserve_worker.py", c"radserve_worker")
-        .map_err(|err| format!("loading the environment adapters: {err}"))?;
-    // The native frame copy replaces the module's numpy fallback of the same name.
-    module
-        .add_function(pyo3::wrap_pyfunction!(crate::pixels::hwc_to_chw, &module).map_err(|err| err.to_string())?)
-        .map_err(|err| format!("adding the native frame copy: {err}"))?;
+    let module = load_adapters(py).map_err(|err| format!("loading the environment adapters: {err}"))?;
     module.call_method0("configure").map_err(|err| format!("configuring the adapters: {err}"))?;
     let mut groups: HashMap<u64, HostedGroup> = HashMap::new();
     loop {
@@ -278,7 +312,6 @@ fn handle(
             }
             Ok(Response::Closed)
         }
-        Request::Abort => std::process::abort(),
     }
 }
 
