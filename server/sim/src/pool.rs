@@ -47,8 +47,7 @@ impl WorkerLauncher {
             | Request::Send { .. }
             | Request::Recv { .. }
             | Request::SendRecv { .. }
-            | Request::CloseGroup { .. }
-            | Request::Abort => self.call_timeout,
+            | Request::CloseGroup { .. } => self.call_timeout,
         }
     }
 }

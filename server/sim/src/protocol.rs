@@ -79,8 +79,6 @@ pub enum Request {
     /// A `Send` then a `Recv`, in one round trip (EnvPool's `step(action, env_id)`); answered as `Recv`.
     SendRecv { group: u64, actions: Vec<u8>, sent: Vec<bool> },
     CloseGroup { group: u64 },
-    /// Exit abruptly, as a crashing simulator would (used to test recovery).
-    Abort,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

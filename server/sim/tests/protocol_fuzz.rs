@@ -60,7 +60,6 @@ fn request() -> impl Strategy<Value = Request> {
         (any::<u64>(), prop::collection::vec(any::<u8>(), 0..64), prop::collection::vec(any::<bool>(), 0..6))
             .prop_map(|(group, actions, sent)| Request::SendRecv { group, actions, sent }),
         any::<u64>().prop_map(|group| Request::CloseGroup { group }),
-        Just(Request::Abort),
     ]
 }
 
