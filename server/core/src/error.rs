@@ -69,6 +69,11 @@ pub enum CoreError {
     #[error("simulator failure: {0}")]
     Simulator(String),
 
+    /// The server's host failed it in a way that is neither the caller's fault nor a simulator's (a
+    /// shared-memory file it could not make, for a reason other than exhaustion).
+    #[error("server failure: {0}")]
+    Host(String),
+
     /// No worker process could be started or reached.
     #[error("simulator workers unavailable: {0}")]
     WorkersUnavailable(String),
@@ -92,11 +97,11 @@ impl From<SimulatorError> for CoreError {
 }
 
 /// An allocation that failed: out of file descriptors or memory is a limit of this server
-/// (RESOURCE_EXHAUSTED, worth retrying elsewhere or later), anything else a server failure.
+/// (RESOURCE_EXHAUSTED, worth retrying elsewhere or later), anything else a failure of the host.
 pub fn resource_error(what: &str, error: &std::io::Error) -> CoreError {
     match exhaustion(what, error) {
         Some(message) => CoreError::OutOfMemory(message),
-        None => CoreError::Simulator(format!("{what}: {error}")),
+        None => CoreError::Host(format!("{what}: {error}")),
     }
 }
 
@@ -126,5 +131,19 @@ fn suggestion_text(suggestions: &[String]) -> String {
         "; list the available ids with ListEnvs (`radserve envs`)".to_string()
     } else {
         format!("; did you mean {}?", suggestions.join(", "))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failed_allocation_is_exhaustion_or_the_hosts_failure_never_a_simulators() {
+        let full = resource_error("creating the ring", &std::io::Error::from_raw_os_error(libc::EMFILE));
+        assert!(matches!(&full, CoreError::OutOfMemory(message) if message.contains("out of file descriptors")), "{full}");
+        let denied = resource_error("creating the ring", &std::io::Error::from_raw_os_error(libc::EACCES));
+        assert!(matches!(&denied, CoreError::Host(_)), "{denied:?}");
+        assert!(denied.to_string().starts_with("server failure: creating the ring"), "{denied}");
     }
 }

@@ -34,6 +34,9 @@ pub enum ServiceError {
     /// The caller is known but may not do this (an admin-only call, a method its token lacks).
     #[error("{0}")]
     PermissionDenied(String),
+    /// A part of a protocol radserve does not serve (a dm_env_rpc extension).
+    #[error("{0}")]
+    Unimplemented(String),
     /// The server failed in a way that is not the request's fault.
     #[error("{0}")]
     Internal(String),
@@ -64,7 +67,7 @@ impl From<ServiceError> for Status {
                 CoreError::NotReset | CoreError::NoReplayBuffer(_) => Code::FailedPrecondition,
                 CoreError::OverLimit(_) | CoreError::OutOfMemory(_) => Code::ResourceExhausted,
                 CoreError::WorkersUnavailable(_) | CoreError::ShuttingDown => Code::Unavailable,
-                CoreError::Simulator(_) => Code::Internal,
+                CoreError::Simulator(_) | CoreError::Host(_) => Code::Internal,
             },
             ServiceError::Replay(replay) => replay_code(replay),
             ServiceError::BadRequest(_) => Code::InvalidArgument,
@@ -73,6 +76,7 @@ impl From<ServiceError> for Status {
             ServiceError::StreamEnded => Code::Unavailable,
             ServiceError::Unauthenticated(_) => Code::Unauthenticated,
             ServiceError::PermissionDenied(_) => Code::PermissionDenied,
+            ServiceError::Unimplemented(_) => Code::Unimplemented,
             ServiceError::Internal(_) => Code::Internal,
             ServiceError::Transport(status) => status.code(),
         };

@@ -178,10 +178,10 @@ impl Connection {
             }
             Some(Inbound::DestroyWorld(request)) => Outbound::DestroyWorld(self.destroy_world(request).await?),
             Some(Inbound::Extension(extension)) => {
-                return Err(ServiceError::Transport(Status::unimplemented(format!(
+                return Err(ServiceError::Unimplemented(format!(
                     "radserve serves no dm_env_rpc extension (got {})",
                     radserve_core::bounds::clip(&extension.type_url)
-                ))))
+                )))
             }
             None => return Err(bad("the EnvironmentRequest holds no request (its payload is empty)")),
         })
