@@ -296,7 +296,18 @@ impl StatePlan {
                     Augmentation::GaussianNoise { std } => {
                         row.iter_mut().for_each(|value| *value += std * standard_normal(&mut rng));
                     }
-                    _ => unreachable!("checked in StatePlan::new"),
+                    Augmentation::Crop { .. }
+                    | Augmentation::Translate { .. }
+                    | Augmentation::Window { .. }
+                    | Augmentation::CenterCrop { .. }
+                    | Augmentation::CenterTranslate { .. }
+                    | Augmentation::Grayscale { .. }
+                    | Augmentation::Cutout { .. }
+                    | Augmentation::CutoutColor { .. }
+                    | Augmentation::Flip { .. }
+                    | Augmentation::Rotate { .. }
+                    | Augmentation::RandomConv
+                    | Augmentation::ColorJitter { .. } => unreachable!("image stages; StatePlan::new refuses them"),
                 }
             }
         }

@@ -5,6 +5,8 @@
 //! own, and the owner's token. Over the fake simulators; TLS and the Python client are
 //! tests/test_security.py.
 
+#![allow(clippy::wildcard_enum_match_arm, reason = "a test's match names what it expects; anything else fails the test")]
+
 mod common;
 
 use std::collections::{BTreeSet, HashMap};

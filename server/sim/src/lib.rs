@@ -3,10 +3,6 @@
 //! [`radserve_core::Simulators`]: it places a session's envs in groups on the least loaded workers,
 //! shares each group's frame memory with its worker, and rebuilds the groups of a worker that died.
 
-// Errors and messages are matched in full in the crates that map them: a new variant must be
-// placed on purpose (the Status mapping, the worker protocol), never fall into a `_` arm.
-#![warn(clippy::wildcard_enum_match_arm)]
-
 pub mod groups;
 pub mod pixels;
 pub mod pool;
