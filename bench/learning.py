@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "client-py"))
-from radserve.runs import plot_curves, read_metrics  # noqa: E402
+sys.path.insert(0, str(ROOT / "client-py" / "examples"))
+from runs import plot_curves, read_metrics  # noqa: E402  (the examples' bookkeeping)
 
 sys.path.insert(0, str(ROOT / "bench"))
 import record  # noqa: E402  (bench/record.py: the results file)

@@ -30,8 +30,8 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 import radserve
-from radserve.runs import RunLog, episode_stats, evaluate, evaluation_view, parse_args, plot_curves, run_name, select_device
 from radserve.torch import to_tensors
+from runs import RunLog, episode_stats, evaluate, evaluation_view, parse_args, plot_curves, run_name, select_device
 
 
 @dataclass

@@ -32,8 +32,8 @@ from gymnasium import spaces
 from tqdm import tqdm
 
 import radserve
-from radserve.runs import RunLog, episode_stats, evaluate, parse_args, plot_curves, run_name, select_device
 from radserve.torch import to_tensors
+from runs import RunLog, episode_stats, evaluate, parse_args, plot_curves, run_name, select_device
 
 
 @dataclass

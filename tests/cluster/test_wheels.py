@@ -1,7 +1,7 @@
 """The release's wheels (`make dist`) where there is no repository and no Rust: a container of the
 Dockerfile's `runtime` stage (radserve-runtime, docker/build.sh: Debian bookworm's CPython 3.11 and
 Mesa, nothing of radserve) gets only
-dist/ and one example file. In it, `pip install "radserve[server]"` resolves the server wheel through
+dist/ and one example file. In it, `pip install "radserve[server,examples]"` resolves the server wheel through
 the client's extra and everything else from the package registry; then `radserve serve` from the
 activated venv serves a learner (client-py/examples/random_agent.py with --address), and
 `radserve.LocalServer()` from the venv's python, not activated, finds the binary by itself.
@@ -25,7 +25,7 @@ INSIDE = r"""
 set -euo pipefail
 if command -v cargo || command -v rustc || [ -e /src ]; then echo "this container has Rust or sources" >&2; exit 1; fi
 python3 -m venv /tmp/venv
-/tmp/venv/bin/pip install -q --find-links /wheels "radserve[server]==$VERSION"
+/tmp/venv/bin/pip install -q --find-links /wheels "radserve[server,examples]==$VERSION"
 . /tmp/venv/bin/activate
 echo "binary: $(command -v radserve)"
 radserve --version

@@ -1,11 +1,16 @@
-"""The learners' shared bookkeeping (radserve.runs) that needs neither torch nor a server."""
+"""The example learners' shared bookkeeping (client-py/examples/runs.py) that needs neither torch nor a
+server."""
 
 from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
-from radserve.runs import binned_mean, evaluate, evaluation_view, field_docs, parse_args
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "client-py" / "examples"))
+from runs import binned_mean, evaluate, evaluation_view, field_docs, parse_args  # noqa: E402
 
 
 @dataclass

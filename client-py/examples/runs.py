@@ -1,7 +1,8 @@
 """The bookkeeping every example learner shares, kept out of the algorithm files (CleanRL keeps the
 same things in tyro and SummaryWriter): a command line built from an `Args` dataclass and its field
 docstrings, a run directory with metrics in CSV and TensorBoard, evaluation episodes on a session, the
-evaluation view that matches an augmentation pipeline, and learning-curve plots.
+evaluation view that matches an augmentation pipeline, and learning-curve plots. It lives beside the
+examples (a learner copied out of client-py/examples/ takes this file with it), not in the package.
 
 TensorBoard and matplotlib come with the learners' extra (`make torch`); they are imported when used.
 """
