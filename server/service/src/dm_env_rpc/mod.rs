@@ -24,6 +24,7 @@ use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
 
 use radserve_core::bounds::{check_count, MAX_OPTIONS};
+use radserve_core::session::Session;
 use radserve_core::{LeaseHold, Principal, SessionManager, Space};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
@@ -196,17 +197,8 @@ impl Connection {
 
     async fn step(&mut self, request: dm::StepRequest) -> Result<dm::StepResponse> {
         let joined = self.joined.as_mut().ok_or_else(|| not_joined("Step"))?;
-        check_count("requested_observations", request.requested_observations.len(), MAX_ENTRIES)?;
+        let requested = requested_observations(&request.requested_observations)?;
         check_count("actions", request.actions.len(), MAX_ENTRIES)?;
-        let mut requested = BTreeSet::new();
-        for &uid in &request.requested_observations {
-            if uid != OBSERVATION_UID && uid != REWARD_UID {
-                return Err(bad(format!(
-                    "no observation has uid {uid}: this world's are {OBSERVATION_UID} ({OBSERVATION_NAME}) and {REWARD_UID} ({REWARD_NAME})"
-                )));
-            }
-            requested.insert(uid);
-        }
         let resets = self.service.worlds.lock().expect("worlds lock").joined.get(&joined.world).map_or(0, |world| world.resets);
         let session = self.service.manager.get(&self.caller, &joined.world)?;
         let mut session = session.lock().await;
@@ -216,53 +208,70 @@ impl Connection {
                 joined.next = Next::First(observation);
             }
         }
-        let (state, observation, reward) = match std::mem::replace(&mut joined.next, Next::Running) {
-            Next::Join => match session.current_env_observation(joined.env).await {
-                Ok(observation) => (dm::EnvironmentStateType::Running, observation, 0.0),
-                Err(error) => {
-                    joined.next = Next::Join;
-                    return Err(error.into());
-                }
-            },
-            Next::Reset { seed } => match session.reset_env(joined.env, seed).await {
-                Ok(observation) => (dm::EnvironmentStateType::Running, observation, 0.0),
-                Err(error) => {
-                    joined.next = Next::Reset { seed };
-                    return Err(error.into());
-                }
-            },
-            Next::First(observation) => (dm::EnvironmentStateType::Running, observation, 0.0),
-            Next::Running => {
-                let action = action_bytes(&request.actions, &joined.action)?;
-                let step = match session.step_env(joined.env, &action).await {
-                    Ok(step) => step,
-                    Err(error) => {
-                        // A failed step leaves the session to be reset: this env starts over.
-                        joined.next = Next::Reset { seed: None };
-                        return Err(error.into());
-                    }
-                };
-                match step.ended {
-                    Some(end) => {
-                        joined.next = Next::First(step.observation);
-                        let state =
-                            if end.terminated { dm::EnvironmentStateType::Terminated } else { dm::EnvironmentStateType::Interrupted };
-                        (state, end.last_observation, step.reward)
-                    }
-                    None => (dm::EnvironmentStateType::Running, step.observation, step.reward),
-                }
-            }
-        };
+        let (state, observation, reward) = joined.advance(&mut session, &request.actions).await?;
         let mut observations = HashMap::new();
         if requested.contains(&OBSERVATION_UID) {
             observations.insert(OBSERVATION_UID, tensor(&joined.observation, observation));
         }
         if requested.contains(&REWARD_UID) {
-            observations.insert(
-                REWARD_UID,
-                dm::Tensor { payload: Some(TensorPayload::Doubles(dm::tensor::DoubleArray { array: vec![reward] })), shape: vec![] },
-            );
+            let reward = TensorPayload::Doubles(dm::tensor::DoubleArray { array: vec![reward] });
+            observations.insert(REWARD_UID, dm::Tensor { payload: Some(reward), shape: vec![] });
         }
         Ok(dm::StepResponse { state: state as i32, observations })
     }
+}
+
+impl Joined {
+    /// What this stream's Step does next (`next`), done in the session: the state, observation and
+    /// reward it answers. A failure leaves `next` where a retry starts again.
+    async fn advance(
+        &mut self,
+        session: &mut Session,
+        actions: &HashMap<u64, dm::Tensor>,
+    ) -> Result<(dm::EnvironmentStateType, Vec<u8>, f64)> {
+        let running = |observation| (dm::EnvironmentStateType::Running, observation, 0.0);
+        match std::mem::replace(&mut self.next, Next::Running) {
+            Next::Join => session.current_env_observation(self.env).await.map(running).map_err(|error| {
+                self.next = Next::Join;
+                error.into()
+            }),
+            Next::Reset { seed } => session.reset_env(self.env, seed).await.map(running).map_err(|error| {
+                self.next = Next::Reset { seed };
+                error.into()
+            }),
+            Next::First(observation) => Ok(running(observation)),
+            Next::Running => {
+                let action = action_bytes(actions, &self.action)?;
+                let step = session.step_env(self.env, &action).await.map_err(|error| {
+                    // A failed step leaves the session to be reset: this env starts over.
+                    self.next = Next::Reset { seed: None };
+                    ServiceError::from(error)
+                })?;
+                Ok(match step.ended {
+                    Some(end) => {
+                        self.next = Next::First(step.observation);
+                        let state =
+                            if end.terminated { dm::EnvironmentStateType::Terminated } else { dm::EnvironmentStateType::Interrupted };
+                        (state, end.last_observation, step.reward)
+                    }
+                    None => (dm::EnvironmentStateType::Running, step.observation, step.reward),
+                })
+            }
+        }
+    }
+}
+
+/// The uids a Step asks to observe, each one this world has.
+fn requested_observations(uids: &[u64]) -> Result<BTreeSet<u64>> {
+    check_count("requested_observations", uids.len(), MAX_ENTRIES)?;
+    uids.iter()
+        .map(|&uid| {
+            if uid != OBSERVATION_UID && uid != REWARD_UID {
+                return Err(bad(format!(
+                    "no observation has uid {uid}: this world's are {OBSERVATION_UID} ({OBSERVATION_NAME}) and {REWARD_UID} ({REWARD_NAME})"
+                )));
+            }
+            Ok(uid)
+        })
+        .collect()
 }
