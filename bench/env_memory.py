@@ -1,6 +1,6 @@
 """Memory one environment costs in a worker, per family: the worker's resident set (RSS) after
 creating and resetting sessions of N envs, minus before, over N. The server charges these figures
-against its memory budget (`server/sim/src/budget.rs`) before it builds a session's envs.
+against its memory budget (`server/core/src/budget.rs`) before it builds a session's envs.
 
     .venv/bin/python bench/env_memory.py [--envs 8]
 """

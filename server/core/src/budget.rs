@@ -12,10 +12,9 @@ use crate::error::CoreError;
 
 const MIB: u64 = 1 << 20;
 
-/// What one environment costs in a worker beyond its frames, by family, measured with
-/// `bench/env_memory.py` (worker RSS after N envs minus after one, over N; 2 cores, 2026-12-01):
-/// dm_control pixels 83 MiB (its physics, a GL context and MuJoCo's render buffers), dm_control
-/// state 13 MiB, gymnasium MuJoCo 1.1 MiB, classic control and ProcGen under 0.5 MiB. Rounded up.
+/// What one environment costs in a worker beyond its frames, by family: what `bench/env_memory.py`
+/// prints (a worker's RSS after N envs minus after one, over N), rounded up. A dm_control pixel env
+/// is its physics, a GL context and MuJoCo's render buffers, which grow with the frame.
 pub fn env_cost_bytes(env: &EnvId, options: &Options) -> u64 {
     match env.family {
         Family::Dmc => match options.get("pixels") {
@@ -33,8 +32,8 @@ fn pixel_bytes(options: &Options) -> u64 {
     side("height") * side("width") * 3
 }
 
-/// Each worker's own memory before any env (an interpreter with the simulators imported: 0.2-0.4
-/// GiB measured by `bench/env_memory.py`, "first env"), kept out of the derived budget.
+/// Each worker's own memory before any env (an interpreter with the simulators imported, the
+/// "first env" `bench/env_memory.py` prints), rounded up and kept out of the derived budget.
 pub const WORKER_BASELINE_BYTES: u64 = 512 * MIB;
 
 /// The default budget: three quarters of the memory this process may use (the host's, or its
