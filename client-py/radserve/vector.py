@@ -132,6 +132,35 @@ def resolve_autoreset_mode(mode: "AutoresetMode | str | None", is_async: bool = 
             f"{[value.value for value in AutoresetMode]}, got {mode!r}") from None
 
 
+def _ended_episodes(step: "pb.StepResponse"):
+    """A step's (or recv's) ended episodes: their env ids, last observations, returns, lengths and the
+    simulators' messages by env."""
+    episodes = step.episodes
+    return (np.array([episode.env_index for episode in episodes], dtype=np.int64),
+            _convert.to_numpy(step.final_obs) if episodes else None,
+            [episode.episode_return for episode in episodes], [episode.episode_length for episode in episodes],
+            {episode.env_index: episode.error for episode in episodes if episode.error})
+
+
+def episode_infos(size: int, rows, returns, lengths, errors: "dict[int, str]") -> dict:
+    """radserve's figures for the episodes that ended, as infos over `size` rows under names no
+    gymnasium wrapper uses: `radserve_episode` (return `r`, length `l`) at `rows` (the k-th ended
+    episode's row is `rows[k]`), and `radserve_error`, a simulator's message by row."""
+    mask = np.zeros(size, dtype=bool)
+    mask[rows] = True
+    episode_returns, episode_lengths = np.zeros(size, dtype=np.float64), np.zeros(size, dtype=np.int64)
+    episode_returns[rows], episode_lengths[rows] = returns, lengths
+    infos = {"radserve_episode": {"r": episode_returns, "l": episode_lengths, "_r": mask.copy(), "_l": mask.copy()},
+             "_radserve_episode": mask}
+    if errors:
+        messages = np.full(size, None, dtype=object)
+        for row, message in errors.items():
+            messages[row] = message
+        infos["radserve_error"] = messages
+        infos["_radserve_error"] = np.array([message is not None for message in messages])
+    return infos
+
+
 class RemoteVectorEnv(VectorEnv):
     """`num_envs` environments living in a radserve server, stepped together.
 
@@ -462,14 +491,11 @@ class RemoteVectorEnv(VectorEnv):
             request.actions.CopyFrom(_convert.to_tensor(rows))
             request.env_ids.extend(ids.tolist())
         response = self._transport.call("Recv", request)
-        step, episodes = response.step, response.step.episodes
+        step = response.step
         return self._batch(
             np.array(response.env_ids, dtype=np.int64), _convert.to_numpy(step.obs).copy(),
             _convert.to_numpy(step.reward), np.array(step.terminated, dtype=bool), np.array(step.truncated, dtype=bool),
-            np.array([episode.env_index for episode in episodes], dtype=np.int64),
-            _convert.to_numpy(step.final_obs) if episodes else None,
-            [episode.episode_return for episode in episodes], [episode.episode_length for episode in episodes],
-            {episode.env_index: episode.error for episode in episodes if episode.error})
+            *_ended_episodes(step))
 
     def _batch(self, ids, obs, rewards, terminated, truncated, ended, final_rows, returns, lengths, errors):
         """A recv's result as EnvPool returns it (rows in the order of `ids`), radserve's figures of the
@@ -482,20 +508,10 @@ class RemoteVectorEnv(VectorEnv):
             mask = np.zeros(b, dtype=bool)
             mask[rows] = True
             final = np.full(b, None, dtype=object)
-            episode_returns, episode_lengths = np.zeros(b), np.zeros(b, dtype=np.int64)
             for k, row in enumerate(rows):
                 final[row] = self._present(final_rows[k])
-                episode_returns[row], episode_lengths[row] = returns[k], lengths[k]
-            infos.update({"final_obs": final, "_final_obs": mask,
-                          "radserve_episode": {"r": episode_returns, "l": episode_lengths, "_r": mask.copy(),
-                                               "_l": mask.copy()},
-                          "_radserve_episode": mask.copy()})
-            if errors:
-                messages = np.full(b, None, dtype=object)
-                for env, message in errors.items():
-                    messages[row_of[int(env)]] = message
-                infos["radserve_error"] = messages
-                infos["_radserve_error"] = np.array([message is not None for message in messages])
+            infos.update({"final_obs": final, "_final_obs": mask})
+            infos.update(episode_infos(b, rows, returns, lengths, {row_of[int(env)]: m for env, m in errors.items()}))
         if self._channels_last:
             obs = np.ascontiguousarray(np.moveaxis(obs, -3, -1))
         return obs, np.asarray(rewards, dtype=np.float64), terminated, truncated, infos
@@ -537,15 +553,11 @@ class RemoteVectorEnv(VectorEnv):
                      shared.episode_length[ended].copy(), records["error"], infos)
 
     def _unpack(self, response: "pb.StepResponse") -> "_Step":
-        episodes = response.episodes
         return _Step(
             # A copy, writable as gymnasium's are (its wrappers write into observations in place).
             _convert.to_numpy(response.obs).copy(), _convert.to_numpy(response.reward),
             np.array(response.terminated, dtype=bool), np.array(response.truncated, dtype=bool),
-            np.array([episode.env_index for episode in episodes], dtype=np.int64),
-            _convert.to_numpy(response.final_obs) if episodes else None,
-            [episode.episode_return for episode in episodes], [episode.episode_length for episode in episodes],
-            {episode.env_index: episode.error for episode in episodes if episode.error},
+            *_ended_episodes(response),
             {info.env_index: (info.step_json or None, info.reset_json or None) for info in response.infos},
         )
 
@@ -638,7 +650,7 @@ class RemoteVectorEnv(VectorEnv):
         if run:
             infos = self._add_flat_infos(infos, run)
         if len(step.ended):
-            infos.update(self._episode_infos(step))
+            infos.update(episode_infos(self.num_envs, step.ended, step.returns, step.lengths, step.errors))
         if self.autoreset_mode != AutoresetMode.SAME_STEP:
             self._server_obs = obs
             if len(step.ended):
@@ -648,25 +660,6 @@ class RemoteVectorEnv(VectorEnv):
             self._ended = step.terminated | step.truncated
         self._last_obs = obs
         return self._present(obs) if self._channels_last else obs, step.rewards, step.terminated, step.truncated, infos
-
-    def _episode_infos(self, step: "_Step") -> dict:
-        """radserve's figures for the episodes that ended, under names no gymnasium wrapper uses."""
-        n = self.num_envs
-        mask = np.zeros(n, dtype=bool)
-        returns = np.zeros(n, dtype=np.float64)
-        lengths = np.zeros(n, dtype=np.int64)
-        for row, i in enumerate(step.ended):
-            mask[i] = True
-            returns[i], lengths[i] = step.returns[row], step.lengths[row]
-        infos = {"radserve_episode": {"r": returns, "l": lengths, "_r": mask.copy(), "_l": mask.copy()},
-                 "_radserve_episode": mask}
-        if step.errors:
-            error_array = np.full(n, None, dtype=object)
-            for i, message in step.errors.items():
-                error_array[i] = message
-            infos["radserve_error"] = error_array
-            infos["_radserve_error"] = np.array([e is not None for e in error_array])
-        return infos
 
     def describe(self):
         """The session as the server sees it (steps taken, episodes completed, options)."""
