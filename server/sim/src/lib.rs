@@ -10,4 +10,4 @@ pub mod protocol;
 pub mod worker;
 
 pub use pool::{WorkerLauncher, WorkerPool};
-pub use worker::{run_worker, GlBackend, WorkerArgs};
+pub use worker::{run_worker, GlBackend, WorkerArgs, WorkerError};

@@ -65,6 +65,24 @@ impl GlBackend {
     }
 }
 
+/// Why a worker process could not start or had to stop (main.rs prints it; the server sees the
+/// worker exit and replaces it).
+#[derive(Debug, thiserror::Error)]
+pub enum WorkerError {
+    /// A system call the worker's set-up or its protocol needs.
+    #[error("{what}: {source}")]
+    Io { what: &'static str, source: io::Error },
+    #[error("no Python interpreter at {0}; run `make setup` or point sim.venv at a virtualenv")]
+    NoInterpreter(PathBuf),
+    /// CPython refused to start (`what` was being done), or the adapters failed to load.
+    #[error("{what}: {detail}")]
+    Python { what: &'static str, detail: String },
+}
+
+fn io_error(what: &'static str) -> impl FnOnce(io::Error) -> WorkerError {
+    move |source| WorkerError::Io { what, source }
+}
+
 pub struct WorkerArgs {
     /// The virtualenv whose interpreter and packages the worker uses.
     pub venv: PathBuf,
@@ -72,13 +90,13 @@ pub struct WorkerArgs {
 }
 
 /// Runs a worker until the server closes its end of the protocol stream.
-pub fn run_worker(args: &WorkerArgs) -> Result<(), String> {
-    let (mut input, mut output) = take_protocol_streams().map_err(|err| format!("protocol streams: {err}"))?;
+pub fn run_worker(args: &WorkerArgs) -> Result<(), WorkerError> {
+    let (mut input, mut output) = take_protocol_streams().map_err(io_error("protocol streams"))?;
     // SAFETY: the server starts every worker with its descriptor socket at this fd (pool.rs), and
     // nothing else in this process owns it.
     let fds = unsafe { UnixStream::from_raw_fd(crate::pool::WORKER_FD_SOCKET) };
     // The frames of the sessions hosted here reach only this process and the server's.
-    radserve_shm::make_undumpable().map_err(|err| format!("making the worker non-dumpable: {err}"))?;
+    radserve_shm::make_undumpable().map_err(io_error("making the worker non-dumpable"))?;
     // MuJoCo may write MUJOCO_LOG.TXT into the working directory; keep it out of the user's.
     let workdir = std::env::temp_dir().join(format!("radserve-worker-{}", std::process::id()));
     if std::fs::create_dir_all(&workdir).is_ok() {
@@ -116,15 +134,13 @@ fn take_protocol_streams() -> io::Result<(BufReader<File>, BufWriter<File>)> {
 
 /// Starts CPython as if it were the virtualenv's own `bin/python`, so that `pyvenv.cfg` is honoured:
 /// the venv's site-packages are on the path and the base installation's are not.
-fn init_python(venv: &Path) -> Result<(), String> {
+fn init_python(venv: &Path) -> Result<(), WorkerError> {
     let executable = venv.join("bin").join("python");
     if !executable.exists() {
-        return Err(format!(
-            "no Python interpreter at {}; run `make setup` or point sim.venv at a virtualenv",
-            executable.display()
-        ));
+        return Err(WorkerError::NoInterpreter(executable));
     }
-    let executable = CString::new(executable.as_os_str().as_bytes()).map_err(|err| err.to_string())?;
+    let executable = CString::new(executable.as_os_str().as_bytes())
+        .map_err(|err| WorkerError::Python { what: "the interpreter's path", detail: err.to_string() })?;
     // SAFETY: PyConfig is initialised by PyConfig_InitPythonConfig before any field is touched, cleared
     // exactly once, and the interpreter is initialised once from this (only) thread.
     unsafe {
@@ -149,14 +165,14 @@ fn init_python(venv: &Path) -> Result<(), String> {
     Ok(())
 }
 
-fn status_message(what: &str, status: &ffi::PyStatus) -> String {
+fn status_message(what: &'static str, status: &ffi::PyStatus) -> WorkerError {
     let detail = if status.err_msg.is_null() {
         "unknown error".to_string()
     } else {
         // SAFETY: a non-null err_msg is a static C string set by CPython.
         unsafe { std::ffi::CStr::from_ptr(status.err_msg) }.to_string_lossy().into_owned()
     };
-    format!("{what}: {detail}")
+    WorkerError::Python { what, detail }
 }
 
 /// What `Group.step` returns: rewards, terminated, truncated, (env, message) for simulators that raised.
@@ -200,18 +216,24 @@ fn load_adapters(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
     module.ok_or_else(|| PyValueError::new_err("the worker's package has no modules"))
 }
 
-fn serve(py: Python<'_>, input: &mut BufReader<File>, output: &mut BufWriter<File>, fds: &UnixStream) -> Result<(), String> {
-    let module = load_adapters(py).map_err(|err| format!("loading the environment adapters: {err}"))?;
-    module.call_method0("configure").map_err(|err| format!("configuring the adapters: {err}"))?;
+fn serve(
+    py: Python<'_>,
+    input: &mut BufReader<File>,
+    output: &mut BufWriter<File>,
+    fds: &UnixStream,
+) -> Result<(), WorkerError> {
+    let python = |what| move |err: PyErr| WorkerError::Python { what, detail: err.to_string() };
+    let module = load_adapters(py).map_err(python("loading the environment adapters"))?;
+    module.call_method0("configure").map_err(python("configuring the adapters"))?;
     let mut groups: HashMap<u64, HostedGroup> = HashMap::new();
     loop {
         let request: Request = match protocol::read_blocking(input) {
             Ok(Some(request)) => request,
             Ok(None) => return Ok(()),
-            Err(err) => return Err(format!("reading a request: {err}")),
+            Err(err) => return Err(WorkerError::Io { what: "reading a request", source: err }),
         };
         let response = handle(py, &module, &mut groups, fds, request).unwrap_or_else(|err| Response::Failed(err.to_string()));
-        protocol::write_blocking(output, &response).map_err(|err| format!("writing a response: {err}"))?;
+        protocol::write_blocking(output, &response).map_err(io_error("writing a response"))?;
     }
 }
 
