@@ -6,8 +6,9 @@ against the reference pipeline, in one run.
 1. radserve over gRPC: a dm_control pixel session records transitions into its replay buffer; a Python
    learner streams batches of 512 sampled, frame-stacked and augmented on the server
    (crop 100->84, translate 100->108) with obs and next_obs, into numpy arrays.
-2. transport ceiling: the same stream with `repeat_first_batch`: the server sends one batch's bytes
-   again and again, so nothing is sampled or augmented; same message sizes, same client decoding.
+2. transport ceiling: one batch of the same stream, recorded, sent again and again by a stand-in
+   server in a process of its own (bench/transport_ceiling.py), so nothing is sampled or augmented;
+   same messages, same client decoding.
 3. shared memory: the same batches written by the server into memory the learner maps (delivery=
    "shared_memory"): only descriptors go through gRPC, the arrays are read in place.
 4. reference pipeline: in one Python process, a numpy replay buffer that stores obs and next_obs
@@ -31,6 +32,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import radserve  # noqa: E402
 import record  # noqa: E402  (bench/record.py: the results file)
+from radserve.proto import radserve_pb2 as pb  # noqa: E402
+from transport_ceiling import RecordedServer, record_batch  # noqa: E402
 
 
 def rate(stream, batches: int, warmup: int = 6) -> "tuple[float, int]":
@@ -99,14 +102,17 @@ def main() -> None:
         for name, augment in [("crop", "crop(84)"), ("translate", "translate(108)")]:
             for next_obs in (True, False):
                 common = dict(augment=augment, prefetch=4, include_next_obs=next_obs)
+                recorded = record_batch(client, pb.SampleBatchesRequest(
+                    session_id=envs.session_id, batch_size=args.batch, pipeline_text=augment, prefetch=4,
+                    include_next_obs=next_obs))
                 served, ceiling, shared = [], [], []
-                for _ in range(args.rounds):
-                    rate_, size = rate(client.sample_batches(envs.session_id, args.batch, **common), args.batches)
-                    served.append(rate_)
-                    ceiling.append(rate(client.sample_batches(envs.session_id, args.batch, repeat_first_batch=True,
-                                                              **common), args.batches)[0])
-                    shared.append(rate(client.sample_batches(envs.session_id, args.batch, delivery="shared_memory",
-                                                             **common), args.batches)[0])
+                with RecordedServer(recorded) as stand_in:
+                    for _ in range(args.rounds):
+                        rate_, size = rate(client.sample_batches(envs.session_id, args.batch, **common), args.batches)
+                        served.append(rate_)
+                        ceiling.append(rate(stand_in.stream(), args.batches)[0])
+                        shared.append(rate(client.sample_batches(envs.session_id, args.batch, delivery="shared_memory",
+                                                                 **common), args.batches)[0])
                 rows.append((name, "obs+next_obs" if next_obs else "obs only", size, served, ceiling, shared))
         envs.close()
 

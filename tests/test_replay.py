@@ -371,8 +371,6 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
     envs, _ = cheetah
     with pytest.raises(radserve.InvalidArgumentError, match="a batch of 1001 .* the most allowed|between 1 and the replay capacity"):
         client.sample_batches(envs.session_id, 1001, delivery="shared_memory")
-    with pytest.raises(radserve.InvalidArgumentError, match="repeat_first_batch"):
-        client.sample_batches(envs.session_id, 8, delivery="shared_memory", repeat_first_batch=True)
     with pytest.raises(ValueError, match="delivery must be one of"):
         client.sample_batches(envs.session_id, 8, delivery="pigeon")
 

@@ -193,7 +193,6 @@ class Client:
         epochs: int = 1,
         per_env_augmentation: bool = False,
         include_next_obs: "bool | None" = None,
-        repeat_first_batch: bool = False,
         delivery: str = "grpc",
     ):
         """Stream minibatches sampled uniformly from the session's replay buffer and augmented on
@@ -208,7 +207,6 @@ class Client:
         visiting every (t, env) once in a fresh random order (batches carry `t` and `env_index` to
         pair with the values and advantages the learner computed), augmentation drawn per sample or,
         with `per_env_augmentation`, once per env for the whole rollout; the stream then ends.
-        `repeat_first_batch` is for benchmarks: the first batch's bytes are sent again and again.
 
         `delivery="shared_memory"` is for a learner on the server's host: the server writes the
         observations into memory this process maps and only descriptors travel (no 32 MB through a
@@ -240,7 +238,6 @@ class Client:
             epochs=epochs,
             per_env_augmentation=per_env_augmentation,
             include_next_obs=include_next_obs,
-            repeat_first_batch=repeat_first_batch,
         )
         sharded = self._sharded.get(session_id)
         if sharded is not None:

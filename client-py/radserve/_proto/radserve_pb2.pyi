@@ -463,7 +463,7 @@ class AugmentationPipeline(_message.Message):
     def __init__(self, stages: _Optional[_Iterable[_Union[AugmentationStage, _Mapping]]] = ...) -> None: ...
 
 class SampleBatchesRequest(_message.Message):
-    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs", "repeat_first_batch")
+    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     PIPELINE_FIELD_NUMBER: _ClassVar[int]
@@ -480,7 +480,6 @@ class SampleBatchesRequest(_message.Message):
     EPOCHS_FIELD_NUMBER: _ClassVar[int]
     PER_ENV_AUGMENTATION_FIELD_NUMBER: _ClassVar[int]
     INCLUDE_NEXT_OBS_FIELD_NUMBER: _ClassVar[int]
-    REPEAT_FIRST_BATCH_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     batch_size: int
     pipeline: AugmentationPipeline
@@ -497,8 +496,7 @@ class SampleBatchesRequest(_message.Message):
     epochs: int
     per_env_augmentation: bool
     include_next_obs: bool
-    repeat_first_batch: bool
-    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ..., repeat_first_batch: _Optional[bool] = ...) -> None: ...
+    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ...) -> None: ...
 
 class BatchChunk(_message.Message):
     __slots__ = ("batch_index", "field", "dtype", "shape", "offset", "field_bytes", "last", "data")

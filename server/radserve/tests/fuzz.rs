@@ -228,13 +228,13 @@ fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
     (
         (edge_u32(), pipeline(), prop_oneof![4 => 0i32..3, 1 => any::<i32>()], edge_u32(), any::<u64>()),
         (prop::option::of(edge_u64()), prop::option::of(edge_f64()), edge_f64(), prop::option::of(0u64..6)),
-        (edge_u32(), prop_oneof![4 => 0i32..2, 1 => any::<i32>()], edge_u32(), any::<bool>(), prop::option::of(any::<bool>()), any::<bool>()),
+        (edge_u32(), prop_oneof![4 => 0i32..2, 1 => any::<i32>()], edge_u32(), any::<bool>(), prop::option::of(any::<bool>())),
     )
         .prop_map(
             |(
                 (batch_size, augmentation, sharing, prefetch, seed),
                 (min_size, samples_per_insert, error_buffer, max_batches),
-                (chunk_bytes, source, epochs, per_env_augmentation, include_next_obs, repeat_first_batch),
+                (chunk_bytes, source, epochs, per_env_augmentation, include_next_obs),
             )| proto::SampleBatchesRequest {
                 session_id: String::new(),
                 batch_size,
@@ -251,7 +251,6 @@ fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
                 epochs,
                 per_env_augmentation,
                 include_next_obs,
-                repeat_first_batch,
             },
         )
 }

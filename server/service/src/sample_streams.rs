@@ -68,12 +68,11 @@ impl RadServeService {
         let chunk_bytes = convert::chunk_bytes(request.chunk_bytes)?;
         let (ready, recycler) = producer.start(self.augment_pool.clone(), Output::Heap);
         let source = Chunks {
-            ready: Some(ready),
+            ready,
             in_flight: InFlight::new(recycler),
             pending: VecDeque::new(),
             action_space,
             chunk_bytes,
-            repeat: request.repeat_first_batch.then(|| Repeat { chunks: Vec::new(), next: 0, max: request.max_batches }),
             metrics: self.manager.metrics().clone(),
         };
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
@@ -172,11 +171,6 @@ async fn first_shared_request(inbound: &mut Streaming<proto::SharedSampleRequest
             ))
         }
     };
-    if start.repeat_first_batch {
-        return Err(ServiceError::BadRequest(
-            "repeat_first_batch measures the SampleBatches byte stream; it does not apply to shared memory".into(),
-        ));
-    }
     Ok(start)
 }
 
@@ -187,24 +181,14 @@ fn batch_or_end(batch: Option<radserve_replay::Result<Batch>>) -> Option<Result<
 
 /// SampleBatches: each batch as chunks of at most `chunk_bytes` of its fields.
 struct Chunks {
-    /// None once the stream only repeats its first batch.
-    ready: Option<Ready>,
+    ready: Ready,
     /// The observation buffers of chunks sent, given back to the producer once the client has them.
     in_flight: InFlight,
     /// The chunks of the current batch not sent yet.
     pending: VecDeque<proto::BatchChunk>,
     action_space: Space,
     chunk_bytes: usize,
-    repeat: Option<Repeat>,
     metrics: Arc<CoreMetrics>,
-}
-
-/// `repeat_first_batch`: the first batch's chunks sent again and again (cloning Bytes, not data),
-/// `max` times or forever: what the transport alone can carry.
-struct Repeat {
-    chunks: Vec<proto::BatchChunk>,
-    next: u64,
-    max: Option<u64>,
 }
 
 impl Source for Chunks {
@@ -212,36 +196,17 @@ impl Source for Chunks {
     type Message = proto::BatchChunk;
 
     async fn next(&mut self) -> Option<Result<proto::BatchChunk, Status>> {
-        loop {
-            if let Some(chunk) = self.pending.pop_front() {
-                return Some(Ok(chunk));
-            }
-            if let Some(repeat) = self.repeat.as_mut().filter(|repeat| !repeat.chunks.is_empty()) {
-                if repeat.max.is_some_and(|max| repeat.next >= max) {
-                    return None;
-                }
-                let index = repeat.next;
-                repeat.next += 1;
-                self.pending.extend(repeat.chunks.iter().map(|chunk| proto::BatchChunk { batch_index: index, ..chunk.clone() }));
-                continue;
-            }
-            let ready = self.ready.as_mut()?;
+        if self.pending.is_empty() {
             self.in_flight.recycle();
-            let batch = match batch_or_end(ready.recv().await)? {
+            let batch = match batch_or_end(self.ready.recv().await)? {
                 Ok(batch) => batch,
                 Err(status) => return Some(Err(status)),
             };
             let (chunks, observation_buffers) = convert::batch_to_chunks(batch, &self.action_space, self.chunk_bytes);
             self.in_flight.track(observation_buffers);
-            match &mut self.repeat {
-                // The producer is no longer needed: dropping `ready` stops it.
-                Some(repeat) => {
-                    repeat.chunks = chunks;
-                    self.ready = None;
-                }
-                None => self.pending.extend(chunks),
-            }
+            self.pending.extend(chunks);
         }
+        self.pending.pop_front().map(Ok)
     }
 
     async fn make(&mut self, chunk: proto::BatchChunk) -> Result<proto::BatchChunk, Status> {
