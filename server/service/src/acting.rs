@@ -224,27 +224,17 @@ impl ActingChannel {
 
     /// One request: Ok holds the answer's records (simulator errors of ended episodes, the envs' infos).
     async fn handle(&mut self, session_id: &str, request: &[u8; REQUEST_BYTES]) -> Result<Vec<u8>> {
-        let request = Request::parse(request)?;
         let layout = self.layout;
+        let memory = self.memory.as_mut_slice();
+        let request = Request::read(request, memory, &layout)?;
         let session = self.manager.get(&self.caller, session_id)?;
         let mut session = session.lock().await;
-        let memory = self.memory.as_mut_slice();
-        // Copied out of the shared memory before use: the client may write it at any time.
-        let mask: Option<Vec<bool>> =
-            request.with_mask.then(|| memory[layout.mask..][..layout.num_envs].iter().map(|&byte| byte != 0).collect());
+        let mut exchange = Exchange { session: &mut session, memory, layout };
         match request.kind {
-            b'R' => reset(&mut session, memory, &layout, &request, mask).await,
-            b'S' => step(&mut session, memory, &layout, &request, mask).await,
-            b'A' => {
-                if request.with_mask || request.with_seeds {
-                    return Err(ServiceError::BadRequest(
-                        "an async reset ('A') resets every env: it takes a seed (byte 1), no mask or per-env seeds".into(),
-                    ));
-                }
-                session.async_reset(request.seed).await?;
-                Ok(Vec::new())
-            }
-            b'E' | b'V' => send_recv(&mut session, memory, &layout, &request, mask).await,
+            b'R' => exchange.reset(request).await,
+            b'S' => exchange.step(request).await,
+            b'A' => exchange.async_reset(request).await,
+            b'E' | b'V' => exchange.send_recv(request).await,
             other => Err(ServiceError::BadRequest(format!(
                 "a request starts with 'S' (step), 'R' (reset), 'A' (async reset), 'E' (send) or 'V' (recv), got byte \
                  {other:#04x}"
@@ -253,17 +243,19 @@ impl ActingChannel {
     }
 }
 
-/// A request's 16 bytes: what it asks (byte 0), whether a seed follows (byte 1, the seed in bytes
-/// 8..16), and whether the mask and per-env seed arrays of the memory go with it (byte 2's flags).
+/// A request: its 16 bytes say what it asks (byte 0), whether a seed follows (byte 1, the seed in
+/// bytes 8..16) and whether the mask and per-env seed arrays of the memory go with it (byte 2's
+/// flags); the mask is copied out of the shared memory before use (the client may write it at any
+/// time).
 struct Request {
     kind: u8,
     seed: Option<u64>,
-    with_mask: bool,
+    mask: Option<Vec<bool>>,
     with_seeds: bool,
 }
 
 impl Request {
-    fn parse(request: &[u8; REQUEST_BYTES]) -> Result<Request> {
+    fn read(request: &[u8; REQUEST_BYTES], memory: &[u8], layout: &ActingLayout) -> Result<Request> {
         let seed = match request[1] {
             0 => None,
             1 => Some(u64::from_le_bytes(request[8..16].try_into().expect("8 bytes"))),
@@ -279,89 +271,102 @@ impl Request {
                 )))
             }
         };
-        Ok(Request { kind: request[0], seed, with_mask, with_seeds })
+        let mask = with_mask.then(|| memory[layout.mask..][..layout.num_envs].iter().map(|&byte| byte != 0).collect());
+        Ok(Request { kind: request[0], seed, mask, with_seeds })
     }
 }
 
-/// 'R': resets the envs of the mask (all without one), seeded by the seed or the per-env seeds.
-async fn reset(
-    session: &mut Session,
-    memory: &mut [u8],
-    layout: &ActingLayout,
-    request: &Request,
-    mask: Option<Vec<bool>>,
-) -> Result<Vec<u8>> {
-    let env_seeds = request.with_seeds.then(|| {
-        memory[layout.env_seeds..][..8 * layout.num_envs]
-            .chunks_exact(8)
-            .map(|bytes| u64::from_le_bytes(bytes.try_into().expect("8 bytes")))
-            .collect()
-    });
-    let obs = session.reset_with(&radserve_core::ResetSpec { seed: request.seed, env_seeds, mask }).await?;
-    check_len("observations", obs.len(), layout.num_envs * layout.obs_bytes)?;
-    memory[layout.obs..][..obs.len()].copy_from_slice(&obs);
-    let mut records = Vec::new();
-    for (env, info) in session.reset_infos() {
-        push_record(&mut records, *env, RECORD_RESET_INFO, info);
-    }
-    Ok(records)
+/// A request being answered: the session it acts on and the channel's memory.
+struct Exchange<'a> {
+    session: &'a mut Session,
+    memory: &'a mut [u8],
+    layout: ActingLayout,
 }
 
-/// 'S': steps every env but those of the mask (gymnasium NEXT_STEP's reset step) with the actions array.
-async fn step(
-    session: &mut Session,
-    memory: &mut [u8],
-    layout: &ActingLayout,
-    request: &Request,
-    mask: Option<Vec<bool>>,
-) -> Result<Vec<u8>> {
-    if request.with_seeds {
-        return Err(ServiceError::BadRequest("per-env seeds go with a reset, not a step".into()));
-    }
-    let (dtype, shape) = action_shape(session, layout);
-    let actions = memory[layout.actions..][..layout.num_envs * layout.action_bytes].to_vec();
-    let outcome = session.step_except(dtype, &shape, &actions, mask.as_deref()).await?;
-    write_outcome(memory, layout, &outcome, None)
-}
-
-/// 'E' (send) and 'V' (recv, after a send of the mask's envs when a mask is given): the masked
-/// envs' rows of the actions array; a recv's ready envs are written back into the mask array.
-async fn send_recv(
-    session: &mut Session,
-    memory: &mut [u8],
-    layout: &ActingLayout,
-    request: &Request,
-    mask: Option<Vec<bool>>,
-) -> Result<Vec<u8>> {
-    if request.seed.is_some() || request.with_seeds {
-        return Err(ServiceError::BadRequest("a send or recv takes no seed".into()));
-    }
-    let (dtype, shape) = action_shape(session, layout);
-    let actions = || memory[layout.actions..][..layout.num_envs * layout.action_bytes].to_vec();
-    let (ready, outcome) = match (request.kind, &mask) {
-        (b'E', Some(sent)) => {
-            session.send(dtype, &shape, &actions(), sent).await?;
-            return Ok(Vec::new());
+impl Exchange<'_> {
+    /// 'R': resets the envs of the mask (all without one), seeded by the seed or the per-env seeds.
+    async fn reset(&mut self, request: Request) -> Result<Vec<u8>> {
+        let layout = self.layout;
+        let env_seeds = request.with_seeds.then(|| {
+            self.memory[layout.env_seeds..][..8 * layout.num_envs]
+                .chunks_exact(8)
+                .map(|bytes| u64::from_le_bytes(bytes.try_into().expect("8 bytes")))
+                .collect()
+        });
+        let spec = radserve_core::ResetSpec { seed: request.seed, env_seeds, mask: request.mask };
+        let obs = self.session.reset_with(&spec).await?;
+        check_len("observations", obs.len(), layout.num_envs * layout.obs_bytes)?;
+        self.memory[layout.obs..][..obs.len()].copy_from_slice(&obs);
+        let mut records = Vec::new();
+        for (env, info) in self.session.reset_infos() {
+            push_record(&mut records, *env, RECORD_RESET_INFO, info);
         }
-        (b'E', None) => {
-            return Err(ServiceError::BadRequest("a send ('E') names its envs in the mask array (byte 2, flag 1)".into()))
-        }
-        (_, Some(sent)) => session.send_recv(dtype, &shape, &actions(), sent).await?,
-        (_, None) => session.recv().await?,
-    };
-    let records = write_outcome(memory, layout, &outcome, Some(&ready))?;
-    for (env, ready) in ready.iter().enumerate() {
-        memory[layout.mask + env] = *ready as u8;
+        Ok(records)
     }
-    Ok(records)
-}
 
-/// The dtype and shape of every env's actions, `[num_envs, *action shape]`.
-fn action_shape(session: &Session, layout: &ActingLayout) -> (radserve_core::DType, Vec<usize>) {
-    let action = &session.frame_spec.action;
-    let mut shape = vec![layout.num_envs];
-    shape.extend_from_slice(action.shape());
-    (action.dtype(), shape)
+    /// 'S': steps every env but those of the mask (gymnasium NEXT_STEP's reset step) with the actions.
+    async fn step(&mut self, request: Request) -> Result<Vec<u8>> {
+        if request.with_seeds {
+            return Err(ServiceError::BadRequest("per-env seeds go with a reset, not a step".into()));
+        }
+        let (dtype, shape) = self.action_shape();
+        let actions = self.actions();
+        let outcome = self.session.step_except(dtype, &shape, &actions, request.mask.as_deref()).await?;
+        write_outcome(self.memory, &self.layout, &outcome, None)
+    }
+
+    /// 'A': EnvPool's asynchronous reset of every env.
+    async fn async_reset(&mut self, request: Request) -> Result<Vec<u8>> {
+        if request.mask.is_some() || request.with_seeds {
+            return Err(ServiceError::BadRequest(
+                "an async reset ('A') resets every env: it takes a seed (byte 1), no mask or per-env seeds".into(),
+            ));
+        }
+        self.session.async_reset(request.seed).await?;
+        Ok(Vec::new())
+    }
+
+    /// 'E' (send) and 'V' (recv, after a send of the mask's envs when a mask is given): the masked
+    /// envs' rows of the actions array; a recv's ready envs are written back into the mask array.
+    async fn send_recv(&mut self, request: Request) -> Result<Vec<u8>> {
+        if request.seed.is_some() || request.with_seeds {
+            return Err(ServiceError::BadRequest("a send or recv takes no seed".into()));
+        }
+        let (dtype, shape) = self.action_shape();
+        let (ready, outcome) = match (request.kind, &request.mask) {
+            (b'E', Some(sent)) => {
+                let actions = self.actions();
+                self.session.send(dtype, &shape, &actions, sent).await?;
+                return Ok(Vec::new());
+            }
+            (b'E', None) => {
+                return Err(ServiceError::BadRequest("a send ('E') names its envs in the mask array (byte 2, flag 1)".into()))
+            }
+            (_, Some(sent)) => {
+                let actions = self.actions();
+                self.session.send_recv(dtype, &shape, &actions, sent).await?
+            }
+            (_, None) => self.session.recv().await?,
+        };
+        let records = write_outcome(self.memory, &self.layout, &outcome, Some(&ready))?;
+        for (env, ready) in ready.iter().enumerate() {
+            self.memory[self.layout.mask + env] = *ready as u8;
+        }
+        Ok(records)
+    }
+
+    /// Every env's row of the actions array, copied out of the shared memory.
+    fn actions(&self) -> Vec<u8> {
+        self.memory[self.layout.actions..][..self.layout.num_envs * self.layout.action_bytes].to_vec()
+    }
+
+    /// The dtype and shape of every env's actions, `[num_envs, *action shape]`.
+    fn action_shape(&self) -> (radserve_core::DType, Vec<usize>) {
+        let action = &self.session.frame_spec.action;
+        let mut shape = vec![self.layout.num_envs];
+        shape.extend_from_slice(action.shape());
+        (action.dtype(), shape)
+    }
 }
 
 /// Writes a step's (or recv's) outcome into the region at the envs' rows (only `rows`' envs when
