@@ -3,6 +3,7 @@ real server, then check every sampled transition against what the acting client 
 
 import itertools
 import os
+import queue
 import re
 import time
 
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 import radserve
+from radserve.proto import radserve_pb2 as pb
 
 
 def act(envs, steps, seed=0):
@@ -375,7 +377,6 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
         client.sample_batches(envs.session_id, 8, delivery="pigeon")
 
     # The first request must say what to sample.
-    pb = radserve.batches.pb
     method = client.transports[0].channel.stream_stream("/radserve.v1.RadServe/SampleBatchesShared",
                                            request_serializer=pb.SharedSampleRequest.SerializeToString,
                                            response_deserializer=pb.SharedSampleResponse.FromString)
@@ -385,13 +386,18 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
     assert "must hold `start`" in refused.value.details()
 
     # Releasing a batch the client does not hold ends the stream with what it holds.
-    stream = client.sample_batches(envs.session_id, 8, delivery="shared_memory")
-    next(stream)
-    stream._requests.put(radserve.batches.pb.SharedSampleRequest(release=77))
-    with pytest.raises(radserve.InvalidArgumentError, match=r"release of batch 77, which the client does not hold \(it holds \[0"):
+    requests = queue.SimpleQueue()
+    requests.put(pb.SharedSampleRequest(start=pb.SampleBatchesRequest(session_id=envs.session_id, batch_size=8)))
+    call = method(iter(requests.get, None))
+    region, first = next(call), next(call)
+    assert region.HasField("region") and first.batch.batch_index == 0
+    requests.put(pb.SharedSampleRequest(release=77))
+    with pytest.raises(grpc.RpcError) as refused:
         for _ in range(50):
-            next(stream)
-    stream.close()
+            next(call)
+    assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert re.search(r"release of batch 77, which the client does not hold \(it holds \[0", refused.value.details())
+    requests.put(None)
 
     # A learner that cannot map the memory (another host, another user) gets a clear error, and
     # "auto" falls back to the byte stream.
@@ -438,8 +444,7 @@ def test_shared_memory_token_is_checked():
     fd = os.memfd_create("not-radserve")
     os.ftruncate(fd, 8192)
     try:
-        region = radserve.batches.pb.SharedMemoryRegion(socket=_hand_over(fd), size=8192, token=b"\x01" * 16,
-                                                        slots=1, slot_bytes=4096)
+        region = pb.SharedMemoryRegion(socket=_hand_over(fd), size=8192, token=b"\x01" * 16, slots=1, slot_bytes=4096)
         with pytest.raises(radserve.SharedMemoryError, match="not the batch memory the server described"):
             radserve.batches.map_region(region)
         with mmap.mmap(fd, 8192) as memory:

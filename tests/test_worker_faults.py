@@ -12,7 +12,6 @@ import pytest
 
 import radserve
 from _procs import stopped, worker_pids
-from radserve import _convert
 from radserve.proto import radserve_pb2 as pb
 
 CALL_TIMEOUT_S = 2.0
@@ -105,8 +104,8 @@ def test_a_step_whose_deadline_passed_while_waiting_is_never_sent(strict_server)
             # The first step holds the session until the worker deadline kills the stuck worker.
             thread, result = _threaded(lambda: envs.step(np.zeros((2, 6), dtype=np.float32)))
             time.sleep(0.3)
-            request = pb.StepRequest(session_id=envs.session_id,
-                                     actions=_convert.to_tensor(np.zeros((2, 6), dtype=np.float32)))
+            actions = pb.Tensor(dtype=pb.DTYPE_FLOAT32, shape=[2, 6], data=np.zeros((2, 6), dtype=np.float32).tobytes())
+            request = pb.StepRequest(session_id=envs.session_id, actions=actions)
             # The client's own deadline, or tonic's answer to it ("Timeout expired", CANCELLED), each
             # its own error class.
             with pytest.raises((radserve.DeadlineExceededError, radserve.CancelledError)) as raised:
