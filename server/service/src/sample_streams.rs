@@ -163,15 +163,12 @@ async fn first_shared_request(inbound: &mut Streaming<proto::SharedSampleRequest
             FIRST_MESSAGE_TIMEOUT.as_secs()
         ))
     })?;
-    let start = match first.map_err(ServiceError::Transport)? {
-        Some(proto::SharedSampleRequest { request: Some(Inbound::Start(start)) }) => start,
-        _ => {
-            return Err(ServiceError::BadRequest(
-                "the first SharedSampleRequest must hold `start` (the SampleBatchesRequest); releases come after it".into(),
-            ))
-        }
-    };
-    Ok(start)
+    match first.map_err(ServiceError::Transport)? {
+        Some(proto::SharedSampleRequest { request: Some(Inbound::Start(start)) }) => Ok(start),
+        _ => Err(ServiceError::BadRequest(
+            "the first SharedSampleRequest must hold `start` (the SampleBatchesRequest); releases come after it".into(),
+        )),
+    }
 }
 
 /// A batch the producer made, or None when it finished; its failure ends the stream with its status.

@@ -140,7 +140,6 @@ mod tests {
         left: Vec<u32>,
         then: Option<Status>,
         wait_forever: bool,
-        sent: usize,
     }
 
     impl Source for Numbers {
@@ -161,10 +160,6 @@ mod tests {
         async fn make(&mut self, input: u32) -> Result<u32, Status> {
             Ok(input * 10)
         }
-
-        fn sent(&mut self) {
-            self.sent += 1;
-        }
     }
 
     async fn drain(mut receiver: mpsc::Receiver<Result<u32, Status>>) -> Vec<Result<u32, tonic::Code>> {
@@ -179,13 +174,13 @@ mod tests {
     async fn a_source_is_sent_until_done_or_failed() {
         let (_stop, stopping) = watch::channel(false);
         let (sender, receiver) = mpsc::channel(8);
-        let source = Numbers { left: vec![2, 1], then: None, wait_forever: false, sent: 0 };
+        let source = Numbers { left: vec![2, 1], then: None, wait_forever: false };
         assert_eq!(pump(source, &sender, &stopping).await, Ended::Done);
         drop(sender);
         assert_eq!(drain(receiver).await, vec![Ok(10), Ok(20)]);
 
         let (sender, receiver) = mpsc::channel(8);
-        let source = Numbers { left: vec![3], then: Some(Status::invalid_argument("bad")), wait_forever: false, sent: 0 };
+        let source = Numbers { left: vec![3], then: Some(Status::invalid_argument("bad")), wait_forever: false };
         assert_eq!(pump(source, &sender, &stopping).await, Ended::Failed);
         drop(sender);
         assert_eq!(drain(receiver).await, vec![Ok(30), Err(tonic::Code::InvalidArgument)]);
@@ -196,11 +191,11 @@ mod tests {
         let (stop, stopping) = watch::channel(false);
         let (sender, receiver) = mpsc::channel(8);
         drop(receiver);
-        let waiting = Numbers { left: Vec::new(), then: None, wait_forever: true, sent: 0 };
+        let waiting = Numbers { left: Vec::new(), then: None, wait_forever: true };
         assert_eq!(pump(waiting, &sender, &stopping).await, Ended::Left);
 
         let (sender, receiver) = mpsc::channel(8);
-        let waiting = Numbers { left: Vec::new(), then: None, wait_forever: true, sent: 0 };
+        let waiting = Numbers { left: Vec::new(), then: None, wait_forever: true };
         let stopper = StreamStopper(stop);
         let pumped = tokio::spawn(async move { pump(waiting, &sender, &stopping).await });
         stopper.stop();

@@ -77,7 +77,7 @@ impl SessionManager {
             };
             Ok((frames, replay))
         });
-        let (frames, replay_share) = match prepared {
+        let (memory, replay_share) = match prepared {
             Ok((frames, Some((replay, share)))) => (vec![envs_memory, frames, replay], Some(share)),
             Ok((frames, None)) => (vec![envs_memory, frames], None),
             Err(error) => {
@@ -91,11 +91,13 @@ impl SessionManager {
         let shared = Arc::new(Mutex::new(session));
         let registered = {
             let mut registry = self.sessions.lock().expect("registry lock");
-            (!registry.closing).then(|| {
+            if registry.closing {
+                false
+            } else {
                 let entry = Entry {
                     session: shared.clone(),
                     owner: place.owner.clone(),
-                    memory: frames,
+                    memory,
                     info: info.clone(),
                     stats,
                     replay,
@@ -103,9 +105,10 @@ impl SessionManager {
                     created: Instant::now(),
                 };
                 registry.sessions.insert(session_id.clone(), entry);
-            })
+                true
+            }
         };
-        if registered.is_none() {
+        if !registered {
             // The place and the replay share go back as they drop.
             shared.lock().await.close().await;
             return Err(CoreError::ShuttingDown);
