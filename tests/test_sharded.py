@@ -15,7 +15,8 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import radserve
-from radserve.sharded import ShardedVectorEnv, apportion, merge_infos
+from radserve.infos import merge_infos
+from radserve.sharded import ShardedVectorEnv, apportion
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 import radserve
-from radserve import _acting
 from radserve.proto import radserve_pb2 as pb
 from _procs import worker_pids
 
@@ -208,21 +207,35 @@ def test_unknown_or_closed_sessions(client):
     envs.close()
 
 
-def test_auto_falls_back_to_grpc_where_memory_cannot_be_mapped(client, monkeypatch):
-    def unmappable(*args, **kwargs):
-        raise radserve.SharedMemoryError("cannot open the server's acting memory (simulated)")
-
-    monkeypatch.setattr(_acting, "receive_server_memory", unmappable)
+# A client run as another user (nobody): handed no memory, since the server allows its own uid and
+# server.shared_memory_uids only.
+_STRANGER_CLIENT = """
+import sys
+import numpy as np
+import radserve
+with radserve.Client(sys.argv[1]) as client:
     envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="auto")
+    assert envs.delivery == "grpc", envs.delivery
+    envs.reset()
+    assert envs.step(np.zeros(1, np.int64))[0].shape == (1, 4)
+    envs.close()
     try:
-        assert envs.delivery == "grpc"
-        envs.reset()
-        assert envs.step(np.zeros(1, np.int64))[0].shape == (1, 4)
-    finally:
-        envs.close()
-    with pytest.raises(radserve.SharedMemoryError, match="simulated"):
         client.make_vec("gym/CartPole-v1", num_envs=1, delivery="shared_memory")
-    monkeypatch.undo()
+    except radserve.SharedMemoryError as error:
+        print("refused:", error)
+    else:
+        raise SystemExit("the server handed its memory to another user")
+"""
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to run the client as another user")
+def test_auto_falls_back_to_grpc_where_memory_cannot_be_mapped(server, client):
+    result = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", "--", sys.executable,
+                             "-c", _STRANGER_CLIENT, server.address], capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "HOME": "/tmp"})
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "refused:" in result.stdout and "delivery='grpc'" in result.stdout, result.stdout
+    # The server's own user gets the memory.
     envs = client.make_vec("gym/CartPole-v1", num_envs=1, delivery="auto")
     assert envs.delivery == "shared_memory"
     envs.close()

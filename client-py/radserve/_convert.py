@@ -22,6 +22,8 @@ def to_numpy(tensor: "pb.Tensor") -> np.ndarray:
 
 
 def to_tensor(array: np.ndarray) -> "pb.Tensor":
+    """A message holding `array`'s bytes, little-endian, C order (TypeError for a dtype radserve
+    tensors cannot hold)."""
     array = np.ascontiguousarray(array)
     dtype = array.dtype.newbyteorder("<") if array.dtype.byteorder == ">" else array.dtype
     if dtype.name not in _PROTO_DTYPES:
@@ -30,6 +32,7 @@ def to_tensor(array: np.ndarray) -> "pb.Tensor":
 
 
 def to_space(space: "pb.Space") -> spaces.Space:
+    """The gymnasium space a `Space` message describes (Discrete, or a Box of its dtype and bounds)."""
     kind = space.WhichOneof("kind")
     if kind == "discrete":
         return spaces.Discrete(space.discrete.n)
@@ -49,6 +52,7 @@ def to_space(space: "pb.Space") -> spaces.Space:
 
 
 def option_value(value) -> "pb.OptionValue":
+    """An env option's value as the message carries it (bool, int, float or str)."""
     # bool before int: True is an int in Python.
     if isinstance(value, (bool, np.bool_)):
         return pb.OptionValue(bool_value=bool(value))
@@ -62,4 +66,5 @@ def option_value(value) -> "pb.OptionValue":
 
 
 def from_option_value(value: "pb.OptionValue"):
+    """The Python value an `OptionValue` message holds."""
     return getattr(value, value.WhichOneof("value"))

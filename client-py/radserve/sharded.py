@@ -36,6 +36,7 @@ from gymnasium.vector.utils import batch_space
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport
 from .batches import FIELDS, Batch, open_batch_stream
+from .infos import merge_infos
 from .errors import InvalidArgumentError, NotFoundError, RadServeError, UnavailableError
 from .vector import RemoteVectorEnv, check_reset_mask, check_seeds, open_vector_env
 
@@ -54,35 +55,6 @@ def apportion(total: int, weights: "list[int]") -> "list[int]":
     for i in order[: total - sum(shares)]:
         shares[i] += 1
     return shares
-
-
-def merge_infos(parts: "list[tuple[int, int, dict]]", num_envs: int) -> dict:
-    """One gymnasium info dict for `num_envs` envs from each shard's (first env, size, its info
-    dict): every array placed at its shard's rows, as `VectorEnv._add_info` would have made it."""
-    merged: dict = {}
-    keys: "list[str]" = []
-    for _, _, info in parts:
-        keys += [key for key in info if key not in keys]
-    for key in keys:
-        present = [(start, size, info[key]) for start, size, info in parts if key in info]
-        if all(isinstance(value, dict) for _, _, value in present):
-            merged[key] = merge_infos(present, num_envs)
-            continue
-        arrays = [np.asarray(value) for _, _, value in present]
-        first = arrays[0]
-        alike = all(a.dtype == first.dtype and a.shape[1:] == first.shape[1:] and a.ndim >= 1 for a in arrays)
-        if alike and first.dtype != object:
-            full = np.zeros((num_envs, *first.shape[1:]), dtype=first.dtype)
-        else:
-            full = np.full(num_envs, None, dtype=object)
-        for (start, size, _), array in zip(present, arrays):
-            if full.dtype == object and not alike:
-                for row in range(size):
-                    full[start + row] = array[row]
-            else:
-                full[start:start + size] = array
-        merged[key] = full
-    return merged
 
 
 @dataclass

@@ -1,6 +1,5 @@
 """A radserve session as a gymnasium VectorEnv."""
 
-import json
 import queue
 from typing import Any, NamedTuple
 
@@ -15,6 +14,7 @@ from ._acting import SharedActing
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport, check_delivery
 from .errors import FailedPreconditionError, InvalidArgumentError, RadServeError
+from .infos import add_flat, decode, decode_all, episode_infos, is_flat
 from .types import SessionInfo
 
 
@@ -32,41 +32,6 @@ class _Step(NamedTuple):
     errors: "dict[int, str]"
     # env index -> (its step's info, the info of the reset the server made in the step), as JSON text
     infos: "dict[int, tuple[str | None, str | None]]"
-
-
-def _numpy_value(tagged: dict):
-    """A JSON object as the worker wrote it (radserve_worker.common.info_json): numpy values rebuilt."""
-    if "__numpy__" in tagged:
-        dtype = np.dtype(tagged["__numpy__"])
-        if "shape" in tagged:
-            return np.array(tagged["value"], dtype=dtype).reshape(tagged["shape"])
-        return dtype.type(tagged["value"])
-    if set(tagged) == {"__repr__"}:
-        return tagged["__repr__"]
-    return tagged
-
-
-# One decoder for every info: json.loads with an object_hook builds a new JSONDecoder per call.
-_DECODER = json.JSONDecoder(object_hook=_numpy_value)
-
-
-def _info(text: "str | None") -> dict:
-    """An env's info dict from its JSON text (empty when none travelled)."""
-    return _DECODER.decode(text) if text else {}
-
-
-def _flat(info: dict) -> bool:
-    """Whether gymnasium batches every value of `info` into a 1-D array of the value's own type
-    (VectorEnv._add_info: int, float, bool and numpy numbers; dicts, arrays, other objects not)."""
-    if "final_obs" in info:
-        return False
-    for value in info.values():
-        if type(value) not in _SCALARS and not isinstance(value, np.number):
-            return False
-    return True
-
-
-_SCALARS = frozenset((int, float, bool))
 
 
 def _bools(mask) -> "list[bool]":
@@ -140,25 +105,6 @@ def _ended_episodes(step: "pb.StepResponse"):
             _convert.to_numpy(step.final_obs) if episodes else None,
             [episode.episode_return for episode in episodes], [episode.episode_length for episode in episodes],
             {episode.env_index: episode.error for episode in episodes if episode.error})
-
-
-def episode_infos(size: int, rows, returns, lengths, errors: "dict[int, str]") -> dict:
-    """radserve's figures for the episodes that ended, as infos over `size` rows under names no
-    gymnasium wrapper uses: `radserve_episode` (return `r`, length `l`) at `rows` (the k-th ended
-    episode's row is `rows[k]`), and `radserve_error`, a simulator's message by row."""
-    mask = np.zeros(size, dtype=bool)
-    mask[rows] = True
-    episode_returns, episode_lengths = np.zeros(size, dtype=np.float64), np.zeros(size, dtype=np.int64)
-    episode_returns[rows], episode_lengths[rows] = returns, lengths
-    infos = {"radserve_episode": {"r": episode_returns, "l": episode_lengths, "_r": mask.copy(), "_l": mask.copy()},
-             "_radserve_episode": mask}
-    if errors:
-        messages = np.full(size, None, dtype=object)
-        for row, message in errors.items():
-            messages[row] = message
-        infos["radserve_error"] = messages
-        infos["_radserve_error"] = np.array([message is not None for message in messages])
-    return infos
 
 
 class RemoteVectorEnv(VectorEnv):
@@ -302,7 +248,7 @@ class RemoteVectorEnv(VectorEnv):
         infos: dict = {}
         for i in np.flatnonzero(requested):
             held = self._held_reset_infos.pop(i, None)
-            infos = self._add_info(infos, _info(reset_infos.get(i) if on_server[i] else held), int(i))
+            infos = self._add_info(infos, decode(reset_infos.get(i) if on_server[i] else held), int(i))
         if mask is None or self._last_obs is None:
             obs = server_obs.copy()
         else:
@@ -561,70 +507,32 @@ class RemoteVectorEnv(VectorEnv):
             {info.env_index: (info.step_json or None, info.reset_json or None) for info in response.infos},
         )
 
-    def _add_flat_infos(self, infos: dict, run: "list[tuple[int, dict]]") -> dict:
-        """gymnasium's `_add_info` of each (env, info) of `run` in turn (envs in order, every info flat),
-        done key by key: an array is made with the type of the first value it gets, as `_add_info`
-        makes it, and filled at once. A gym step's infos are such dicts of floats, and one
-        `_add_info` per env and key was most of the client's time per step."""
-        columns: "dict[str, tuple[list[int], list]]" = {}
-        envs = [i for i, _ in run]
-        first = run[0][1].keys()
-        if all(info.keys() == first for _, info in run):  # the usual case: every env reports the same keys
-            for key in first:
-                columns[key] = (envs, [info[key] for _, info in run])
-        else:
-            for i, info in run:
-                for key, value in info.items():
-                    column = columns.get(key)
-                    if column is None:
-                        columns[key] = column = ([], [])
-                    column[0].append(i)
-                    column[1].append(value)
-        for key, (envs, values) in columns.items():
-            array = infos.get(key)
-            if array is None:
-                array = np.zeros(self.num_envs, dtype=type(values[0]))
-            elif not isinstance(array, np.ndarray) or array.ndim != 1:
-                for i, value in zip(envs, values):  # a key batched another way before: gymnasium's own path
-                    infos = self._add_info(infos, {key: value}, i)
-                continue
-            array[envs] = values
-            mask = infos.get(f"_{key}")
-            if mask is None:
-                mask = np.zeros(self.num_envs, dtype=np.bool_)
-            mask[envs] = True
-            infos[key] = array
-            infos[f"_{key}"] = mask
-        return infos
-
     def _finish(self, step: "_Step"):
         """The step as this env's autoreset mode returns it, from the server's same-step result, with
         the envs' infos batched as gymnasium's SyncVectorEnv batches them in that mode."""
         obs = step.obs
         rows = {int(i): row for row, i in enumerate(step.ended)}
         infos: dict = {}
-        # Every info text of the step decoded in one call (one JSON array) rather than one per env.
-        texts = [text for pair in step.infos.values() for text in pair if text]
-        decoded = dict(zip(texts, _DECODER.decode("[" + ",".join(texts) + "]"))) if texts else {}
+        decoded = decode_all([text for pair in step.infos.values() for text in pair])
 
         def info_of(text: "str | None") -> dict:
             if not text:
                 return {}
             found = decoded.get(text)
-            return found if found is not None else _DECODER.decode(text)  # a reset info held from a step ago
+            return found if found is not None else decode(text)  # a reset info held from a step ago
 
-        # Consecutive envs whose one info is flat are added together (_add_flat_infos); the run is
+        # Consecutive envs whose one info is flat are added together (add_flat); the run is
         # flushed before anything else is added, so that values arrive in gymnasium's order.
         run: "list[tuple[int, dict]]" = []
 
         def add(infos: dict, info: dict, i: int) -> dict:
             if run:
-                infos = self._add_flat_infos(infos, run)
+                infos = add_flat(infos, run, self.num_envs, self._add_info)
                 run.clear()
             return self._add_info(infos, info, i)
 
         def add_step_info(infos: dict, info: dict, i: int) -> dict:
-            if _flat(info):
+            if is_flat(info):
                 run.append((i, info))
                 return infos
             return add(infos, info, i)
@@ -648,7 +556,7 @@ class RemoteVectorEnv(VectorEnv):
                 if i in rows:
                     self._held_reset_infos[i] = reset_info
         if run:
-            infos = self._add_flat_infos(infos, run)
+            infos = add_flat(infos, run, self.num_envs, self._add_info)
         if len(step.ended):
             infos.update(episode_infos(self.num_envs, step.ended, step.returns, step.lengths, step.errors))
         if self.autoreset_mode != AutoresetMode.SAME_STEP:

@@ -10,7 +10,7 @@ import pytest
 from gymnasium import spaces
 
 import radserve
-from radserve import _convert
+from radserve import proto
 from radserve.proto import radserve_pb2 as pb
 from radserve.errors import from_rpc_error
 
@@ -20,25 +20,25 @@ CLIENT = Path(__file__).resolve().parents[1]
 def test_tensors_round_trip_without_changing_values():
     for array in [np.arange(12, dtype=np.uint8).reshape(3, 4), np.linspace(-1, 1, 6, dtype=np.float32),
                   np.array([[1, -2]], dtype=np.int64), np.array([0.5, np.inf])]:
-        back = _convert.to_numpy(_convert.to_tensor(array))
+        back = proto.to_numpy(proto.to_tensor(array))
         assert back.dtype == array.dtype and back.shape == array.shape
         np.testing.assert_array_equal(back, array)
 
 
 def test_spaces_become_gymnasium_spaces():
     image = pb.Space(box=pb.BoxSpace(dtype=pb.DTYPE_UINT8, shape=[9, 4, 4], low=[0], high=[255]))
-    assert _convert.to_space(image) == spaces.Box(0, 255, (9, 4, 4), np.uint8)
+    assert proto.to_space(image) == spaces.Box(0, 255, (9, 4, 4), np.uint8)
     action = pb.Space(box=pb.BoxSpace(dtype=pb.DTYPE_FLOAT32, shape=[2], low=[-1, -2], high=[1, 2]))
-    assert _convert.to_space(action) == spaces.Box(np.array([-1, -2], np.float32), np.array([1, 2], np.float32))
-    assert _convert.to_space(pb.Space(discrete=pb.DiscreteSpace(n=15))) == spaces.Discrete(15)
+    assert proto.to_space(action) == spaces.Box(np.array([-1, -2], np.float32), np.array([1, 2], np.float32))
+    assert proto.to_space(pb.Space(discrete=pb.DiscreteSpace(n=15))) == spaces.Discrete(15)
 
 
 def test_option_values_keep_their_python_type():
     for value in [True, 3, 0.5, "easy"]:
-        back = _convert.from_option_value(_convert.option_value(value))
+        back = proto.from_option_value(proto.option_value(value))
         assert back == value and type(back) is type(value)
     with pytest.raises(TypeError):
-        _convert.option_value([1])
+        proto.option_value([1])
 
 
 class _FakeRpcError(grpc.RpcError):
