@@ -6,7 +6,7 @@ use std::task::Poll;
 
 use futures_util::future::join_all;
 
-use super::{EnvInfo, Session, StepOutcome};
+use super::{copying, EnvInfo, Session, StepOutcome};
 use crate::actions::{check_mask, check_seed, validate_actions, ScatteredActions};
 use crate::catalog::{async_batch, native_async_batch};
 use crate::error::CoreError;
@@ -279,7 +279,7 @@ impl Session {
         self.check_recv(0)?;
         let started = std::time::Instant::now();
         let (index, reply) = if self.steps_groups() { self.next_group().await } else { (0, self.groups[0].recv().await) };
-        self.finish_recv(index, reply, started)
+        copying(self.step_copy_bytes(), || self.finish_recv(index, reply, started))
     }
 
     /// Refuses a recv that would wait forever: fewer than a batch stepping, counting `sending` envs

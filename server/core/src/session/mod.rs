@@ -24,6 +24,25 @@ mod single;
 mod stacking;
 mod sync;
 
+/// A step whose observations reach this many bytes (every env's stack, before the view) does its
+/// copies (stacking, replay recording, the view) outside tokio's worker: below it the copies take
+/// microseconds, less than handing the worker over would cost.
+const COPY_OFF_WORKER_BYTES: usize = 1 << 20;
+
+/// Runs `copy` (the synchronous part of a step: tens of MiB of memcpy for a large pixel session) where
+/// it does not hold up other sessions' tasks: with `block_in_place` when the step moves at least
+/// `COPY_OFF_WORKER_BYTES` and the runtime is multi-threaded (tokio hands this worker's queue to
+/// another thread for the duration), inline otherwise (small steps; the core's current-thread tests).
+pub(crate) fn copying<R>(bytes: usize, copy: impl FnOnce() -> R) -> R {
+    use tokio::runtime::{Handle, RuntimeFlavor};
+    let multi_threaded = Handle::try_current().is_ok_and(|handle| handle.runtime_flavor() == RuntimeFlavor::MultiThread);
+    if bytes >= COPY_OFF_WORKER_BYTES && multi_threaded {
+        tokio::task::block_in_place(copy)
+    } else {
+        copy()
+    }
+}
+
 pub use single::{EnvEnd, EnvStep};
 
 /// What a step that ends an episode returns (gymnasium's `AutoresetMode` names the same choices).
@@ -272,5 +291,44 @@ impl Session {
         for mut group in self.groups.drain(..) {
             group.close().await;
         }
+    }
+}
+
+#[cfg(test)]
+mod copy_tests {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    use std::time::{Duration, Instant};
+
+    use super::{copying, COPY_OFF_WORKER_BYTES};
+
+    /// On a runtime of one worker, a task spawned by a task that is copying runs during the copy only
+    /// if the copy left the worker (the spawned task waits in that worker's queue otherwise).
+    async fn spawned_task_ran_during_copy(bytes: usize, wait: Duration) -> bool {
+        tokio::spawn(async move {
+            let ran = Arc::new(AtomicBool::new(false));
+            let flag = ran.clone();
+            tokio::spawn(async move { flag.store(true, Ordering::SeqCst) });
+            copying(bytes, || {
+                let started = Instant::now();
+                while !ran.load(Ordering::SeqCst) && started.elapsed() < wait {
+                    std::thread::yield_now();
+                }
+                ran.load(Ordering::SeqCst)
+            })
+        })
+        .await
+        .unwrap()
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 1)]
+    async fn large_copies_leave_the_worker_to_other_tasks_and_small_ones_stay() {
+        assert!(spawned_task_ran_during_copy(COPY_OFF_WORKER_BYTES, Duration::from_secs(20)).await);
+        assert!(!spawned_task_ran_during_copy(COPY_OFF_WORKER_BYTES - 1, Duration::from_millis(300)).await);
+    }
+
+    #[tokio::test]
+    async fn a_current_thread_runtime_copies_inline() {
+        assert_eq!(copying(COPY_OFF_WORKER_BYTES * 4, || 7), 7);
     }
 }

@@ -68,6 +68,11 @@ impl Session {
         self.config.frame_stack * self.layout.frame_bytes
     }
 
+    /// What a step of every env copies at least once: each env's stack (see `copying`).
+    pub(super) fn step_copy_bytes(&self) -> usize {
+        self.num_envs() * self.stack_bytes()
+    }
+
     /// Sets each stack of a group (those `mask` marks, if given) to its env's current frame
     /// repeated (the stacking at reset).
     pub(super) fn fill_stacks_from_current(&mut self, index: usize, mask: Option<&[bool]>) {

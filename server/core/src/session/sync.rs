@@ -5,7 +5,7 @@ use std::sync::atomic::Ordering;
 use futures_util::future::join_all;
 use radserve_replay::RecordedStep;
 
-use super::{EnvInfo, ResetSpec, Session, StepOutcome};
+use super::{copying, EnvInfo, ResetSpec, Session, StepOutcome};
 use crate::actions::{check_mask, check_seed, validate_actions, MAX_SEED};
 use crate::error::CoreError;
 use crate::simulators::{SimulatorError, StepResult};
@@ -100,11 +100,18 @@ impl Session {
             self.reset_infos.extend(infos.into_iter().map(|(local, info)| (start + local as usize, info)));
         }
         self.reset_infos.sort_by_key(|(env, _)| *env);
+        Ok(copying(self.step_copy_bytes(), || self.take_reset(spec.mask.as_deref(), &plans, &whole)))
+    }
+
+    /// The groups a reset reset (`plans`, or `whole` where a lost group was reset whole) taken into
+    /// the session: their stacks start from the first frames, the replay records those, their
+    /// episode figures restart; returns every env's stacked observation through the view.
+    fn take_reset(&mut self, mask: Option<&[bool]>, plans: &[Option<GroupReset>], whole: &[bool]) -> Vec<u8> {
         for index in 0..self.groups.len() {
             if plans[index].is_none() && !whole[index] {
                 continue;
             }
-            let mask = if whole[index] { None } else { spec.mask.as_deref() };
+            let mask = if whole[index] { None } else { mask };
             self.fill_stacks_from_current(index, mask);
             self.record_first_frames(index, self.step_calls, mask);
             for env in self.groups[index].envs().filter(|&env| mask.is_none_or(|mask| mask[env])) {
@@ -112,11 +119,11 @@ impl Session {
                 self.episode_lengths[env] = 0;
             }
         }
-        if spec.mask.is_none() {
+        if mask.is_none() {
             self.needs_reset = false;
         }
         self.metrics.record_reset();
-        Ok(self.viewed(&self.stacks))
+        self.viewed(&self.stacks)
     }
 
     /// Steps every environment with `actions` ([num_envs, *action shape] of the action dtype).
@@ -204,45 +211,54 @@ impl Session {
                     return Err(error.into());
                 }
             };
-            let group_envs = self.groups[index].envs();
-            outcome.infos.extend(result.infos.iter().filter(|info| !skipped(group_envs.start + info.env as usize)).map(|info| {
-                EnvInfo { env_index: group_envs.start + info.env as usize, step: info.step.clone(), reset: info.reset.clone() }
-            }));
-            if let Some(replay) = &self.replay {
-                // Recorded before the stacks move on; sync, so no lock is held across an await.
-                let mut replay = replay.write().expect("replay lock");
-                let group = &self.groups[index];
-                for (local, env) in group_envs.clone().enumerate() {
-                    if skipped(env) {
-                        continue;
-                    }
-                    let ended = result.terminated[local] || result.truncated[local];
-                    let next = if ended { self.layout.final_frame(local) } else { self.layout.frame(local) };
-                    replay.record_step(
-                        env,
-                        &RecordedStep {
-                            action: &actions[env * action_bytes..(env + 1) * action_bytes],
-                            reward: result.rewards[local],
-                            terminated: result.terminated[local],
-                            truncated: result.truncated[local],
-                            next_frame: &group.frames()[next],
-                            step_index: self.step_calls,
-                        },
-                    );
-                    if ended {
-                        let first = &group.frames()[self.layout.frame(local)];
-                        replay.record_first_frame(env, first, self.step_calls + 1);
-                    }
+            let heavy = self.step_copy_bytes();
+            copying(heavy, || self.take_group_step(index, &result, actions, skip, &mut outcome));
+        }
+        let stepped = (0..num_envs).filter(|&env| !skipped(env)).count() as u64;
+        copying(self.step_copy_bytes(), || self.finish_step(stepped, started, &mut outcome));
+        Ok(outcome)
+    }
+
+    /// Group `index`'s answer to a step taken into the session: its envs' infos, the transitions
+    /// recorded into the replay (before the stacks move on), and each stepped env's stack, reward
+    /// and episode moved on. Synchronous, so that no lock is held across an await.
+    fn take_group_step(&mut self, index: usize, result: &StepResult, actions: &[u8], skip: Option<&[bool]>, outcome: &mut StepOutcome) {
+        let skipped = |env: usize| skip.is_some_and(|skip| skip[env]);
+        let action_bytes = self.frame_spec.action.num_bytes();
+        let group_envs = self.groups[index].envs();
+        outcome.infos.extend(result.infos.iter().filter(|info| !skipped(group_envs.start + info.env as usize)).map(|info| {
+            EnvInfo { env_index: group_envs.start + info.env as usize, step: info.step.clone(), reset: info.reset.clone() }
+        }));
+        if let Some(replay) = &self.replay {
+            let mut replay = replay.write().expect("replay lock");
+            let group = &self.groups[index];
+            for (local, env) in group_envs.clone().enumerate() {
+                if skipped(env) {
+                    continue;
                 }
-            }
-            for (local, env) in group_envs.enumerate() {
-                if !skipped(env) {
-                    self.advance(index, local, env, &result, &mut outcome);
+                let ended = result.terminated[local] || result.truncated[local];
+                let next = if ended { self.layout.final_frame(local) } else { self.layout.frame(local) };
+                replay.record_step(
+                    env,
+                    &RecordedStep {
+                        action: &actions[env * action_bytes..(env + 1) * action_bytes],
+                        reward: result.rewards[local],
+                        terminated: result.terminated[local],
+                        truncated: result.truncated[local],
+                        next_frame: &group.frames()[next],
+                        step_index: self.step_calls,
+                    },
+                );
+                if ended {
+                    let first = &group.frames()[self.layout.frame(local)];
+                    replay.record_first_frame(env, first, self.step_calls + 1);
                 }
             }
         }
-        let stepped = (0..num_envs).filter(|&env| !skipped(env)).count() as u64;
-        self.finish_step(stepped, started, &mut outcome);
-        Ok(outcome)
+        for (local, env) in group_envs.enumerate() {
+            if !skipped(env) {
+                self.advance(index, local, env, result, outcome);
+            }
+        }
     }
 }
