@@ -125,7 +125,8 @@ pub struct ActingChannel {
     layout: ActingLayout,
     memory: MemFile,
     token: [u8; 16],
-    socket: HandoffSocket,
+    /// Until the client took the memory (closed then).
+    socket: Option<HandoffSocket>,
     peers: PeerPolicy,
     _claim: ChannelClaim,
     /// An open channel keeps its session's lease alive, and ends when the session is closed.
@@ -179,7 +180,7 @@ pub async fn open(
     };
     let lease = manager.hold(&caller, session_id)?;
     let channel =
-        ActingChannel { manager, caller, layout, memory, token, socket, peers, _claim: claim, lease, _memory: memory_reservation };
+        ActingChannel { manager, caller, layout, memory, token, socket: Some(socket), peers, _claim: claim, lease, _memory: memory_reservation };
     Ok((description, channel))
 }
 
@@ -190,8 +191,9 @@ impl ActingChannel {
     pub async fn serve(mut self, session_id: String) {
         let closed = self.lease.session_closed();
         tokio::pin!(closed);
+        let socket = self.socket.take().expect("an acting channel is served once");
         let accepted = tokio::select! {
-            stream = self.socket.hand_over(self.token, self.memory.fd(), &self.peers) => stream,
+            stream = socket.hand_over(self.token, self.memory.fd(), &self.peers) => stream,
             () = &mut closed => None,
         };
         let Some(mut stream) = accepted else {
