@@ -191,7 +191,7 @@ def test_sessions_without_replay_and_over_budget(client):
             client.sample_batches(envs.session_id, 8)
     finally:
         envs.close()
-    with pytest.raises(radserve.ResourceExhaustedError, match="replay budget"):
+    with pytest.raises(radserve.InvalidArgumentError, match="replay budget"):  # above the whole budget
         client.make_vec("dmc/cheetah-run", num_envs=1, replay_capacity=10**7)
 
 
@@ -291,7 +291,7 @@ def test_outputs_too_large_and_too_many_streams_are_refused(client, cheetah):
         client.make_vec("dmc/cheetah-run", num_envs=1, observation_view="center_translate(100000)")
     # 66 batches of 512 translated obs + next_obs (107.5 MB each) would be 7 GB held by one stream.
     for delivery in ("grpc", "shared_memory"):
-        with pytest.raises(radserve.ResourceExhaustedError, match=r"would hold 7094697984 bytes .*prefetch 64 \+ 2.*limits.stream_memory_bytes"):
+        with pytest.raises(radserve.InvalidArgumentError, match=r"would hold 7094697984 bytes .*prefetch 64 \+ 2.*limits.stream_memory_bytes"):
             client.sample_batches(envs.session_id, 512, augment="translate(108)", prefetch=64, delivery=delivery)
     streams = [client.sample_batches(envs.session_id, 4, min_size=1000) for _ in range(4)]  # never reached: waits
     try:

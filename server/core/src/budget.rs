@@ -118,6 +118,17 @@ impl MemoryBudget {
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |used| used.checked_add(bytes).filter(|&total| total <= limit))
             .map(|_| Reservation { budget: self.clone(), bytes, quota: None })
             .map_err(|used| match &self.owner {
+                None if bytes > limit => CoreError::TooLarge(format!(
+                    "{what} needs {} of memory, more than this server's whole memory budget of {} (limits.memory_bytes)",
+                    human(bytes),
+                    human(limit)
+                )),
+                Some(principal) if bytes > limit => CoreError::TooLarge(format!(
+                    "{what} needs {} of memory, more than principal '{principal}'s whole memory quota of {} \
+                     (memory_bytes in its tokens file entry)",
+                    human(bytes),
+                    human(limit)
+                )),
                 None => CoreError::OutOfMemory(format!(
                     "{what} needs {} of memory; {} of this server's memory budget of {} is reserved already \
                      (limits.memory_bytes)",

@@ -53,9 +53,16 @@ pub enum CoreError {
     #[error("session {0} keeps no replay buffer; create it with a replay capacity")]
     NoReplayBuffer(String),
 
-    /// A configured limit of the server: sessions, envs, streams, replay bytes, a step's size.
+    /// A configured limit of the server that what is open now reaches: sessions, envs, streams,
+    /// replay bytes reserved (worth retrying once something closes).
     #[error("{0}")]
     OverLimit(String),
+
+    /// A request larger than a fixed limit of the server allows whatever else is open: envs per
+    /// session, a step's observations, a buffer or a stream above its whole budget. No retry can
+    /// succeed.
+    #[error("{0}")]
+    TooLarge(String),
 
     /// The server's memory budget, or the host's memory or file descriptors.
     #[error("{0}")]

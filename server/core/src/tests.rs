@@ -259,7 +259,9 @@ async fn limits_refuse_before_anything_is_built_and_closing_returns_everything()
     let no_extras = SessionExtras::default;
 
     let too_many = manager.create_session(&local(), FAKE_ENV, 9, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
-    assert!(matches!(&too_many, CoreError::OverLimit(m) if m.contains("limit of 8 environments per session")), "{too_many}");
+    // Larger than any session may be: no retry can succeed (INVALID_ARGUMENT), unlike the limits
+    // that what is open now reaches (RESOURCE_EXHAUSTED).
+    assert!(matches!(&too_many, CoreError::TooLarge(m) if m.contains("limit of 8 environments per session")), "{too_many}");
     let zero = manager.create_session(&local(), FAKE_ENV, 0, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
     assert!(matches!(zero, CoreError::InvalidSession(_)));
     let unknown = manager.create_session(&local(), "gym/Fak-v0", 1, 0, &fake::fake_options(1), &no_extras()).await.unwrap_err();
@@ -362,8 +364,13 @@ async fn sessions_belong_to_their_creator_and_quotas_hold_per_principal() {
     // Alice's limits: envs, then memory, then sessions; bob is not held back by them.
     let over_envs = manager.create_session(&alice, FAKE_ENV, 2, 0, &options, &no_extras()).await.unwrap_err();
     assert!(over_envs.to_string().contains("principal 'alice'") && over_envs.to_string().contains("max_envs"), "{over_envs}");
-    let over_memory = manager.reserve_memory(&alice, 20 << 20, "a channel").unwrap_err();
+    assert!(matches!(over_envs, CoreError::OverLimit(_)), "fits her quota once she closes a session: {over_envs}");
+    let never_fits = manager.create_session(&alice, FAKE_ENV, 7, 0, &options, &no_extras()).await.unwrap_err();
+    assert!(matches!(never_fits, CoreError::TooLarge(_)), "more envs (and memory) than her whole quota: {never_fits}");
+    let over_memory = manager.reserve_memory(&alice, 10 << 20, "a channel").unwrap_err();
     assert!(matches!(over_memory, CoreError::OverLimit(_)) && over_memory.to_string().contains("quota"), "{over_memory}");
+    let above_quota = manager.reserve_memory(&alice, 20 << 20, "a channel").unwrap_err();
+    assert!(matches!(above_quota, CoreError::TooLarge(_)) && above_quota.to_string().contains("whole memory quota"), "{above_quota}");
     manager.create_session(&alice, FAKE_ENV, 1, 0, &options, &no_extras()).await.unwrap();
     let over_sessions = manager.create_session(&alice, FAKE_ENV, 1, 0, &options, &no_extras()).await.unwrap_err();
     assert!(over_sessions.to_string().contains("max_sessions"), "{over_sessions}");

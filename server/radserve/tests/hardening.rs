@@ -49,16 +49,14 @@ async fn replay_sizes_that_overflow_are_refused_and_the_server_lives() {
     // (capacity + 1) * 45 bytes wraps to 29 bytes in 64 bits: this aborted the server.
     for capacity in [409_927_646_082_434_480u64, u64::MAX, 1 << 41] {
         let status = client.create_session(cartpole(replay_capacity(capacity))).await.unwrap_err();
-        assert!(
-            matches!(status.code(), Code::InvalidArgument | Code::ResourceExhausted),
-            "capacity {capacity}: {status:?}"
-        );
+        // Larger than the server could ever hold: no retry helps (INVALID_ARGUMENT, not RESOURCE_EXHAUSTED).
+        assert_eq!(status.code(), Code::InvalidArgument, "capacity {capacity}: {status:?}");
         assert!(status.message().contains("capacity") || status.message().contains("GiB"), "{}", status.message());
     }
     // Rollouts: steps * num_envs and 2 * steps are the products here.
     let rollout = Some(proto::ReplayOptions { rollout_steps: u32::MAX, ..Default::default() });
     let status = client.create_session(proto::CreateSessionRequest { num_envs: 256, ..cartpole(rollout) }).await.unwrap_err();
-    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
     still_serves(&mut client).await;
     // Nothing was reserved by the refused requests: the whole budget is still free.
     let info = server.manager.describe(&radserve_core::Principal::local(), &session_with_replay(&mut client).await).await.unwrap();
@@ -184,7 +182,7 @@ async fn amplifying_sizes_are_refused() {
         ..Default::default()
     };
     let status = client.create_session(request).await.unwrap_err();
-    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
     assert!(status.message().contains("the most a step may return"), "{}", status.message());
     still_serves(&mut client).await;
 }
@@ -333,9 +331,11 @@ async fn every_allocation_is_charged_to_one_memory_budget() {
     // asked to build any: the_memory_budget_refuses_what_would_not_fit in radserve-core counts that).
     let request = proto::CreateSessionRequest { env_id: "dmc/cheetah-run".into(), num_envs: 16, ..Default::default() };
     let status = client.create_session(request).await.unwrap_err();
-    assert_eq!(status.code(), Code::ResourceExhausted);
+    // More than the whole budget: INVALID_ARGUMENT (no retry fits it); the second stream below
+    // does not fit beside the first: RESOURCE_EXHAUSTED (it fits once the first ends).
+    assert_eq!(status.code(), Code::InvalidArgument);
     assert!(status.message().starts_with("16 envs of dmc/cheetah-run (~96.5 MiB each) needs 1.51 GiB of memory"), "{}", status.message());
-    assert!(status.message().contains("memory budget of 700.0 MiB"), "{}", status.message());
+    assert!(status.message().contains("whole memory budget of 700.0 MiB"), "{}", status.message());
     // Streams that are never read: each holds (prefetch + 2) batches; the second no longer fits.
     let request = proto::CreateSessionRequest {
         env_id: "procgen/bigfish".into(),
@@ -382,4 +382,22 @@ async fn every_allocation_is_charged_to_one_memory_budget() {
         assert!(Instant::now() < deadline, "{} bytes still reserved", server.manager.memory().0);
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_message_over_the_decoding_limit_is_refused_for_good_and_the_server_lives() {
+    let server = start_server(Limits::default()).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let session_id = session_with_replay(&mut client).await;
+    // One byte over what the server decodes: tonic's codec refuses it with OUT_OF_RANGE (not a code
+    // that asks for a retry) before the message is read, naming the size and the limit.
+    let actions = proto::Tensor {
+        dtype: proto::DType::DtypeUint8 as i32,
+        shape: vec![1],
+        data: vec![0u8; radserve_service::MAX_MESSAGE_BYTES].into(),
+    };
+    let status = client.step(proto::StepRequest { session_id, actions: Some(actions), ..Default::default() }).await.unwrap_err();
+    assert_eq!(status.code(), Code::OutOfRange, "{status:?}");
+    assert!(status.message().contains(&radserve_service::MAX_MESSAGE_BYTES.to_string()), "{}", status.message());
+    still_serves(&mut client).await;
 }

@@ -66,6 +66,7 @@ impl From<ServiceError> for Status {
                 CoreError::Replay(replay) => replay_code(replay),
                 CoreError::NotReset | CoreError::NoReplayBuffer(_) => Code::FailedPrecondition,
                 CoreError::OverLimit(_) | CoreError::OutOfMemory(_) => Code::ResourceExhausted,
+                CoreError::TooLarge(_) => Code::InvalidArgument,
                 CoreError::WorkersUnavailable(_) | CoreError::ShuttingDown => Code::Unavailable,
                 CoreError::Simulator(_) | CoreError::Host(_) => Code::Internal,
             },

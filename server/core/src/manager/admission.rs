@@ -31,7 +31,7 @@ impl SessionManager {
             return Err(CoreError::InvalidSession("num_envs must be at least 1".into()));
         }
         if num_envs > self.limits.max_envs_per_session {
-            return Err(CoreError::OverLimit(format!(
+            return Err(CoreError::TooLarge(format!(
                 "num_envs {num_envs} exceeds this server's limit of {} environments per session",
                 self.limits.max_envs_per_session
             )));
@@ -146,7 +146,8 @@ impl SessionManager {
             )));
         }
         if let Some(max) = caller.limits().max_envs.filter(|&max| envs + num_envs > max) {
-            return Err(CoreError::OverLimit(format!(
+            let error = if num_envs > max { CoreError::TooLarge } else { CoreError::OverLimit };
+            return Err(error(format!(
                 "{num_envs} more environments would give principal '{name}' {}, above its limit of {max} (max_envs \
                  in its tokens file entry)",
                 envs + num_envs
@@ -159,7 +160,8 @@ impl SessionManager {
             )));
         }
         if registry.reserved_envs + num_envs > self.limits.max_total_envs {
-            return Err(CoreError::OverLimit(format!(
+            let error = if num_envs > self.limits.max_total_envs { CoreError::TooLarge } else { CoreError::OverLimit };
+            return Err(error(format!(
                 "{num_envs} more environments would make {} on this server, above its limit of {}",
                 registry.reserved_envs + num_envs,
                 self.limits.max_total_envs
@@ -185,7 +187,7 @@ impl SessionManager {
         let least = (capacity as u64).saturating_mul(radserve_replay::MIN_BYTES_PER_TRANSITION as u64);
         let budget = self.limits.replay_memory_bytes;
         if least > budget {
-            return Err(CoreError::OverLimit(format!(
+            return Err(CoreError::TooLarge(format!(
                 "a replay buffer of {capacity} transitions takes at least {:.2} GiB ({} bytes per transition \
                  before its frames), above this server's replay budget of {:.2} GiB (limits.replay_memory_bytes)",
                 gib(least),
@@ -207,7 +209,7 @@ impl SessionManager {
     pub fn reserve_stream(&self, caller: &Principal, bytes: u64, prefetch: usize) -> Result<Reservation, CoreError> {
         let limit = self.limits.stream_memory_bytes;
         if bytes > limit {
-            return Err(CoreError::OverLimit(format!(
+            return Err(CoreError::TooLarge(format!(
                 "this stream would hold {bytes} bytes of batches ((prefetch {prefetch} + 2) batches of observations), over \
                  this server's limit of {limit} (limits.stream_memory_bytes): lower prefetch or batch_size"
             )));
@@ -254,7 +256,7 @@ fn check_observation_bytes(session: &Session) -> Result<(), CoreError> {
     let per_env = session.observation_space.num_bytes();
     let total = per_env.saturating_mul(session.num_envs());
     if total > MAX_STEP_OBSERVATION_BYTES {
-        return Err(CoreError::OverLimit(format!(
+        return Err(CoreError::TooLarge(format!(
             "{} envs of {} observe {per_env} bytes each ({} as viewed), {total} bytes a step; the most a step \
              may return is {MAX_STEP_OBSERVATION_BYTES} bytes: use fewer envs, smaller frames or a smaller frame_stack",
             session.num_envs(),
