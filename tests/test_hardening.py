@@ -106,3 +106,34 @@ def test_list_sessions_reports_what_each_session_holds(client):
         assert summary.idle_timeout_seconds == 300
     finally:
         envs.close()
+
+
+def _under_file_limit(tmp_path, files: int) -> str:
+    """A launcher that runs the server binary with `files` as its hard and soft open-file limit."""
+    script = tmp_path / f"radserve-nofile-{files}"
+    script.write_text(f'#!/bin/sh\nexec prlimit --nofile={files}:{files} -- {radserve.server.find_binary()} "$@"\n')
+    script.chmod(0o755)
+    return str(script)
+
+
+def test_a_low_open_file_limit_serves_many_connections_or_refuses_to_start(tmp_path):
+    # At 258 open files the old sizing, (limit - 256) / 2, served one connection at a time: the
+    # second client's connection was closed as it arrived.
+    with radserve.LocalServer(workers=1, binary=_under_file_limit(tmp_path, 258)) as server:
+        # A subchannel pool per channel: grpcio otherwise shares one connection between channels.
+        channels = [grpc.insecure_channel(server.address, options=[("grpc.use_local_subchannel_pool", 1)])
+                    for _ in range(8)]
+        try:
+            stubs = [radserve.proto.radserve_pb2_grpc.RadServeStub(channel) for channel in channels]
+            for stub in stubs:
+                stub.ServerInfo(pb.ServerInfoRequest(), timeout=30)
+            for stub in stubs:  # every connection still open and served
+                assert stub.ServerInfo(pb.ServerInfoRequest(), timeout=30).version == radserve.__version__
+        finally:
+            for channel in channels:
+                channel.close()
+    # Too few to serve at all: refused at start, saying what to raise.
+    refused = subprocess.run([_under_file_limit(tmp_path, 24), "serve", "--address", "127.0.0.1:0", "--workers", "1"],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode != 0, refused.stderr
+    assert "the open-file limit (24) leaves room for" in refused.stderr and "raise it to at least" in refused.stderr, refused.stderr

@@ -165,6 +165,35 @@ impl Connected for Connection {
     }
 }
 
+/// The fewest connections a server starts with: below it the open-file limit is a mistake to fix,
+/// not a size to serve at.
+pub const MIN_CONNECTIONS: usize = 8;
+
+/// How many connections fit `limit` open files once `open` descriptors are in use: half of what is
+/// left, the other half kept for what sessions open as they come (memory files, acting and hand-over
+/// sockets, sample streams' rings), at most `configured`. An error, saying what to raise, when that
+/// is below `MIN_CONNECTIONS`.
+pub fn connections_within(configured: usize, limit: u64, open: u64) -> anyhow::Result<usize> {
+    let room = usize::try_from(limit.saturating_sub(open) / 2).unwrap_or(usize::MAX);
+    if room < MIN_CONNECTIONS.min(configured) {
+        anyhow::bail!(
+            "the open-file limit ({limit}) leaves room for {room} connections once the server's {open} open descriptors \
+             and as many for sessions are counted; at least {MIN_CONNECTIONS} are needed: raise it to at least {} \
+             (ulimit -n, systemd's LimitNOFILE, docker run --ulimit nofile=..., or the pod's runtime default)",
+            open + 2 * MIN_CONNECTIONS as u64
+        );
+    }
+    Ok(room.min(configured))
+}
+
+/// `connections_within` for this process: its open-file limit (the soft one raised to the hard one
+/// first) and the descriptors it has open now.
+pub fn connection_capacity(configured: usize) -> anyhow::Result<usize> {
+    let limit = raise_file_limit();
+    let open = std::fs::read_dir("/proc/self/fd").map_or(0, |entries| entries.count() as u64);
+    connections_within(configured, limit, open)
+}
+
 /// Raises the soft open-file limit to the hard one (the usual default soft limit, 1024, is what 1000
 /// idle connections exhausted) and returns the soft limit now in force.
 pub fn raise_file_limit() -> u64 {
@@ -187,6 +216,17 @@ pub fn raise_file_limit() -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn connections_are_sized_from_what_the_server_left_of_the_limit() {
+        // A limit of 258 with 40 descriptors open: 109 connections (the old rule, (limit - 256) / 2, gave 1).
+        assert_eq!(connections_within(1024, 258, 40).unwrap(), 109);
+        assert_eq!(connections_within(1024, 1 << 20, 40).unwrap(), 1024, "at most what is configured");
+        assert_eq!(connections_within(2, 64, 58).unwrap(), 2, "a configured limit under the minimum is kept");
+        let refused = connections_within(1024, 64, 50).unwrap_err().to_string();
+        assert!(refused.contains("open-file limit (64) leaves room for 7 connections"), "{refused}");
+        assert!(refused.contains("raise it to at least 66"), "{refused}");
+    }
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     use tokio_stream::StreamExt;
 

@@ -153,6 +153,9 @@ pub async fn serve(
     options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
+    // Every connection costs a file descriptor: sized from what the open-file limit leaves once the
+    // server's own descriptors (workers' pipes and memory, the listeners) are open.
+    let max_connections = incoming::connection_capacity(options.max_connections)?;
     // Minibatch augmentation runs here, never on tokio's workers; 0 threads: one per core.
     let augment_pool = Arc::new(
         rayon::ThreadPoolBuilder::new()
@@ -216,13 +219,8 @@ pub async fn serve(
         let _ = accepting_stopped.await;
         info!("shutting down: listener closed, finishing the calls in flight");
     };
-    // Every connection costs a file descriptor: keep the limit well inside what the process may
-    // open, leaving room for sessions (memfds, worker pipes, acting sockets).
-    let files = incoming::raise_file_limit();
-    let fd_room = usize::try_from(files.saturating_sub(256) / 2).unwrap_or(usize::MAX).max(1);
-    let max_connections = options.max_connections.min(fd_room);
     if max_connections < options.max_connections {
-        warn!(configured = options.max_connections, max_connections, open_files = files, "server.max_connections lowered to fit the open-file limit");
+        warn!(configured = options.max_connections, max_connections, "server.max_connections lowered to fit the open-file limit");
     }
     let connections = incoming::incoming(
         listener,
