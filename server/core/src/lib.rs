@@ -23,7 +23,7 @@ mod tests;
 pub use catalog::{EnvId, EnvNames, Family, OptionValue, Options};
 pub use error::CoreError;
 pub use manager::{
-    BufferRequest, CatalogEntry, LeaseHold, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
+    BufferRequest, CatalogEntry, LeaseHold, Limits, Progress, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
 };
 pub use principal::{Principal, PrincipalLimits, Role};
 pub use session::{AutoresetMode, EnvInfo, EpisodeEnd, ResetSpec, StepOutcome};

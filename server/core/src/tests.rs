@@ -332,6 +332,36 @@ async fn idle_sessions_are_reaped_and_held_ones_are_not() {
 }
 
 #[tokio::test]
+async fn a_hold_that_stops_moving_stops_keeping_its_session() {
+    use futures_util::FutureExt;
+    let (_, sessions) = manager(1, Limits { session_idle_timeout_s: 1, unread_stream_timeout_s: 2, ..limits() });
+    let unread = create(&sessions, 1, 0, 1, SessionExtras::default()).await;
+    let read = create(&sessions, 1, 0, 1, SessionExtras::default()).await;
+    let unread_hold = sessions.hold(&local(), &unread).unwrap();
+    let read_hold = sessions.hold(&local(), &read).unwrap();
+    let progress = read_hold.progress();
+    for _ in 0..2 {
+        tokio::time::sleep(std::time::Duration::from_millis(700)).await;
+        progress.mark(); // a batch taken by the client
+        assert!(sessions.reap_idle().await.is_empty(), "holds within the unread bound keep their sessions");
+    }
+    // Past 2 s without progress, the unread stream's session is idle since its last use (over 1 s);
+    // the read one moved 0.8 s ago.
+    tokio::time::sleep(std::time::Duration::from_millis(800)).await;
+    assert_eq!(sessions.reap_idle().await, vec![unread.clone()]);
+    assert!(unread_hold.session_closed().now_or_never().is_some(), "the stream learns its session was closed");
+    drop((unread_hold, read_hold));
+    sessions.close_session(&local(), &read).await.unwrap();
+
+    // 0: an open stream holds its session however long it is unread (the old rule).
+    let (_, sessions) = manager(1, Limits { session_idle_timeout_s: 1, unread_stream_timeout_s: 0, ..limits() });
+    let held = create(&sessions, 1, 0, 1, SessionExtras::default()).await;
+    let _hold = sessions.hold(&local(), &held).unwrap();
+    tokio::time::sleep(std::time::Duration::from_millis(1100)).await;
+    assert!(sessions.reap_idle().await.is_empty());
+}
+
+#[tokio::test]
 async fn sessions_belong_to_their_creator_and_quotas_hold_per_principal() {
     let (_, manager) = manager(2, limits());
     let quota = PrincipalLimits { max_sessions: Some(2), max_envs: Some(3), memory_bytes: Some(12 << 20) };

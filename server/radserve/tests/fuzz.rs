@@ -73,6 +73,7 @@ fn harness() -> &'static Harness {
             max_streams_per_session: 2,
             stream_memory_bytes: 64 << 20,
             session_idle_timeout_s: 0,
+            unread_stream_timeout_s: 0,
             memory_bytes: 1 << 30,
         };
         let (server, channel, base) = runtime.block_on(async {

@@ -142,3 +142,48 @@ async fn a_stream_ends_when_its_session_is_closed() {
     let _ = server.stop.send(());
     server.task.await.unwrap().unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_unread_stream_stops_keeping_its_session_and_a_read_one_keeps_it() {
+    let limits = Limits { session_idle_timeout_s: 1, unread_stream_timeout_s: 2, ..Limits::default() };
+    let (server, _simulators) = start_fake_server(limits, 1).await;
+    let mut client = RadServeClient::new(connect(&server.address).await);
+    let unread = session_with_transitions(&mut client, 60, [0, 0]).await;
+    let request = |id: &str| proto::SampleBatchesRequest { session_id: id.into(), batch_size: 64, ..Default::default() };
+    // Taken once, then never read again: its batches back up in flow control and it stops moving.
+    let mut unread_client = RadServeClient::new(connect(&server.address).await);
+    let mut unread_chunks = unread_client.sample_batches(request(&unread)).await.unwrap().into_inner();
+    unread_chunks.next().await.unwrap().unwrap();
+    let read = session_with_transitions(&mut client, 60, [1, 1]).await;
+    let mut read_chunks = client.sample_batches(request(&read)).await.unwrap().into_inner();
+    let started = std::time::Instant::now();
+    let mut asked = started;
+    let reaped = loop {
+        // Read as a learner reads: batch after batch.
+        read_chunks.next().await.unwrap().expect("a read stream keeps its session");
+        if asked.elapsed() < std::time::Duration::from_millis(1500) {
+            continue;
+        }
+        // Describe renews the unread session's lease: asked only every 1.5 s (past the idle timeout),
+        // to learn of the close.
+        asked = std::time::Instant::now();
+        if let Err(status) = client.describe_session(proto::DescribeSessionRequest { session_id: unread.clone() }).await {
+            break status;
+        }
+        assert!(started.elapsed() < std::time::Duration::from_secs(30), "the unread stream's session was never reaped");
+    };
+    assert_eq!(reaped.code(), Code::NotFound, "{reaped:?}");
+    client.describe_session(proto::DescribeSessionRequest { session_id: read.clone() }).await.expect("the read session lives");
+    // The reaped session's stream gave back its memory (its producer and reservation) though its
+    // client still has not read: only the read stream's and its session's remain.
+    drop(read_chunks);
+    client.close_session(proto::CloseSessionRequest { session_id: read }).await.unwrap();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+    while server.manager.memory().0 > 0 && std::time::Instant::now() < deadline {
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert_eq!(server.manager.memory().0, 0, "the unread stream's memory came back");
+    drop((unread_chunks, unread_client));
+    let _ = server.stop.send(());
+    server.task.await.unwrap().unwrap();
+}

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use radserve_core::metrics::CoreMetrics;
 use radserve_core::principal::log_id;
-use radserve_core::{CoreError, LeaseHold, Principal, Space};
+use radserve_core::{CoreError, LeaseHold, Principal, Progress, Space};
 use radserve_replay::{Batch, HeldSlots, InFlight, Output, Producer, SharedRing};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
@@ -74,6 +74,7 @@ impl RadServeService {
             action_space,
             chunk_bytes,
             metrics: self.manager.metrics().clone(),
+            progress: holds.0.progress(),
         };
         let (sender, receiver) = mpsc::channel(SAMPLE_STREAM_BUFFER);
         tokio::spawn(run(source, holds, sender, self.stopping.clone(), request.session_id, "sample stream"));
@@ -98,6 +99,7 @@ impl RadServeService {
             held: HeldSlots::default(),
             action_space,
             metrics: self.manager.metrics().clone(),
+            progress: holds.0.progress(),
             _offer: offer,
         };
         tokio::spawn(run(source, holds, sender, self.stopping.clone(), start.session_id, "shared sample stream"));
@@ -186,6 +188,8 @@ struct Chunks {
     action_space: Space,
     chunk_bytes: usize,
     metrics: Arc<CoreMetrics>,
+    /// Marked at every batch the client takes: an unread stream stops holding its session.
+    progress: Progress,
 }
 
 impl Source for Chunks {
@@ -211,6 +215,7 @@ impl Source for Chunks {
     }
 
     fn sent(&mut self) {
+        self.progress.mark();
         if self.pending.is_empty() {
             self.metrics.record_batch();
         }
@@ -226,6 +231,8 @@ struct SharedBatches {
     held: HeldSlots,
     action_space: Space,
     metrics: Arc<CoreMetrics>,
+    /// Marked at every batch the client takes: an unread stream stops holding its session.
+    progress: Progress,
     /// The hand-off of the memory's descriptor, for as long as the stream runs.
     _offer: AbortOnDrop,
 }
@@ -271,6 +278,7 @@ impl Source for SharedBatches {
     }
 
     fn sent(&mut self) {
+        self.progress.mark();
         self.metrics.record_batch();
     }
 }

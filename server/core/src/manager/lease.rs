@@ -1,5 +1,6 @@
-//! Leases: any call on a session renews its lease, an open stream holds it, and the reaper closes a
-//! session whose lease expired.
+//! Leases: any call on a session renews its lease, an open stream holds it while it moves (a stream
+//! whose client takes nothing for `limits.unread_stream_timeout_s` no longer does), and the reaper
+//! closes a session whose lease expired.
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -18,13 +19,20 @@ pub struct Lease {
     /// Milliseconds after the manager's start.
     pub(super) last_used_ms: AtomicU64,
     pub(super) holds: AtomicUsize,
+    /// When a holder last moved (a batch taken by its client), milliseconds after the manager's start.
+    pub(super) progress_ms: AtomicU64,
     /// Turns true when the session is closed, for what holds the lease (streams, acting channels).
     pub(super) closed: watch::Sender<bool>,
 }
 
 impl Lease {
     pub(super) fn new(now_ms: u64) -> Lease {
-        Lease { last_used_ms: AtomicU64::new(now_ms), holds: AtomicUsize::new(0), closed: watch::Sender::new(false) }
+        Lease {
+            last_used_ms: AtomicU64::new(now_ms),
+            holds: AtomicUsize::new(0),
+            progress_ms: AtomicU64::new(now_ms),
+            closed: watch::Sender::new(false),
+        }
     }
 }
 
@@ -49,6 +57,27 @@ impl LeaseHold {
     }
 }
 
+impl LeaseHold {
+    /// A handle that marks this hold's progress (a batch taken), for the part of a stream that
+    /// sends; a hold whose progress stops for `limits.unread_stream_timeout_s` stops holding.
+    pub fn progress(&self) -> Progress {
+        Progress { lease: self.lease.clone(), clock: self.clock }
+    }
+}
+
+/// Marks a lease hold's progress; see [`LeaseHold::progress`].
+#[derive(Clone, Debug)]
+pub struct Progress {
+    lease: Arc<Lease>,
+    clock: Instant,
+}
+
+impl Progress {
+    pub fn mark(&self) {
+        self.lease.progress_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
+    }
+}
+
 impl Drop for LeaseHold {
     fn drop(&mut self) {
         self.lease.last_used_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
@@ -65,6 +94,7 @@ impl SessionManager {
     pub fn hold(&self, caller: &Principal, session_id: &str) -> Result<LeaseHold, CoreError> {
         let registry = self.sessions.lock().expect("registry lock");
         let entry = self.touch(&registry, caller, session_id)?;
+        entry.lease.progress_ms.store(elapsed_ms(self.clock), Ordering::Relaxed);
         entry.lease.holds.fetch_add(1, Ordering::AcqRel);
         Ok(LeaseHold { lease: entry.lease.clone(), clock: self.clock })
     }
@@ -94,7 +124,7 @@ impl SessionManager {
         let mut reaped = Vec::new();
         for (id, entry, idle) in expired {
             let reason = format!(
-                "its lease expired: no call and no open stream for {} s (limits.session_idle_timeout_s = {})",
+                "its lease expired: no call and no stream read for {} s (limits.session_idle_timeout_s = {})",
                 idle.as_secs(),
                 timeout.as_secs()
             );
@@ -118,11 +148,21 @@ impl SessionManager {
         }
     }
 
-    /// How long nothing has used the session: zero while a stream holds it.
+    /// How long nothing has used the session: zero while a stream holds it and moved within
+    /// `limits.unread_stream_timeout_s`; a held session whose holders stalled longer than that is
+    /// idle since its last call or its holders' last progress, whichever came later.
     pub(super) fn idle(&self, entry: &Entry) -> Duration {
+        let now = elapsed_ms(self.clock);
+        let used = entry.lease.last_used_ms.load(Ordering::Relaxed);
+        let mut since = used;
         if entry.lease.holds.load(Ordering::Acquire) > 0 {
-            return Duration::ZERO;
+            let progress = entry.lease.progress_ms.load(Ordering::Relaxed);
+            let unread_bound = self.limits.unread_stream_timeout_s.saturating_mul(1000);
+            if unread_bound == 0 || now.saturating_sub(progress) <= unread_bound {
+                return Duration::ZERO;
+            }
+            since = used.max(progress);
         }
-        Duration::from_millis(elapsed_ms(self.clock).saturating_sub(entry.lease.last_used_ms.load(Ordering::Relaxed)))
+        Duration::from_millis(now.saturating_sub(since))
     }
 }

@@ -24,7 +24,7 @@ mod replay;
 mod types;
 
 pub use admission::MAX_STEP_OBSERVATION_BYTES;
-pub use lease::LeaseHold;
+pub use lease::{LeaseHold, Progress};
 pub use types::{
     BufferRequest, CatalogEntry, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionSummary, SharedSession,
 };

@@ -29,6 +29,11 @@ pub struct Limits {
     /// Seconds a session may go without a call on it and without an open stream before the server
     /// closes it (a learner that crashed leaves its sessions behind); 0 keeps sessions until closed.
     pub session_idle_timeout_s: u64,
+    /// Seconds a sample stream may go without a batch taken by its client (an unread stream: its
+    /// batches wait in flow control) and still keep its session from counting as idle; past it the
+    /// session is idle since its last call or batch, and session_idle_timeout_s applies. 0: an open
+    /// stream keeps its session however long it is unread.
+    pub unread_stream_timeout_s: u64,
     /// Bytes every session, buffer and stream of the server may take together, reserved before each
     /// is allocated (envs at their measured cost per family, frames, replay, stream batches). 0: three
     /// quarters of the host's (or the container's) memory, less 512 MiB per worker.
@@ -45,6 +50,7 @@ impl Default for Limits {
             max_streams_per_session: 4,
             stream_memory_bytes: 4 << 30,
             session_idle_timeout_s: 300,
+            unread_stream_timeout_s: 600,
             memory_bytes: 0,
         }
     }
