@@ -1,7 +1,8 @@
 """Workers that hang or are replaced: a deadline on every worker call ends the stuck worker's episodes
 as truncated instead of hanging the sessions that touch it; Describe never waits for a step; a
 session whose worker was replaced while it was idle sees its episodes end; a client deadline that
-passed while the call waited for its session keeps the step from being sent at all."""
+passed while the call waited for its session keeps the step from being sent at all; health reports
+the services NOT_SERVING while a worker is stuck, before its deadline."""
 
 import threading
 import time
@@ -9,17 +10,20 @@ import time
 import grpc
 import numpy as np
 import pytest
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import radserve
 from _procs import stopped, worker_pids
 from radserve.proto import radserve_pb2 as pb
 
 CALL_TIMEOUT_S = 2.0
+STUCK_AFTER_S = 0.5
 
 
 @pytest.fixture(scope="module")
 def strict_server():
-    env = {"RADSERVE__SIM__WORKER_CALL_TIMEOUT_S": str(CALL_TIMEOUT_S)}
+    env = {"RADSERVE__SIM__WORKER_CALL_TIMEOUT_S": str(CALL_TIMEOUT_S),
+           "RADSERVE__SIM__WORKER_STUCK_AFTER_S": str(STUCK_AFTER_S)}
     with radserve.LocalServer(workers=2, env=env) as server:
         with radserve.Client(server.address) as client:
             client.list_envs()  # the catalog (a transient worker) is built before workers are counted
@@ -48,6 +52,19 @@ def _threaded(function):
     return thread, result
 
 
+def _health(server, service):
+    with grpc.insecure_channel(server.address) as channel:
+        return health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service=service), timeout=5).status
+
+
+def _wait_for_health(server, service, status, until):
+    while time.monotonic() < until:
+        if _health(server, service) == status:
+            return True
+        time.sleep(0.05)
+    return False
+
+
 def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it(strict_server):
     client = radserve.Client(strict_server.address)
     victim = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0)  # one env per worker
@@ -66,6 +83,12 @@ def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it
             before = time.monotonic()
             assert client.describe_session(victim.session_id).total_env_steps == 0
             assert time.monotonic() - before < 1.0
+            # Stuck past sim.worker_stuck_after_s, before its deadline: the services that would wait
+            # for it say NOT_SERVING; the process itself ("") still serves.
+            assert _wait_for_health(strict_server, "radserve.v1.RadServe", health_pb2.HealthCheckResponse.NOT_SERVING,
+                                    started + CALL_TIMEOUT_S - 0.1), "health stayed SERVING while a worker was stuck"
+            assert _health(strict_server, "dm_env_rpc.v1.Environment") == health_pb2.HealthCheckResponse.NOT_SERVING
+            assert _health(strict_server, "") == health_pb2.HealthCheckResponse.SERVING
             thread.join(timeout=CALL_TIMEOUT_S + 20)
             assert not thread.is_alive(), "the step still hangs past the worker deadline"
             elapsed = time.monotonic() - started
@@ -76,6 +99,8 @@ def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it
         env = int(np.flatnonzero(truncated)[0])
         assert f"did not answer within {CALL_TIMEOUT_S:g} s" in infos["radserve_error"][env], infos["radserve_error"]
         assert stuck not in _pool_workers(strict_server), "the stuck worker was replaced"
+        assert _wait_for_health(strict_server, "radserve.v1.RadServe", health_pb2.HealthCheckResponse.SERVING,
+                                time.monotonic() + 5), "health did not come back once the worker was replaced"
         # The idle session had an env on the replaced worker: its next step ends that episode
         # (truncated, with the reason) instead of stepping a fresh, unreset env.
         _, _, terminated, truncated, infos = idle.step(np.zeros(2, dtype=np.int64))

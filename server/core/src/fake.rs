@@ -61,6 +61,8 @@ struct Faults {
     /// Session env indices whose simulator raises in its next step.
     raise_in: Vec<usize>,
     fail_next_step: Option<String>,
+    /// Processes reported as stuck in a call (`overdue`).
+    overdue: Vec<usize>,
     groups_alive: usize,
     /// create_groups calls that reached the simulators (refused ones included).
     creates: usize,
@@ -81,6 +83,11 @@ impl FakeSimulators {
 
     fn faults(&self) -> std::sync::MutexGuard<'_, Faults> {
         self.faults.lock().expect("fake faults lock")
+    }
+
+    /// Reports these processes as stuck in a call (a worker that stopped answering), or none.
+    pub fn set_overdue(&self, processes: Vec<usize>) {
+        self.faults().overdue = processes;
     }
 
     /// The next create is refused with `message` (as a simulator refuses bad options).
@@ -123,6 +130,10 @@ impl FakeSimulators {
 impl Simulators for FakeSimulators {
     fn processes(&self) -> usize {
         self.processes
+    }
+
+    fn overdue(&self, _after: std::time::Duration) -> Vec<usize> {
+        self.faults().overdue.clone()
     }
 
     async fn env_names(&self) -> Result<EnvNames, SimulatorError> {

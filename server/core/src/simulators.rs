@@ -176,6 +176,10 @@ pub trait Simulators: Send + Sync + 'static {
     /// Every environment id the simulators can host.
     async fn env_names(&self) -> Result<EnvNames, SimulatorError>;
 
+    /// The processes (by index) whose current reset, step or close has run longer than `after`: a
+    /// stuck worker, seen before its call deadline kills it (health reports NOT_SERVING meanwhile).
+    fn overdue(&self, after: std::time::Duration) -> Vec<usize>;
+
     /// The spec of each environment with its (resolved, server-side options removed) options, or why
     /// it could not be built.
     async fn env_specs(&self, envs: Vec<(EnvId, Options)>) -> Result<Vec<Result<EnvSpec, String>>, SimulatorError>;

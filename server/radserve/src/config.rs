@@ -201,11 +201,23 @@ pub struct SimConfig {
     pub worker_call_timeout_s: f64,
     /// The same for building environments (creating a session's envs, the catalog at start-up).
     pub worker_create_timeout_s: f64,
+    /// Seconds a worker may spend on one reset, step or close before health reports the RadServe
+    /// and dm_env_rpc services NOT_SERVING (until it answers, or is killed at worker_call_timeout_s
+    /// and replaced): readiness then sees a stuck worker before its deadline. The overall status ("")
+    /// stays SERVING: the process lives.
+    pub worker_stuck_after_s: f64,
 }
 
 impl Default for SimConfig {
     fn default() -> Self {
-        SimConfig { workers: 0, gl: GlBackend::default(), venv: None, worker_call_timeout_s: 60.0, worker_create_timeout_s: 300.0 }
+        SimConfig {
+            workers: 0,
+            gl: GlBackend::default(),
+            venv: None,
+            worker_call_timeout_s: 60.0,
+            worker_create_timeout_s: 300.0,
+            worker_stuck_after_s: 20.0,
+        }
     }
 }
 
@@ -265,11 +277,16 @@ impl Config {
             );
         }
         let positive = |value: f64| value.is_finite() && value > 0.0 && value <= 86_400.0;
-        if !positive(self.sim.worker_call_timeout_s) || !positive(self.sim.worker_create_timeout_s) {
+        if !positive(self.sim.worker_call_timeout_s)
+            || !positive(self.sim.worker_create_timeout_s)
+            || !positive(self.sim.worker_stuck_after_s)
+        {
             bail!(
-                "sim.worker_call_timeout_s and sim.worker_create_timeout_s are seconds in (0, 86400], got {} and {}",
+                "sim.worker_call_timeout_s, sim.worker_create_timeout_s and sim.worker_stuck_after_s are seconds in \
+                 (0, 86400], got {}, {} and {}",
                 self.sim.worker_call_timeout_s,
-                self.sim.worker_create_timeout_s
+                self.sim.worker_create_timeout_s,
+                self.sim.worker_stuck_after_s
             );
         }
         let limits = &self.limits;
@@ -340,6 +357,7 @@ impl Config {
             keepalive_timeout: Duration::from_secs_f64(self.server.keepalive_timeout_s),
             security: crate::Security::default(),
             shared_memory_uids: self.server.shared_memory_uids.clone(),
+            worker_stuck_after: Duration::from_secs_f64(self.sim.worker_stuck_after_s),
         }
     }
 

@@ -70,6 +70,9 @@ pub struct ServeOptions {
     pub security: Security,
     /// Users besides the server's own that may receive shared memory (acting, batches).
     pub shared_memory_uids: Vec<u32>,
+    /// A worker in one reset, step or close for longer than this turns the RadServe and dm_env_rpc
+    /// services NOT_SERVING until it answers or is replaced (`sim.worker_stuck_after_s`).
+    pub worker_stuck_after: Duration,
 }
 
 /// Who may call, and over what (`[auth]`, `[tls]`; docs/security.md).
@@ -126,6 +129,7 @@ impl Default for ServeOptions {
             keepalive_timeout: Duration::from_secs(20),
             security: Security::default(),
             shared_memory_uids: Vec::new(),
+            worker_stuck_after: Duration::from_secs(20),
         }
     }
 }
@@ -139,6 +143,31 @@ fn lower_thread_priority(nice: i32) {
     let failed = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, nice) } != 0;
     if failed {
         warn!(nice, error = %std::io::Error::last_os_error(), "could not lower an augmentation thread's priority");
+    }
+}
+
+/// Reports the RadServe and dm_env_rpc services NOT_SERVING while a simulator worker has been in one
+/// call for longer than `after` (stuck: its sessions' calls wait for it until its deadline kills it),
+/// and SERVING again once none is. Checked a few times per `after`, at most once per 100 ms.
+async fn watch_stuck_workers(manager: Arc<SessionManager>, reporter: tonic_health::server::HealthReporter, after: Duration) {
+    let period = (after / 4).clamp(Duration::from_millis(100), Duration::from_secs(2));
+    let mut stuck = false;
+    loop {
+        tokio::time::sleep(period).await;
+        let overdue = manager.overdue_simulators(after);
+        if overdue.is_empty() != stuck {
+            continue; // unchanged
+        }
+        stuck = !overdue.is_empty();
+        let status = if stuck {
+            warn!(workers = ?overdue, after_s = after.as_secs_f64(), "a simulator worker is stuck in a call: RadServe and dm_env_rpc NOT_SERVING");
+            tonic_health::ServingStatus::NotServing
+        } else {
+            info!("no simulator worker is stuck any more: RadServe and dm_env_rpc SERVING");
+            tonic_health::ServingStatus::Serving
+        };
+        reporter.set_service_status(<RadServeServer<RadServeService> as tonic::server::NamedService>::NAME, status).await;
+        reporter.set_service_status(<EnvironmentServer<EnvironmentService> as tonic::server::NamedService>::NAME, status).await;
     }
 }
 
@@ -199,11 +228,15 @@ pub async fn serve(
 
     let (stop_accepting, accepting_stopped) = tokio::sync::oneshot::channel::<()>();
     let (signalled, signal_seen) = tokio::sync::oneshot::channel::<tokio::time::Instant>();
+    let stuck_watch = tokio::spawn(watch_stuck_workers(manager.clone(), health_reporter.clone(), options.worker_stuck_after));
     let reporter = health_reporter.clone();
     let draining = manager.clone();
     let notice = options.shutdown_notice.min(options.drain_timeout);
     tokio::spawn(async move {
         shutdown.await;
+        // Ended first (and waited for), so that it cannot turn a service SERVING again below.
+        stuck_watch.abort();
+        let _ = stuck_watch.await;
         let started = tokio::time::Instant::now();
         let _ = signalled.send(started);
         info!(notice_s = notice.as_secs_f64(), "shutting down: not serving, new sessions refused, streams ending");

@@ -187,3 +187,34 @@ async fn an_unread_stream_stops_keeping_its_session_and_a_read_one_keeps_it() {
     let _ = server.stop.send(());
     server.task.await.unwrap().unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_says_not_serving_while_a_simulator_is_stuck() {
+    use tonic_health::pb::{health_check_response::ServingStatus, health_client::HealthClient, HealthCheckRequest};
+    let options = radserve::ServeOptions { worker_stuck_after: std::time::Duration::from_millis(200), ..Default::default() };
+    let (server, simulators) = common::start_fake_server_with(Limits::default(), 2, options).await;
+    let mut health = HealthClient::new(connect(&server.address).await);
+    let mut status_of = async |service: &str| {
+        health.check(HealthCheckRequest { service: service.into() }).await.unwrap().into_inner().status
+    };
+    let mut wait_for = async |service: &str, wanted: ServingStatus| {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        while std::time::Instant::now() < deadline {
+            if status_of(service).await == wanted as i32 {
+                return true;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+        false
+    };
+    assert!(wait_for("radserve.v1.RadServe", ServingStatus::Serving).await);
+    simulators.set_overdue(vec![1]);
+    assert!(wait_for("radserve.v1.RadServe", ServingStatus::NotServing).await, "a stuck worker turns the service NOT_SERVING");
+    assert!(wait_for("dm_env_rpc.v1.Environment", ServingStatus::NotServing).await);
+    assert!(wait_for("", ServingStatus::Serving).await, "the process itself still serves");
+    simulators.set_overdue(Vec::new());
+    assert!(wait_for("radserve.v1.RadServe", ServingStatus::Serving).await, "SERVING again once no worker is stuck");
+    assert!(wait_for("dm_env_rpc.v1.Environment", ServingStatus::Serving).await);
+    let _ = server.stop.send(());
+    server.task.await.unwrap().unwrap();
+}

@@ -164,6 +164,10 @@ impl Simulators for WorkerPool {
         self.len()
     }
 
+    fn overdue(&self, after: std::time::Duration) -> Vec<usize> {
+        self.overdue_workers(after)
+    }
+
     async fn env_names(&self) -> Result<EnvNames, SimulatorError> {
         let response = self.transient_call(Request::ListNames).await?;
         if let Response::Names(names) = response {

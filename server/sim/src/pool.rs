@@ -39,16 +39,26 @@ impl WorkerLauncher {
     }
 
     fn timeout_for(&self, request: &Request) -> Duration {
-        match request {
-            Request::CreateGroup(_) | Request::ListNames | Request::Specs { .. } | Request::Attach { .. } => self.create_timeout,
-            Request::Reset { .. }
-            | Request::AsyncReset { .. }
-            | Request::Step { .. }
-            | Request::Send { .. }
-            | Request::Recv { .. }
-            | Request::SendRecv { .. }
-            | Request::CloseGroup { .. } => self.call_timeout,
+        if is_call(request) {
+            self.call_timeout
+        } else {
+            self.create_timeout
         }
+    }
+}
+
+/// Whether `request` is a reset, step or close (bounded by `call_timeout`, and stamped while it runs),
+/// not a build (bounded by `create_timeout`).
+fn is_call(request: &Request) -> bool {
+    match request {
+        Request::CreateGroup(_) | Request::ListNames | Request::Specs { .. } | Request::Attach { .. } => false,
+        Request::Reset { .. }
+        | Request::AsyncReset { .. }
+        | Request::Step { .. }
+        | Request::Send { .. }
+        | Request::Recv { .. }
+        | Request::SendRecv { .. }
+        | Request::CloseGroup { .. } => true,
     }
 }
 
@@ -197,6 +207,9 @@ struct WorkerState {
     hosted_envs: AtomicUsize,
     pid: AtomicU32,
     restarts: AtomicU64,
+    /// When the reset, step or close the process is answering now was sent (None: no such call):
+    /// the stamp `WorkerPool::overdue_workers` reads to tell a stuck worker before its deadline.
+    call_started: std::sync::Mutex<Option<std::time::Instant>>,
 }
 
 impl WorkerHandle {
@@ -286,6 +299,19 @@ impl WorkerPool {
             })
             .collect();
         WorkerPool { workers, launcher, transient: TransientPids::default(), stopping, actors: std::sync::Mutex::new(actors) }
+    }
+
+    /// The workers whose current reset, step or close has run longer than `after` (stuck, or very
+    /// slow), by index.
+    pub fn overdue_workers(&self, after: Duration) -> Vec<usize> {
+        self.workers
+            .iter()
+            .filter(|worker| {
+                let started = *worker.state.call_started.lock().expect("call stamp lock");
+                started.is_some_and(|started| started.elapsed() > after)
+            })
+            .map(|worker| worker.index)
+            .collect()
     }
 
     /// Ends every worker process and waits until each has exited (and is reaped), so that the
@@ -416,7 +442,16 @@ async fn run_actor(
             }
         }
         let worker = process.as_mut().expect("started above");
-        match worker.call_within(&job.request, launcher.timeout_for(&job.request)).await {
+        // Creates may take minutes by design: only the calls bounded by worker_call_timeout_s are stamped.
+        let stamped = is_call(&job.request);
+        if stamped {
+            *state.call_started.lock().expect("call stamp lock") = Some(std::time::Instant::now());
+        }
+        let answer = worker.call_within(&job.request, launcher.timeout_for(&job.request)).await;
+        if stamped {
+            *state.call_started.lock().expect("call stamp lock") = None;
+        }
+        match answer {
             Ok(response) => {
                 remember(&mut rebuilds, &job.request, &response);
                 let _ = job.reply.send(Ok((response, generation)));

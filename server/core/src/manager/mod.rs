@@ -154,6 +154,11 @@ impl SessionManager {
         Ok(entries)
     }
 
+    /// The simulator processes stuck in a call for longer than `after` (see `Simulators::overdue`).
+    pub fn overdue_simulators(&self, after: std::time::Duration) -> Vec<usize> {
+        self.simulators.overdue(after)
+    }
+
     fn new_session_id(&self) -> String {
         let counter = self.next_id.fetch_add(1, Ordering::Relaxed);
         let mut hasher = self.id_salt.build_hasher();
