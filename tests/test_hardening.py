@@ -3,6 +3,8 @@ fields get the status that names the client's mistake, in a message a client can
 
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import grpc
 import pytest
@@ -137,3 +139,29 @@ def test_a_low_open_file_limit_serves_many_connections_or_refuses_to_start(tmp_p
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode != 0, refused.stderr
     assert "the open-file limit (24) leaves room for" in refused.stderr and "raise it to at least" in refused.stderr, refused.stderr
+
+
+def _augment_threads(pid: int) -> "dict[str, tuple[int, int]]":
+    """The server's augmentation threads: name -> (scheduling policy, nice), from /proc/<pid>/task."""
+    threads = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        stat = (task / "stat").read_text()
+        name = stat[stat.index("(") + 1:stat.rindex(")")]
+        if name.startswith("radserve-augmen"):  # the kernel keeps 15 characters of a thread's name
+            fields = stat[stat.rindex(")") + 2:].split()
+            threads[task.name] = (int(fields[38]), int(fields[16]))  # policy (field 41), nice (field 19)
+    return threads
+
+
+@pytest.mark.parametrize("settings,expected", [({}, (0, 0)), ({"RADSERVE__AUGMENT__NICE": "19"}, (0, 19)),
+                                               ({"RADSERVE__AUGMENT__IDLE": "true"}, (5, 0))],
+                         ids=["default", "nice", "idle"])
+def test_augmentation_threads_run_at_the_configured_priority(settings, expected):
+    # Acting ahead of augmentation: augment.nice lowers the threads' niceness, augment.idle puts them
+    # in SCHED_IDLE (policy 5); the rayon pool starts its threads when the server starts.
+    with radserve.LocalServer(workers=1, env={"RADSERVE__AUGMENT__THREADS": "2", **settings}) as server:
+        deadline = time.monotonic() + 30  # the pool is built as the server starts serving, after its address is out
+        while len(threads := _augment_threads(server.process.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    assert len(threads) == 2, threads
+    assert set(threads.values()) == {expected}, threads

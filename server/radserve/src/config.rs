@@ -135,6 +135,10 @@ pub struct AugmentConfig {
     /// Niceness of the augmentation threads (0..=19): above 0, acting (the gRPC handlers, the simulator
     /// workers) gets the cores first when both want them, and augmentation takes what is left.
     pub nice: i32,
+    /// Run the augmentation threads in Linux's SCHED_IDLE class: they get a core only when no other
+    /// thread of the host wants it, so acting (the gRPC handlers, the simulator workers) never waits
+    /// behind augmentation; augmentation gets what acting leaves. Overrides nice.
+    pub idle: bool,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -349,6 +353,7 @@ impl Config {
         crate::ServeOptions {
             augment_threads: self.augment.threads,
             augment_nice: self.augment.nice,
+            augment_idle: self.augment.idle,
             drain_timeout: Duration::from_secs_f64(self.server.drain_timeout_s),
             shutdown_notice: Duration::from_secs_f64(self.server.shutdown_notice_s),
             max_connections: self.server.max_connections,

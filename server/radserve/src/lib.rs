@@ -53,6 +53,8 @@ pub struct ServeOptions {
     pub augment_threads: usize,
     /// Niceness of the augmentation threads (0: the server's own priority).
     pub augment_nice: i32,
+    /// The augmentation threads in the SCHED_IDLE class (`augment.idle`).
+    pub augment_idle: bool,
     /// From the shutdown signal to exit, at most.
     pub drain_timeout: Duration,
     /// How long the server keeps answering (NOT_SERVING, new sessions refused) before it stops
@@ -121,6 +123,7 @@ impl Default for ServeOptions {
         ServeOptions {
             augment_threads: 0,
             augment_nice: 0,
+            augment_idle: false,
             drain_timeout: Duration::from_secs(20),
             shutdown_notice: Duration::from_secs(1),
             max_connections: 1024,
@@ -134,8 +137,17 @@ impl Default for ServeOptions {
     }
 }
 
-/// Lowers the calling thread's priority by `nice` (Linux: niceness is per thread).
-fn lower_thread_priority(nice: i32) {
+/// Lowers the calling thread's priority: into SCHED_IDLE with `idle`, else by `nice` (Linux:
+/// scheduling class and niceness are per thread).
+fn lower_thread_priority(nice: i32, idle: bool) {
+    if idle {
+        let param = libc::sched_param { sched_priority: 0 };
+        // SAFETY: sched_setscheduler reads the struct passed by pointer; pid 0 is the calling thread.
+        if unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) } != 0 {
+            warn!(error = %std::io::Error::last_os_error(), "could not put an augmentation thread in SCHED_IDLE");
+        }
+        return;
+    }
     if nice <= 0 {
         return;
     }
@@ -190,7 +202,7 @@ pub async fn serve(
         rayon::ThreadPoolBuilder::new()
             .num_threads(options.augment_threads)
             .thread_name(|index| format!("radserve-augment-{index}"))
-            .start_handler(move |_| lower_thread_priority(options.augment_nice))
+            .start_handler(move |_| lower_thread_priority(options.augment_nice, options.augment_idle))
             .build()?,
     );
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
