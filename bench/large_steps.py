@@ -23,16 +23,7 @@ import numpy as np
 import radserve
 
 import record  # noqa: E402  (bench/record.py: the results file)
-
-
-def latencies(envs, steps, actions):
-    envs.reset(seed=0)
-    times = []
-    for index in range(steps):
-        started = time.perf_counter()
-        envs.step(actions[index % len(actions)])
-        times.append((time.perf_counter() - started) * 1000)
-    return times
+from acting_latency import latencies, percentile  # one Step timed the same way in both benches
 
 
 def load(address, args, ready, stop, steps):
@@ -72,10 +63,6 @@ def measure(binary, args):
         stepper.join()
         small.close()
     return quiet, busy, rate
-
-
-def percentile(values, q):
-    return float(np.percentile(values, q))
 
 
 def main():
