@@ -29,10 +29,11 @@ pub struct Limits {
     /// Seconds a session may go without a call on it and without an open stream before the server
     /// closes it (a learner that crashed leaves its sessions behind); 0 keeps sessions until closed.
     pub session_idle_timeout_s: u64,
-    /// Seconds a sample stream may go without a batch taken by its client (an unread stream: its
-    /// batches wait in flow control) and still keep its session from counting as idle; past it the
+    /// Seconds an open stream may go unused and still keep its session from counting as idle: a
+    /// sample stream whose client took no batch (an unread stream: its batches wait in flow
+    /// control), an acting channel or dm_env_rpc join whose client sent no request. Past it the
     /// session is idle since its last call or batch, and session_idle_timeout_s applies. 0: an open
-    /// stream keeps its session however long it is unread.
+    /// stream keeps its session however long it is unused.
     pub unread_stream_timeout_s: u64,
     /// Bytes every session, buffer and stream of the server may take together, reserved before each
     /// is allocated (envs at their measured cost per family, frames, replay, stream batches). 0: three
