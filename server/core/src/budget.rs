@@ -117,32 +117,20 @@ impl MemoryBudget {
         self.used
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |used| used.checked_add(bytes).filter(|&total| total <= limit))
             .map(|_| Reservation { budget: self.clone(), bytes, quota: None })
-            .map_err(|used| match &self.owner {
-                None if bytes > limit => CoreError::TooLarge(format!(
-                    "{what} needs {} of memory, more than this server's whole memory budget of {} (limits.memory_bytes)",
-                    human(bytes),
-                    human(limit)
-                )),
-                Some(principal) if bytes > limit => CoreError::TooLarge(format!(
-                    "{what} needs {} of memory, more than principal '{principal}'s whole memory quota of {} \
-                     (memory_bytes in its tokens file entry)",
-                    human(bytes),
-                    human(limit)
-                )),
-                None => CoreError::OutOfMemory(format!(
-                    "{what} needs {} of memory; {} of this server's memory budget of {} is reserved already \
-                     (limits.memory_bytes)",
-                    human(bytes),
-                    human(used),
-                    human(limit)
-                )),
-                Some(principal) => CoreError::OverLimit(format!(
-                    "{what} needs {} of memory; {} of principal '{principal}'s memory quota of {} is reserved \
-                     already (memory_bytes in its tokens file entry)",
-                    human(bytes),
-                    human(used),
-                    human(limit)
-                )),
+            .map_err(|used| {
+                // What is left of the server's budget is memory (OutOfMemory); of a principal's
+                // quota, a configured limit (OverLimit).
+                let (owner, budget, setting, short): (String, &str, &str, fn(String) -> CoreError) = match &self.owner {
+                    None => ("this server's".into(), "memory budget", "limits.memory_bytes", CoreError::OutOfMemory),
+                    Some(principal) => {
+                        (format!("principal '{principal}'s"), "memory quota", "memory_bytes in its tokens file entry", CoreError::OverLimit)
+                    }
+                };
+                let needs = format!("{what} needs {} of memory", human(bytes));
+                if bytes > limit {
+                    return CoreError::TooLarge(format!("{needs}, more than {owner} whole {budget} of {} ({setting})", human(limit)));
+                }
+                short(format!("{needs}; {} of {owner} {budget} of {} is reserved already ({setting})", human(used), human(limit)))
             })
     }
 

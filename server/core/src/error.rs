@@ -103,6 +103,18 @@ impl From<SimulatorError> for CoreError {
     }
 }
 
+impl CoreError {
+    /// A request over a configured limit: `TooLarge` when the request alone exceeds it (no retry can
+    /// fit it), `OverLimit` when it exceeds what is left of it now (it fits once something closes).
+    pub(crate) fn over_limit(alone_exceeds: bool, message: String) -> CoreError {
+        if alone_exceeds {
+            CoreError::TooLarge(message)
+        } else {
+            CoreError::OverLimit(message)
+        }
+    }
+}
+
 /// An allocation that failed: out of file descriptors or memory is a limit of this server
 /// (RESOURCE_EXHAUSTED, worth retrying elsewhere or later), anything else a failure of the host.
 pub fn resource_error(what: &str, error: &std::io::Error) -> CoreError {

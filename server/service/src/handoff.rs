@@ -99,7 +99,7 @@ impl HandoffSocket {
                 }
                 Some(presented) = pending.checks.join_next_with_id(), if !pending.checks.is_empty() => {
                     if let Ok((id, found)) = presented {
-                        pending.waiting.retain(|waiting| waiting.id != id);
+                        pending.waiting.retain(|waiting| waiting.abort.id() != id);
                         if let Some(stream) = found {
                             // The rest of `pending` is dropped, and their connections with it.
                             return send(stream, memory).await;
@@ -121,7 +121,6 @@ struct Pending {
 }
 
 struct Waiting {
-    id: tokio::task::Id,
     pid: i32,
     abort: AbortHandle,
 }
@@ -139,8 +138,8 @@ impl Pending {
         } else {
             None
         };
-        if let Some(index) = oldest.and_then(|index| self.waiting.remove(index)) {
-            index.abort.abort();
+        if let Some(dropped) = oldest.and_then(|index| self.waiting.remove(index)) {
+            dropped.abort.abort();
         }
         let abort = self.checks.spawn(async move {
             let mut stream = stream;
@@ -151,7 +150,7 @@ impl Pending {
                 _ => None,
             }
         });
-        self.waiting.push_back(Waiting { id: abort.id(), pid, abort });
+        self.waiting.push_back(Waiting { pid, abort });
     }
 }
 

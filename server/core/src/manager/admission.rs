@@ -146,8 +146,7 @@ impl SessionManager {
             )));
         }
         if let Some(max) = caller.limits().max_envs.filter(|&max| envs + num_envs > max) {
-            let error = if num_envs > max { CoreError::TooLarge } else { CoreError::OverLimit };
-            return Err(error(format!(
+            return Err(CoreError::over_limit(num_envs > max, format!(
                 "{num_envs} more environments would give principal '{name}' {}, above its limit of {max} (max_envs \
                  in its tokens file entry)",
                 envs + num_envs
@@ -160,8 +159,7 @@ impl SessionManager {
             )));
         }
         if registry.reserved_envs + num_envs > self.limits.max_total_envs {
-            let error = if num_envs > self.limits.max_total_envs { CoreError::TooLarge } else { CoreError::OverLimit };
-            return Err(error(format!(
+            return Err(CoreError::over_limit(num_envs > self.limits.max_total_envs, format!(
                 "{num_envs} more environments would make {} on this server, above its limit of {}",
                 registry.reserved_envs + num_envs,
                 self.limits.max_total_envs

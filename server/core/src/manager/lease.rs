@@ -55,9 +55,7 @@ impl LeaseHold {
             let _ = closed.wait_for(|closed| *closed).await;
         }
     }
-}
 
-impl LeaseHold {
     /// A handle that marks this hold's progress (a batch taken), for the part of a stream that
     /// sends; a hold whose progress stops for `limits.unread_stream_timeout_s` stops holding.
     pub fn progress(&self) -> Progress {

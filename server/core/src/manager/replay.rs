@@ -43,8 +43,7 @@ impl SessionManager {
             let mut registry = self.sessions.lock().expect("registry lock");
             let budget = self.limits.replay_memory_bytes;
             if registry.reserved_replay_bytes.saturating_add(bytes) > budget {
-                let error = if bytes > budget { CoreError::TooLarge } else { CoreError::OverLimit };
-                return Err(error(format!(
+                return Err(CoreError::over_limit(bytes > budget, format!(
                     "a replay buffer of {capacity} transitions for {} envs of {} takes {:.2} GiB ({} bytes per frame, \
                      {:.3} frames per transition); with the {:.2} GiB already reserved it would exceed this server's \
                      replay budget of {:.2} GiB (limits.replay_memory_bytes)",

@@ -179,6 +179,7 @@ impl Session {
         .await;
         let skipped = |env: usize| skip.is_some_and(|skip| skip[env]);
         let num_envs = self.num_envs();
+        let copy_bytes = self.step_copy_bytes();
         let mut outcome = StepOutcome {
             rewards: vec![0.0; num_envs],
             terminated: vec![false; num_envs],
@@ -211,11 +212,10 @@ impl Session {
                     return Err(error.into());
                 }
             };
-            let heavy = self.step_copy_bytes();
-            copying(heavy, || self.take_group_step(index, &result, actions, skip, &mut outcome));
+            copying(copy_bytes, || self.take_group_step(index, &result, actions, skip, &mut outcome));
         }
         let stepped = (0..num_envs).filter(|&env| !skipped(env)).count() as u64;
-        copying(self.step_copy_bytes(), || self.finish_step(stepped, started, &mut outcome));
+        copying(copy_bytes, || self.finish_step(stepped, started, &mut outcome));
         Ok(outcome)
     }
 
