@@ -325,7 +325,7 @@ def test_envpool_async_gives_each_env_the_trajectory_the_synchronous_mode_gives(
         for env in range(n):
             expected[env].append((record(sync, env), 0.0, False, False, None))
         for t in range(steps):
-            rewards, terminated, truncated, errors, _ = sync.step(table[:, t].tobytes())
+            rewards, terminated, truncated, errors, *_ = sync.step(table[:, t].tobytes())
             assert not errors
             for env in range(n):
                 ended = terminated[env] or truncated[env]

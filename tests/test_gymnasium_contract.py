@@ -16,7 +16,7 @@ STEPS = 240
 # Acrobot or MountainCarContinuous before their own limits).
 MAX_STEPS = 40
 # Hopper returns infos of its own at reset and at every step (positions, reward terms): they travel
-# from the worker as JSON with their numpy dtypes and are batched as SyncVectorEnv batches them.
+# from the worker as typed columns and are batched as SyncVectorEnv batches them.
 IDS = ("CartPole-v1", "Pendulum-v1", "Acrobot-v1", "MountainCarContinuous-v0", "Hopper-v5")
 MODES = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP, AutoresetMode.DISABLED)
 
@@ -253,3 +253,55 @@ def test_next_step_is_same_step_one_step_later(client, env_id):
     finally:
         same.close()
         nxt.close()
+
+
+def test_infos_travel_as_one_typed_column_per_key(server):
+    """Over the raw API, a Hopper x4 step's infos are one column per key over the four envs (the two
+    worker processes' columns joined), numpy float64 scalars as the env returns them."""
+    import grpc
+
+    from radserve._proto import radserve_pb2 as pb
+    from radserve._proto import radserve_pb2_grpc as pb_grpc
+    from radserve.proto import to_numpy, to_tensor
+
+    reference = gymnasium.make("Hopper-v5")
+    _, want = reference.reset(seed=0)
+    reference.close()
+    with grpc.insecure_channel(server.address) as channel:
+        stub = pb_grpc.RadServeStub(channel)
+        session = stub.CreateSession(pb.CreateSessionRequest(env_id="gym/Hopper-v5", num_envs=4, seed=0))
+        try:
+            reset = stub.Reset(pb.ResetRequest(session_id=session.session_id, seed=0))
+            assert [list(column.path) for column in reset.reset_infos] == [[key] for key in want]
+            step = stub.Step(pb.StepRequest(session_id=session.session_id,
+                                            actions=to_tensor(np.zeros((4, 3), np.float32))))
+            assert len(step.step_infos) >= 4 and not step.reset_infos
+            for column in step.step_infos:
+                assert list(column.envs) == [0, 1, 2, 3] and len(column.path) == 1
+                assert column.kind in (pb.INFO_KIND_SCALAR, pb.INFO_KIND_PYTHON)
+                assert to_numpy(column.values).shape == (4,)
+        finally:
+            stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id))
+
+
+@pytest.mark.parametrize("delivery", ["grpc", "shared_memory"])
+def test_send_infos_false_leaves_the_envs_infos_out(client, delivery):
+    quiet = client.make_vec("gym/Hopper-v5", num_envs=2, seed=0, delivery=delivery, send_infos=False,
+                            autoreset_mode="SameStep", max_episode_steps=5)
+    talking = client.make_vec("gym/Hopper-v5", num_envs=2, seed=0, delivery=delivery,
+                              autoreset_mode="SameStep", max_episode_steps=5)
+    try:
+        assert quiet.reset(seed=0)[1] == {} and "x_position" in talking.reset(seed=0)[1]
+        for t in range(6):  # across an episode end: radserve's own figures still come
+            actions = np.zeros((2, 3), np.float32)
+            _, _, _, truncated, infos = quiet.step(actions)
+            _, _, _, _, said = talking.step(actions)
+            assert ours_only(infos) == ({"final_obs": infos["final_obs"], "_final_obs": infos["_final_obs"],
+                                         "final_info": {}, "_final_info": infos["_final_info"]}
+                                        if truncated.any() else {}), t
+            assert said["_x_position"].all()
+            if t == 4:
+                assert truncated.all() and infos["_radserve_episode"].all()
+    finally:
+        quiet.close()
+        talking.close()

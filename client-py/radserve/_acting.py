@@ -3,6 +3,7 @@ SharedActingChannel): actions are written into memory the server maps, a 16-byte
 a Unix socket, and after an 8-byte answer the results are read where the server wrote them."""
 
 import struct
+from typing import NamedTuple
 
 import numpy as np
 
@@ -13,9 +14,19 @@ from .errors import UnavailableError, from_status
 _MAGIC = b"radserve-acting\0"
 _REQUEST = struct.Struct("<cBB5xQ")
 _ANSWER = struct.Struct("<II")
-# An OK answer's records: env index, kind (_RECORD_KINDS), length of the UTF-8 text that follows.
+# An OK answer's records: env index, kind, length of the bytes that follow: kind 0 an env's simulator
+# error (UTF-8), 1 and 2 the step's and the resets' infos (an encoded InfoColumns).
 _RECORD = struct.Struct("<IBI")
-_RECORD_KINDS = ("error", "step_info", "reset_info")
+_ERROR, _STEP_INFOS, _RESET_INFOS = 0, 1, 2
+
+
+class Answer(NamedTuple):
+    """An OK answer's records: the simulator errors of ended episodes by env, and the step's and the
+    resets' info columns (as StepResponse's step_infos and reset_infos)."""
+
+    errors: "dict[int, str]"
+    step_infos: list
+    reset_infos: list
 _HINT = ("shared-memory acting needs the client on the server's host, in its network namespace, as a user the "
          "server allows; use delivery='grpc' otherwise")
 
@@ -63,23 +74,26 @@ class SharedActing:
         except OSError as error:
             raise self._lost(f"the server's acting channel is gone: {error}") from None
 
-    def receive(self) -> "dict[str, dict[int, str]]":
-        """Waits for the answer to the request sent and returns its records by kind ("error": the
-        simulator errors of ended episodes, "step_info" and "reset_info": the envs' info dicts as
-        JSON text), each by env index; or raises the server's error."""
+    def receive(self) -> Answer:
+        """Waits for the answer to the request sent and returns its records, or raises the server's
+        error."""
         code, length = _ANSWER.unpack(self._read(_ANSWER.size))
         body = self._read(length) if length else b""
         if code != 0:
             raise from_status(code, body.decode("utf-8", "replace"))
-        records: "dict[str, dict[int, str]]" = {kind: {} for kind in _RECORD_KINDS}
+        answer = Answer({}, [], [])
         at = 0
         while at < len(body):
             env, kind, size = _RECORD.unpack_from(body, at)
             at += _RECORD.size
-            if kind < len(_RECORD_KINDS):
-                records[_RECORD_KINDS[kind]][env] = body[at:at + size].decode("utf-8", "replace")
+            if kind == _ERROR:
+                answer.errors[env] = body[at:at + size].decode("utf-8", "replace")
+            elif kind == _STEP_INFOS:
+                answer.step_infos.extend(pb.InfoColumns.FromString(body[at:at + size]).columns)
+            elif kind == _RESET_INFOS:
+                answer.reset_infos.extend(pb.InfoColumns.FromString(body[at:at + size]).columns)
             at += size
-        return records
+        return answer
 
     def _read(self, size: int) -> bytes:
         data = b""

@@ -1,21 +1,26 @@
 """Info dicts as gymnasium's vector envs return them, built from what the server sent.
 
-An env's info travels as JSON text (numpy values tagged as `radserve_worker.common.info_json`
-writes them); the client decodes it (`decode`, `decode_all`), batches envs' infos in
-`VectorEnv._add_info`'s layout (a value array and a `_key` mask per key; `add_flat` adds a run of
-flat infos key by key), adds radserve's own episode figures (`episode_infos`) and, for a sharded
-env, places each shard's infos at its rows (`merge_infos`). The plain and the sharded vector envs
-both build their infos here.
+The envs' infos travel as typed columns (`InfoColumn`: per key and value type, the envs that
+reported it and their values, a tensor for numbers and arrays, texts for strings and JSON for
+anything else; `radserve_worker.common.info_columns` writes them). The client turns them into
+gymnasium's vector infos straight away when each key has one column (`vector_infos`), and otherwise
+rebuilds each env's dict (`env_infos`) and batches them in `VectorEnv._add_info`'s layout (a value
+array and a `_key` mask per key; `add_flat` adds a run of flat infos key by key); it adds
+radserve's own episode figures (`episode_infos`) and, for a sharded env, places each shard's infos at
+its rows (`merge_infos`). The plain and the sharded vector envs both build their infos here.
 """
 
 import json
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
+from . import _convert
+from ._proto import radserve_pb2 as pb
+
 
 def _numpy_value(tagged: dict):
-    """A JSON object as the worker wrote it (radserve_worker.common.info_json): numpy values rebuilt."""
+    """A JSON object as the worker wrote it (radserve_worker.common._tagged): numpy values rebuilt."""
     if "__numpy__" in tagged:
         dtype = np.dtype(tagged["__numpy__"])
         if "shape" in tagged:
@@ -26,19 +31,91 @@ def _numpy_value(tagged: dict):
     return tagged
 
 
-# One decoder for every info: json.loads with an object_hook builds a new JSONDecoder per call.
+# One decoder for every value: json.loads with an object_hook builds a new JSONDecoder per call.
 _DECODER = json.JSONDecoder(object_hook=_numpy_value)
 
 
-def decode(text: "str | None") -> dict:
-    """An env's info dict from its JSON text (empty when none travelled)."""
-    return _DECODER.decode(text) if text else {}
+def column_values(column: "pb.InfoColumn") -> list:
+    """A column's values, one per env of `column.envs`, as the envs' info dicts held them: Python
+    numbers, numpy scalars, numpy arrays, strings, or what the JSON holds."""
+    kind = column.kind
+    if kind == pb.INFO_KIND_TEXT:
+        return list(column.texts)
+    if kind == pb.INFO_KIND_JSON:
+        return [_DECODER.decode(text) for text in column.texts]
+    values = _convert.to_numpy(column.values)
+    if kind == pb.INFO_KIND_PYTHON:
+        return values.tolist()
+    if kind == pb.INFO_KIND_ARRAY:
+        return [np.array(row) for row in values]  # copies, 0-d arrays included
+    return list(values)  # numpy scalars
 
 
-def decode_all(texts: "list[str]") -> "dict[str, dict]":
-    """Each non-empty text's info, decoded in one call (one JSON array) rather than one per env."""
-    texts = [text for text in texts if text]
-    return dict(zip(texts, _DECODER.decode("[" + ",".join(texts) + "]"))) if texts else {}
+def env_infos(columns: "Sequence[pb.InfoColumn]") -> "dict[int, dict]":
+    """Each env's info dict, rebuilt from the columns (nested dicts from the keys' paths), by env
+    index; envs that reported nothing have no entry."""
+    infos: "dict[int, dict]" = {}
+    for column in columns:
+        path = list(column.path)
+        for env, value in zip(column.envs, column_values(column)):
+            target = infos.setdefault(env, {})
+            for part in path[:-1]:
+                target = target.setdefault(part, {})
+            target[path[-1]] = value
+    return infos
+
+
+def vector_infos(columns: "Sequence[pb.InfoColumn]", num_envs: int) -> "dict | None":
+    """gymnasium's vector infos for `num_envs` envs straight from the columns, as `_add_info` of
+    each env's dict in env order would make them: each key's array of its values' type (zeros where
+    an env did not report it) and its `_key` mask, nested dicts with their own masks. None when the
+    columns need each env's dict instead: a key with values of two types (gymnasium's array takes
+    the first env's type and casts the others), a key both a value and a dict, JSON values, or
+    gymnasium's special `final_obs`."""
+    infos: dict = {}
+    leaves, parents = set(), set()
+    for column in columns:
+        path = tuple(column.path)
+        if column.kind == pb.INFO_KIND_JSON or "final_obs" in path or path in leaves or path in parents:
+            return None
+        prefixes = [path[:end] for end in range(1, len(path))]
+        if any(prefix in leaves for prefix in prefixes):
+            return None
+        leaves.add(path)
+        parents.update(prefixes)
+        # Envs are ascending and distinct: as many as the session has is every env.
+        everyone = len(column.envs) == num_envs
+        envs = slice(None) if everyone else np.asarray(column.envs, dtype=np.intp)
+        target = infos
+        for part in path[:-1]:
+            mask = target.get(f"_{part}")
+            if mask is None:
+                target[part], target[f"_{part}"] = {}, np.zeros(num_envs, dtype=np.bool_)
+            target[f"_{part}"][envs] = True
+            target = target[part]
+        key = path[-1]
+        if column.kind == pb.INFO_KIND_TEXT:
+            array = np.full(num_envs, None, dtype=object)
+            array[envs] = np.array(list(column.texts), dtype=object)
+        else:
+            values = _convert.to_numpy(column.values)
+            if column.kind == pb.INFO_KIND_SCALAR and values.dtype == np.bool_:
+                # np.bool_ is no np.number: gymnasium keeps numpy bools in an object array.
+                array = np.full(num_envs, None, dtype=object)
+                for env, value in zip(column.envs, values):
+                    array[env] = value
+            elif everyone:
+                array = values.copy()  # writable, as gymnasium's
+            else:
+                array = np.zeros((num_envs,) + values.shape[1:], dtype=values.dtype)
+                array[envs] = values
+        if everyone:
+            mask = np.ones(num_envs, dtype=np.bool_)
+        else:
+            mask = np.zeros(num_envs, dtype=np.bool_)
+            mask[envs] = True
+        target[key], target[f"_{key}"] = array, mask
+    return infos
 
 
 _SCALARS = frozenset((int, float, bool))

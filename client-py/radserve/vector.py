@@ -10,11 +10,11 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from . import _convert
-from ._acting import SharedActing
+from ._acting import Answer, SharedActing
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport, check_delivery
 from .errors import FailedPreconditionError, InvalidArgumentError, RadServeError
-from .infos import add_flat, decode, decode_all, episode_infos, is_flat
+from .infos import add_flat, env_infos, episode_infos, is_flat, vector_infos
 from .types import SessionInfo
 
 
@@ -30,8 +30,9 @@ class _Step(NamedTuple):
     returns: Any
     lengths: Any
     errors: "dict[int, str]"
-    # env index -> (its step's info, the info of the reset the server made in the step), as JSON text
-    infos: "dict[int, tuple[str | None, str | None]]"
+    # The envs' infos from the step, and from the resets the server made in it (pb.InfoColumn)
+    step_infos: Any
+    reset_infos: Any
 
 
 def _bools(mask) -> "list[bool]":
@@ -185,7 +186,7 @@ class RemoteVectorEnv(VectorEnv):
         self._last_obs = None
         # Reset infos of envs the server reset in the step that ended their episode, until this env
         # returns them (NEXT_STEP: in the next step; DISABLED: in their reset).
-        self._held_reset_infos: "dict[int, str | None]" = {}
+        self._held_reset_infos: "dict[int, dict | None]" = {}
 
         def shared() -> SharedActing:
             channel = transport.call("ShareActing", pb.ShareActingRequest(session_id=self.session_id))
@@ -234,21 +235,21 @@ class RemoteVectorEnv(VectorEnv):
             server_mask = None if on_server.all() else on_server
             if self._shared is not None:
                 self._shared.send(b"R", seed, mask=server_mask, env_seeds=env_seeds)
-                reset_infos = self._shared.receive()["reset_info"]
+                reset_infos = env_infos(self._shared.receive().reset_infos)
                 server_obs = self._shared.obs.copy()
             else:
                 request = pb.ResetRequest(session_id=self.session_id, seed=seed, mask=_bools(server_mask),
                                           env_seeds=env_seeds or [])
                 response = self._act(pb.ActRequest(reset=request), "reset")
                 server_obs = _convert.to_numpy(response.obs).copy()
-                reset_infos = {info.env_index: info.reset_json for info in response.infos}
+                reset_infos = env_infos(response.reset_infos)
         else:
             server_obs, reset_infos = self._server_obs, {}
         # Each env's reset info, as gymnasium's SyncVectorEnv batches them (env order, `_key` masks).
         infos: dict = {}
         for i in np.flatnonzero(requested):
             held = self._held_reset_infos.pop(i, None)
-            infos = self._add_info(infos, decode(reset_infos.get(i) if on_server[i] else held), int(i))
+            infos = self._add_info(infos, (reset_infos.get(i) if on_server[i] else held) or {}, int(i))
         if mask is None or self._last_obs is None:
             obs = server_obs.copy()
         else:
@@ -297,20 +298,25 @@ class RemoteVectorEnv(VectorEnv):
     # is returned as the server wrote it, without _finish's bookkeeping: ~20 numpy calls, 5-10% of the
     # steps/s of a 16-env state session through shared memory (docs/performance.md).
 
-    def _shared_result(self, records: "dict[str, dict[int, str]]"):
+    def _shared_result(self, answer: "Answer"):
         shared = self._shared
-        if self._plain_mode and not any(records.values()) and not (shared.terminated.any() or shared.truncated.any()):
-            obs = shared.obs.copy()
-            self._last_obs = obs
-            return obs, shared.reward.copy(), shared.terminated.copy(), shared.truncated.copy(), {}
-        return self._finish(self._unpack_shared(records))
+        if self._plain_mode and not answer.errors and not answer.reset_infos and \
+                not (shared.terminated.any() or shared.truncated.any()):
+            infos = vector_infos(answer.step_infos, self.num_envs)
+            if infos is not None:
+                obs = shared.obs.copy()
+                self._last_obs = obs
+                return obs, shared.reward.copy(), shared.terminated.copy(), shared.truncated.copy(), infos
+        return self._finish(self._unpack_shared(answer))
 
     def _grpc_result(self, response: "pb.StepResponse"):
-        if self._plain_mode and not response.episodes and not response.infos:
-            obs = _convert.to_numpy(response.obs).copy()
-            self._last_obs = obs
-            return (obs, _convert.to_numpy(response.reward), np.array(response.terminated, dtype=bool),
-                    np.array(response.truncated, dtype=bool), {})
+        if self._plain_mode and not response.episodes and not response.reset_infos:
+            infos = vector_infos(response.step_infos, self.num_envs)
+            if infos is not None:
+                obs = _convert.to_numpy(response.obs).copy()
+                self._last_obs = obs
+                return (obs, _convert.to_numpy(response.reward), np.array(response.terminated, dtype=bool),
+                        np.array(response.truncated, dtype=bool), infos)
         return self._finish(self._unpack(response))
 
     def step_async(self, actions) -> None:
@@ -425,13 +431,13 @@ class RemoteVectorEnv(VectorEnv):
         if self._shared is not None:
             shared = self._shared
             shared.send(b"V", mask=None if rows is None else self._sent_mask(rows, ids))
-            records = shared.receive()
+            answer = shared.receive()
             ready = np.flatnonzero(shared.mask)
             terminated, truncated = shared.terminated[ready], shared.truncated[ready]
             ended = ready[terminated | truncated]
             return self._batch(ready, shared.obs[ready], shared.reward[ready], terminated, truncated, ended,
                                shared.final_obs[ended], shared.episode_return[ended], shared.episode_length[ended],
-                               records["error"])
+                               answer.errors)
         request = pb.RecvRequest(session_id=self.session_id)
         if rows is not None:
             request.actions.CopyFrom(_convert.to_tensor(rows))
@@ -488,15 +494,13 @@ class RemoteVectorEnv(VectorEnv):
             )
         np.copyto(target, actions, casting="same_kind")
 
-    def _unpack_shared(self, records: "dict[str, dict[int, str]]") -> "_Step":
+    def _unpack_shared(self, answer: "Answer") -> "_Step":
         shared = self._shared
         terminated, truncated = shared.terminated.copy(), shared.truncated.copy()
         ended = np.flatnonzero(terminated | truncated)
-        step_infos, reset_infos = records["step_info"], records["reset_info"]
-        infos = {i: (step_infos.get(i), reset_infos.get(i)) for i in step_infos.keys() | reset_infos.keys()}
         return _Step(shared.obs.copy(), shared.reward.copy(), terminated, truncated, ended,
                      shared.final_obs[ended].copy(), shared.episode_return[ended].copy(),
-                     shared.episode_length[ended].copy(), records["error"], infos)
+                     shared.episode_length[ended].copy(), answer.errors, answer.step_infos, answer.reset_infos)
 
     def _unpack(self, response: "pb.StepResponse") -> "_Step":
         return _Step(
@@ -504,7 +508,7 @@ class RemoteVectorEnv(VectorEnv):
             _convert.to_numpy(response.obs).copy(), _convert.to_numpy(response.reward),
             np.array(response.terminated, dtype=bool), np.array(response.truncated, dtype=bool),
             *_ended_episodes(response),
-            {info.env_index: (info.step_json or None, info.reset_json or None) for info in response.infos},
+            response.step_infos, response.reset_infos,
         )
 
     def _finish(self, step: "_Step"):
@@ -512,15 +516,30 @@ class RemoteVectorEnv(VectorEnv):
         the envs' infos batched as gymnasium's SyncVectorEnv batches them in that mode."""
         obs = step.obs
         rows = {int(i): row for row, i in enumerate(step.ended)}
+        infos = None
+        if not rows and not step.reset_infos and not self._ended.any():
+            # No episode ended, none restarts: gymnasium's infos are the step's, made from the columns.
+            infos = vector_infos(step.step_infos, self.num_envs)
+        if infos is None:
+            infos = self._env_by_env_infos(step, rows)
+        if len(step.ended):
+            infos.update(episode_infos(self.num_envs, step.ended, step.returns, step.lengths, step.errors))
+        if self.autoreset_mode != AutoresetMode.SAME_STEP:
+            self._server_obs = obs
+            if len(step.ended):
+                obs = obs.copy()
+                for row, i in enumerate(step.ended):
+                    obs[i] = step.final_rows[row]
+            self._ended = step.terminated | step.truncated
+        self._last_obs = obs
+        return self._present(obs) if self._channels_last else obs, step.rewards, step.terminated, step.truncated, infos
+
+    def _env_by_env_infos(self, step: "_Step", rows: "dict[int, int]") -> dict:
+        """The step's infos batched env by env as gymnasium's SyncVectorEnv batches them in this env's
+        mode, from each env's dicts: the step's, the ended episodes' last observations and infos, the
+        resets' (NEXT_STEP: held until the env's reset step)."""
         infos: dict = {}
-        decoded = decode_all([text for pair in step.infos.values() for text in pair])
-
-        def info_of(text: "str | None") -> dict:
-            if not text:
-                return {}
-            found = decoded.get(text)
-            return found if found is not None else decode(text)  # a reset info held from a step ago
-
+        step_infos, reset_infos = env_infos(step.step_infos), env_infos(step.reset_infos)
         # Consecutive envs whose one info is flat are added together (add_flat); the run is
         # flushed before anything else is added, so that values arrive in gymnasium's order.
         run: "list[tuple[int, dict]]" = []
@@ -538,36 +557,26 @@ class RemoteVectorEnv(VectorEnv):
             return add(infos, info, i)
 
         # Only envs with something to report (an empty info adds nothing), in env order as gymnasium's.
-        for i in sorted(step.infos.keys() | rows.keys() | set(np.flatnonzero(self._ended).tolist())):
-            step_info, reset_info = step.infos.get(i, (None, None))
+        for i in sorted(step_infos.keys() | reset_infos.keys() | rows.keys() | set(np.flatnonzero(self._ended).tolist())):
+            step_info, reset_info = step_infos.get(i, {}), reset_infos.get(i)
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
                 if i in rows:
                     # gymnasium 1.x: the ended episode's last observation and info, then the reset's info.
-                    final = {"final_obs": self._present(step.final_rows[rows[i]]), "final_info": info_of(step_info)}
+                    final = {"final_obs": self._present(step.final_rows[rows[i]]), "final_info": step_info}
                     infos = add(infos, final, i)
-                    infos = add(infos, info_of(reset_info), i)
+                    infos = add(infos, reset_info or {}, i)
                 else:
-                    infos = add_step_info(infos, info_of(step_info), i)
+                    infos = add_step_info(infos, step_info, i)
             elif self._ended[i]:
                 # NEXT_STEP's reset step: the info of the reset the server made a step ago.
-                infos = add(infos, info_of(self._held_reset_infos.pop(i, None)), i)
+                infos = add(infos, self._held_reset_infos.pop(i, None) or {}, i)
             else:
-                infos = add_step_info(infos, info_of(step_info), i)
+                infos = add_step_info(infos, step_info, i)
                 if i in rows:
                     self._held_reset_infos[i] = reset_info
         if run:
             infos = add_flat(infos, run, self.num_envs, self._add_info)
-        if len(step.ended):
-            infos.update(episode_infos(self.num_envs, step.ended, step.returns, step.lengths, step.errors))
-        if self.autoreset_mode != AutoresetMode.SAME_STEP:
-            self._server_obs = obs
-            if len(step.ended):
-                obs = obs.copy()
-                for row, i in enumerate(step.ended):
-                    obs[i] = step.final_rows[row]
-            self._ended = step.terminated | step.truncated
-        self._last_obs = obs
-        return self._present(obs) if self._channels_last else obs, step.rewards, step.terminated, step.truncated, infos
+        return infos
 
     def describe(self):
         """The session as the server sees it (steps taken, episodes completed, options)."""

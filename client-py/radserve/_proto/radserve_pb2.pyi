@@ -17,6 +17,15 @@ class DType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     DTYPE_FLOAT64: _ClassVar[DType]
     DTYPE_BOOL: _ClassVar[DType]
 
+class InfoKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    INFO_KIND_UNSPECIFIED: _ClassVar[InfoKind]
+    INFO_KIND_PYTHON: _ClassVar[InfoKind]
+    INFO_KIND_SCALAR: _ClassVar[InfoKind]
+    INFO_KIND_ARRAY: _ClassVar[InfoKind]
+    INFO_KIND_TEXT: _ClassVar[InfoKind]
+    INFO_KIND_JSON: _ClassVar[InfoKind]
+
 class DrawSharing(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     DRAW_SHARING_REFERENCE: _ClassVar[DrawSharing]
@@ -34,6 +43,12 @@ DTYPE_INT64: DType
 DTYPE_FLOAT32: DType
 DTYPE_FLOAT64: DType
 DTYPE_BOOL: DType
+INFO_KIND_UNSPECIFIED: InfoKind
+INFO_KIND_PYTHON: InfoKind
+INFO_KIND_SCALAR: InfoKind
+INFO_KIND_ARRAY: InfoKind
+INFO_KIND_TEXT: InfoKind
+INFO_KIND_JSON: InfoKind
 DRAW_SHARING_REFERENCE: DrawSharing
 DRAW_SHARING_SHARED: DrawSharing
 DRAW_SHARING_INDEPENDENT: DrawSharing
@@ -284,22 +299,32 @@ class ResetRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., seed: _Optional[int] = ..., mask: _Optional[_Iterable[bool]] = ..., env_seeds: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class ResetResponse(_message.Message):
-    __slots__ = ("obs", "infos")
+    __slots__ = ("obs", "reset_infos")
     OBS_FIELD_NUMBER: _ClassVar[int]
-    INFOS_FIELD_NUMBER: _ClassVar[int]
+    RESET_INFOS_FIELD_NUMBER: _ClassVar[int]
     obs: Tensor
-    infos: _containers.RepeatedCompositeFieldContainer[InfoDicts]
-    def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ..., infos: _Optional[_Iterable[_Union[InfoDicts, _Mapping]]] = ...) -> None: ...
+    reset_infos: _containers.RepeatedCompositeFieldContainer[InfoColumn]
+    def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ..., reset_infos: _Optional[_Iterable[_Union[InfoColumn, _Mapping]]] = ...) -> None: ...
 
-class InfoDicts(_message.Message):
-    __slots__ = ("env_index", "step_json", "reset_json")
-    ENV_INDEX_FIELD_NUMBER: _ClassVar[int]
-    STEP_JSON_FIELD_NUMBER: _ClassVar[int]
-    RESET_JSON_FIELD_NUMBER: _ClassVar[int]
-    env_index: int
-    step_json: str
-    reset_json: str
-    def __init__(self, env_index: _Optional[int] = ..., step_json: _Optional[str] = ..., reset_json: _Optional[str] = ...) -> None: ...
+class InfoColumn(_message.Message):
+    __slots__ = ("path", "envs", "kind", "values", "texts")
+    PATH_FIELD_NUMBER: _ClassVar[int]
+    ENVS_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    TEXTS_FIELD_NUMBER: _ClassVar[int]
+    path: _containers.RepeatedScalarFieldContainer[str]
+    envs: _containers.RepeatedScalarFieldContainer[int]
+    kind: InfoKind
+    values: Tensor
+    texts: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, path: _Optional[_Iterable[str]] = ..., envs: _Optional[_Iterable[int]] = ..., kind: _Optional[_Union[InfoKind, str]] = ..., values: _Optional[_Union[Tensor, _Mapping]] = ..., texts: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class InfoColumns(_message.Message):
+    __slots__ = ("columns",)
+    COLUMNS_FIELD_NUMBER: _ClassVar[int]
+    columns: _containers.RepeatedCompositeFieldContainer[InfoColumn]
+    def __init__(self, columns: _Optional[_Iterable[_Union[InfoColumn, _Mapping]]] = ...) -> None: ...
 
 class StepRequest(_message.Message):
     __slots__ = ("session_id", "actions", "skip")
@@ -328,22 +353,24 @@ class EpisodeEnd(_message.Message):
     def __init__(self, env_index: _Optional[int] = ..., episode_return: _Optional[float] = ..., episode_length: _Optional[int] = ..., terminated: _Optional[bool] = ..., truncated: _Optional[bool] = ..., error: _Optional[str] = ...) -> None: ...
 
 class StepResponse(_message.Message):
-    __slots__ = ("obs", "reward", "terminated", "truncated", "episodes", "final_obs", "infos")
+    __slots__ = ("obs", "reward", "terminated", "truncated", "episodes", "final_obs", "step_infos", "reset_infos")
     OBS_FIELD_NUMBER: _ClassVar[int]
     REWARD_FIELD_NUMBER: _ClassVar[int]
     TERMINATED_FIELD_NUMBER: _ClassVar[int]
     TRUNCATED_FIELD_NUMBER: _ClassVar[int]
     EPISODES_FIELD_NUMBER: _ClassVar[int]
     FINAL_OBS_FIELD_NUMBER: _ClassVar[int]
-    INFOS_FIELD_NUMBER: _ClassVar[int]
+    STEP_INFOS_FIELD_NUMBER: _ClassVar[int]
+    RESET_INFOS_FIELD_NUMBER: _ClassVar[int]
     obs: Tensor
     reward: Tensor
     terminated: _containers.RepeatedScalarFieldContainer[bool]
     truncated: _containers.RepeatedScalarFieldContainer[bool]
     episodes: _containers.RepeatedCompositeFieldContainer[EpisodeEnd]
     final_obs: Tensor
-    infos: _containers.RepeatedCompositeFieldContainer[InfoDicts]
-    def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ..., reward: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Iterable[bool]] = ..., truncated: _Optional[_Iterable[bool]] = ..., episodes: _Optional[_Iterable[_Union[EpisodeEnd, _Mapping]]] = ..., final_obs: _Optional[_Union[Tensor, _Mapping]] = ..., infos: _Optional[_Iterable[_Union[InfoDicts, _Mapping]]] = ...) -> None: ...
+    step_infos: _containers.RepeatedCompositeFieldContainer[InfoColumn]
+    reset_infos: _containers.RepeatedCompositeFieldContainer[InfoColumn]
+    def __init__(self, obs: _Optional[_Union[Tensor, _Mapping]] = ..., reward: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Iterable[bool]] = ..., truncated: _Optional[_Iterable[bool]] = ..., episodes: _Optional[_Iterable[_Union[EpisodeEnd, _Mapping]]] = ..., final_obs: _Optional[_Union[Tensor, _Mapping]] = ..., step_infos: _Optional[_Iterable[_Union[InfoColumn, _Mapping]]] = ..., reset_infos: _Optional[_Iterable[_Union[InfoColumn, _Mapping]]] = ...) -> None: ...
 
 class AsyncResetRequest(_message.Message):
     __slots__ = ("session_id", "seed")

@@ -137,6 +137,8 @@ const RENDER_PROFILES: &[&str] = &["default", "fast"];
 pub const ENGINE: &str = "engine";
 /// A session option: the envs a `recv` returns, below `num_envs` for EnvPool's asynchronous mode.
 pub const BATCH_SIZE: &str = "batch_size";
+/// A session option: whether the envs' info dicts travel (true by default).
+pub const SEND_INFOS: &str = "send_infos";
 
 /// `batch_size` when `options` put a session of `num_envs` envs in EnvPool's asynchronous mode (a batch
 /// below `num_envs`); None for a synchronous one.
@@ -218,6 +220,9 @@ fn schema(env: &EnvId, pixels: bool) -> Vec<OptionSchema> {
     // stepped by send/recv, `batch_size` envs per recv (engine "envpool": EnvPool's own asynchronous
     // mode; engine "native": groups of batch_size envs stepped whole; checked against num_envs at create).
     options.push(option(BATCH_SIZE, Int(0), Rule::IntRange(0, i32::MAX as i64)));
+    // false: the envs' info dicts are neither collected in the workers nor sent (StepResponse's
+    // step_infos and reset_infos stay empty), for learners that never read them.
+    options.push(option(SEND_INFOS, Bool(true), Rule::Any));
     options
 }
 

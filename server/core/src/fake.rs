@@ -20,7 +20,8 @@ use std::sync::{Arc, Mutex};
 use async_trait::async_trait;
 
 use crate::catalog::{EnvId, EnvNames, Family, Options};
-use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, GroupInfo, ResetInfos, SimulatorError, Simulators, StepResult};
+use crate::infos::{InfoColumn, Infos};
+use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, SimulatorError, Simulators, StepResult};
 use crate::space::{DType, Space};
 
 /// The fake env's id.
@@ -233,16 +234,15 @@ impl FakeGroup {
         result.rewards[local] = action as f64 + 1.0;
         self.state[local].t += 1;
         let env = self.state[local];
-        let mut info = GroupInfo { env: local as u32, step: Some(fake_info("t", env.t)), reset: None };
+        fake_info(&mut result.step_infos, local, "t", env.t);
         if env.t == episode_length(env.seed) {
             result.terminated[local] = ends_terminated(env.episode);
             result.truncated[local] = !ends_terminated(env.episode);
             let last = self.current(local);
             self.write(local, true, last);
             self.state[local] = FakeEnv { episode: env.episode + 1, t: 0, ..env };
-            info.reset = Some(fake_info("episode", env.episode + 1));
+            fake_info(&mut result.reset_infos, local, "episode", env.episode + 1);
         }
-        result.infos.push(info);
         let current = self.current(local);
         self.write(local, false, current);
     }
@@ -263,8 +263,8 @@ impl EnvGroup for FakeGroup {
         &self.frames
     }
 
-    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<ResetInfos, SimulatorError> {
-        let mut infos = ResetInfos::new();
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<Infos, SimulatorError> {
+        let mut infos = Infos::default();
         for local in 0..self.state.len() {
             if mask.as_ref().is_some_and(|mask| !mask[local]) {
                 continue;
@@ -278,7 +278,7 @@ impl EnvGroup for FakeGroup {
             }
             let current = self.current(local);
             self.write(local, false, current);
-            infos.push((local as u32, fake_info("episode", self.state[local].episode)));
+            fake_info(&mut infos, local, "episode", self.state[local].episode);
         }
         self.lost = false;
         Ok(infos)
@@ -374,9 +374,11 @@ impl EnvGroup for FakeGroup {
     }
 }
 
-/// A fake env's info dict, as a worker writes one: `{"fake_<name>": value}`.
-fn fake_info(name: &str, value: u64) -> String {
-    format!("{{\"fake_{name}\": {value}}}")
+/// Adds env `local`'s info `{"fake_<name>": value}` (a Python int) to `infos`, as a worker reports
+/// it; envs are added in ascending order.
+fn fake_info(infos: &mut Infos, local: usize, name: &str, value: u64) {
+    let column = InfoColumn::python_ints(&[&format!("fake_{name}")], vec![local as u32], &[value as i64]);
+    infos.append(&Infos { columns: vec![column] }, 0, |_| true);
 }
 
 /// Options for a fake session: `frame_stack` frames per observation.

@@ -11,6 +11,7 @@ pub mod catalog;
 pub mod error;
 #[cfg(any(test, feature = "testing"))]
 pub mod fake;
+pub mod infos;
 pub mod manager;
 pub mod metrics;
 pub mod principal;
@@ -26,6 +27,7 @@ pub use manager::{
     BufferRequest, CatalogEntry, LeaseHold, Limits, Progress, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
 };
 pub use principal::{Principal, PrincipalLimits, Role};
-pub use session::{AutoresetMode, EnvInfo, EpisodeEnd, ResetSpec, StepOutcome};
-pub use simulators::{EnvGroup, EnvSpec, FrameLayout, GroupInfo, PendingStep, ResetInfos, SimulatorError, Simulators, StepResult};
+pub use infos::{InfoColumn, InfoKind, Infos};
+pub use session::{AutoresetMode, EpisodeEnd, ResetSpec, StepOutcome};
+pub use simulators::{EnvGroup, EnvSpec, FrameLayout, PendingStep, SimulatorError, Simulators, StepResult};
 pub use space::{DType, Space};

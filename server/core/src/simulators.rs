@@ -15,6 +15,7 @@ use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
 
 use crate::catalog::{EnvId, EnvNames, Options};
+use crate::infos::Infos;
 use crate::space::Space;
 
 /// What one environment observes (one frame, before stacking) and how it is acted on.
@@ -33,29 +34,27 @@ pub struct StepResult {
     /// (index within the group, message) for each env whose simulator raised during this step; that
     /// env's episode ends as truncated and it starts a new one.
     pub errors: Vec<(u32, String)>,
-    /// The envs' own info dicts (gymnasium's `info`), for the envs that returned a non-empty one.
-    pub infos: Vec<GroupInfo>,
+    /// The envs' own info dicts (gymnasium's `info`) from the step, of the envs that returned a
+    /// non-empty one.
+    pub step_infos: Infos,
+    /// The info dicts of the resets the group made in the step, of the envs whose episode ended
+    /// (same-step autoreset) or whose simulator raised.
+    pub reset_infos: Infos,
 }
-
-/// One env's info dicts from a step, as JSON text the worker wrote (numpy values tagged with their
-/// dtype, so the client rebuilds them exactly): the step's, and the reset's when the step ended an
-/// episode and the env was reset in it. Opaque to the server, which only carries them.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct GroupInfo {
-    /// Index within the group.
-    pub env: u32,
-    pub step: Option<String>,
-    pub reset: Option<String>,
-}
-
-/// The reset info dicts of the envs a reset reset, by index within the group, for those that
-/// returned a non-empty one (JSON text, as [`GroupInfo`]).
-pub type ResetInfos = Vec<(u32, String)>;
 
 impl StepResult {
-    /// Whether this result has one entry per environment of a group of `envs`.
-    pub fn fits(&self, envs: usize) -> bool {
-        self.rewards.len() == envs && self.terminated.len() == envs && self.truncated.len() == envs
+    /// Whether this result has one entry per environment of a group of `envs`, and infos of those
+    /// envs only: what is wrong with it, else.
+    pub fn check(&self, envs: usize) -> Result<(), String> {
+        if self.rewards.len() != envs || self.terminated.len() != envs || self.truncated.len() != envs {
+            return Err(format!(
+                "worker answered a step of {envs} envs with {} rewards, {} terminated and {} truncated flags",
+                self.rewards.len(),
+                self.terminated.len(),
+                self.truncated.len()
+            ));
+        }
+        self.step_infos.check(envs).and_then(|()| self.reset_infos.check(envs)).map_err(|error| format!("worker answered a step with a bad info: {error}"))
     }
 }
 
@@ -119,7 +118,7 @@ pub trait EnvGroup: Send + Sync {
     /// Resets every env of the group, or those `mask` marks (one entry per env of the group),
     /// reseeding env j with `seeds[j]` when given. After [`SimulatorError::Lost`], the group is
     /// usable again once a full reset succeeds.
-    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<ResetInfos, SimulatorError>;
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<Infos, SimulatorError>;
 
     /// Steps every env of the group with `actions` (the group's envs' actions, little-endian bytes of
     /// the action dtype, already checked against the action space), except those `skip` marks: they

@@ -9,6 +9,7 @@ use rand::SeedableRng;
 use radserve_replay::TransitionRef;
 
 use crate::error::CoreError;
+use crate::infos::InfoColumn;
 use crate::fake::{self, FakeSimulators, FAKE_ENV, FRAME_BYTES};
 use crate::manager::{BufferRequest, Limits, SessionExtras, SessionManager};
 use crate::principal::{Principal, PrincipalLimits, Role};
@@ -463,33 +464,30 @@ async fn skipped_envs_stay_put_and_masked_resets_reset_only_their_envs() {
 }
 
 #[tokio::test]
-async fn the_envs_info_dicts_travel_with_their_env_index() {
+async fn the_envs_info_dicts_travel_as_one_column_per_key_over_the_groups() {
     let (_, manager) = manager(2, limits());
     // Seeds 10, 11, 12: episodes of 4, 5 and 3 steps, the envs in two groups.
     let id = create(&manager, 3, 10, 1, SessionExtras::default()).await;
     reset(&manager, &id, None).await;
     let session = manager.get(&local(), &id).unwrap();
-    let at_reset = session.lock().await.reset_infos().to_vec();
-    assert_eq!(at_reset, (0..3).map(|env| (env, r#"{"fake_episode": 0}"#.to_string())).collect::<Vec<_>>());
+    let at_reset = session.lock().await.reset_infos().clone();
+    assert_eq!(at_reset.columns, vec![InfoColumn::python_ints(&["fake_episode"], vec![0, 1, 2], &[0, 0, 0])]);
     for t in 1..=3u64 {
         let outcome = step(&manager, &id, &[0, 0, 0]).await.unwrap();
-        let mut infos = outcome.infos.clone();
-        infos.sort_by_key(|info| info.env_index);
-        assert_eq!(infos.len(), 3);
-        for (env, info) in infos.iter().enumerate() {
-            assert_eq!(info.env_index, env);
-            assert_eq!(info.step.as_deref(), Some(format!(r#"{{"fake_t": {t}}}"#).as_str()));
-            // The reset the server made in the step that ended the episode.
-            let ended = t == fake::episode_length(10 + env as u64);
-            assert_eq!(info.reset.as_deref(), ended.then_some(r#"{"fake_episode": 1}"#), "env {env} at step {t}");
-        }
+        // The two groups' columns joined in env order.
+        assert_eq!(outcome.step_infos.columns, vec![InfoColumn::python_ints(&["fake_t"], vec![0, 1, 2], &[t as i64; 3])]);
+        // The resets the server made in the step that ended an episode.
+        let ended: Vec<u32> = (0..3).filter(|&env| t == fake::episode_length(10 + env as u64)).collect();
+        let expected: Vec<InfoColumn> =
+            (!ended.is_empty()).then(|| InfoColumn::python_ints(&["fake_episode"], ended.clone(), &vec![1; ended.len()])).into_iter().collect();
+        assert_eq!(outcome.reset_infos.columns, expected, "step {t}");
     }
     // A skipped env reports nothing; a masked reset reports only the envs it reset.
     let mut session = session.lock().await;
     let outcome = session.step_except(DType::Int64, &[3], &actions(&[0, 0, 0]), Some(&[false, true, false])).await.unwrap();
-    assert_eq!(outcome.infos.iter().map(|info| info.env_index).collect::<Vec<_>>(), vec![0, 2]);
+    assert_eq!(outcome.step_infos.columns[0].envs, vec![0, 2]);
     session.reset_with(&ResetSpec { mask: Some(vec![false, true, false]), ..ResetSpec::default() }).await.unwrap();
-    assert_eq!(session.reset_infos().iter().map(|(env, _)| *env).collect::<Vec<_>>(), vec![1]);
+    assert_eq!(session.reset_infos().columns[0].envs, vec![1]);
 }
 
 /// The env models of an async session's envs, which come back in any order: each env's first result

@@ -19,14 +19,14 @@ use std::sync::{Arc, Mutex};
 use radserve_shm::{Header, MemFile};
 use radserve_core::principal::log_id;
 use radserve_core::session::Session;
-use radserve_core::{LeaseHold, Principal, SessionManager, StepOutcome};
+use radserve_core::{Infos, LeaseHold, Principal, SessionManager, StepOutcome};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tonic::{Code, Status};
 use tracing::debug;
 
 use crate::error::{Result, ServiceError};
 use crate::handoff::{HandoffSocket, PeerPolicy};
-use crate::proto;
+use crate::{convert, proto};
 
 /// Bytes 0..16 of the region; the token follows.
 pub const ACTING_MAGIC: &[u8; 16] = b"radserve-acting\0";
@@ -300,9 +300,7 @@ impl Exchange<'_> {
         check_len("observations", obs.len(), layout.num_envs * layout.obs_bytes)?;
         self.memory[layout.obs..][..obs.len()].copy_from_slice(&obs);
         let mut records = Vec::new();
-        for (env, info) in self.session.reset_infos() {
-            push_record(&mut records, *env, RECORD_RESET_INFO, info);
-        }
+        push_infos(&mut records, RECORD_RESET_INFOS, self.session.reset_infos().clone());
         Ok(records)
     }
 
@@ -314,7 +312,7 @@ impl Exchange<'_> {
         let (dtype, shape) = self.action_shape();
         let actions = self.actions();
         let outcome = self.session.step_except(dtype, &shape, &actions, request.mask.as_deref()).await?;
-        write_outcome(self.memory, &self.layout, &outcome, None)
+        write_outcome(self.memory, &self.layout, outcome, None)
     }
 
     /// 'A': EnvPool's asynchronous reset of every env.
@@ -350,7 +348,7 @@ impl Exchange<'_> {
             }
             (_, None) => self.session.recv().await?,
         };
-        let records = write_outcome(self.memory, &self.layout, &outcome, Some(&ready))?;
+        let records = write_outcome(self.memory, &self.layout, outcome, Some(&ready))?;
         for (env, ready) in ready.iter().enumerate() {
             self.memory[self.layout.mask + env] = *ready as u8;
         }
@@ -373,7 +371,7 @@ impl Exchange<'_> {
 
 /// Writes a step's (or recv's) outcome into the region at the envs' rows (only `rows`' envs when
 /// given: a recv's ready envs) and returns the answer's records.
-fn write_outcome(memory: &mut [u8], layout: &ActingLayout, outcome: &StepOutcome, rows: Option<&[bool]>) -> Result<Vec<u8>> {
+fn write_outcome(memory: &mut [u8], layout: &ActingLayout, mut outcome: StepOutcome, rows: Option<&[bool]>) -> Result<Vec<u8>> {
     check_len("observations", outcome.obs.len(), layout.num_envs * layout.obs_bytes)?;
     let obs_bytes = layout.obs_bytes;
     for env in (0..layout.num_envs).filter(|&env| rows.is_none_or(|rows| rows[env])) {
@@ -390,31 +388,34 @@ fn write_outcome(memory: &mut [u8], layout: &ActingLayout, outcome: &StepOutcome
         memory[layout.episode_return + 8 * env..][..8].copy_from_slice(&episode.episode_return.to_le_bytes());
         memory[layout.episode_length + 8 * env..][..8].copy_from_slice(&episode.episode_length.to_le_bytes());
         if let Some(message) = &episode.error {
-            push_record(&mut records, env, RECORD_ERROR, message);
+            push_record(&mut records, env, RECORD_ERROR, message.as_bytes());
         }
     }
-    for info in &outcome.infos {
-        if let Some(step) = &info.step {
-            push_record(&mut records, info.env_index, RECORD_STEP_INFO, step);
-        }
-        if let Some(reset) = &info.reset {
-            push_record(&mut records, info.env_index, RECORD_RESET_INFO, reset);
-        }
-    }
+    push_infos(&mut records, RECORD_STEP_INFOS, std::mem::take(&mut outcome.step_infos));
+    push_infos(&mut records, RECORD_RESET_INFOS, std::mem::take(&mut outcome.reset_infos));
     Ok(records)
 }
 
-/// Kinds of the records of an OK answer: an env's simulator error, step info, reset info.
+/// Kinds of the records of an OK answer: an env's simulator error, the step's infos, the resets'.
 const RECORD_ERROR: u8 = 0;
-const RECORD_STEP_INFO: u8 = 1;
-const RECORD_RESET_INFO: u8 = 2;
+const RECORD_STEP_INFOS: u8 = 1;
+const RECORD_RESET_INFOS: u8 = 2;
 
-/// Appends one record of an answer: u32 env index, u8 kind, u32 length, the UTF-8 text.
-fn push_record(records: &mut Vec<u8>, env: usize, kind: u8, text: &str) {
+/// Appends one record of an answer: u32 env index, u8 kind, u32 length, the bytes.
+fn push_record(records: &mut Vec<u8>, env: usize, kind: u8, bytes: &[u8]) {
     records.extend_from_slice(&(env as u32).to_le_bytes());
     records.push(kind);
-    records.extend_from_slice(&(text.len() as u32).to_le_bytes());
-    records.extend_from_slice(text.as_bytes());
+    records.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
+    records.extend_from_slice(bytes);
+}
+
+/// Appends `infos` as one record of `kind` (an encoded `InfoColumns`, as gRPC's answers carry them),
+/// none when there are no infos.
+fn push_infos(records: &mut Vec<u8>, kind: u8, infos: Infos) {
+    if !infos.is_empty() {
+        let columns = proto::InfoColumns { columns: convert::infos_to_proto(infos) };
+        push_record(records, 0, kind, &prost::Message::encode_to_vec(&columns));
+    }
 }
 
 fn check_len(what: &str, got: usize, expected: usize) -> Result<()> {

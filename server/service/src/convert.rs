@@ -6,7 +6,8 @@ use std::sync::Arc;
 use radserve_augment::{Pipeline, Sharing};
 use radserve_replay::{Batch, ReplayError, SampleSpec, Slot, Source};
 use radserve_core::{
-    BufferRequest, CatalogEntry, DType, EpisodeEnd, OptionValue, Options, SessionInfo, SessionSummary, Space, StepOutcome,
+    BufferRequest, CatalogEntry, DType, EpisodeEnd, InfoKind, Infos, OptionValue, Options, SessionInfo, SessionSummary, Space,
+    StepOutcome,
 };
 
 use crate::error::{Result, ServiceError};
@@ -411,15 +412,8 @@ pub fn step_to_proto(space: &Space, outcome: StepOutcome) -> proto::StepResponse
         truncated: outcome.truncated,
         final_obs: Some(observation_tensor(space, outcome.episodes.len(), outcome.final_obs)),
         episodes: outcome.episodes.iter().map(episode_to_proto).collect(),
-        infos: outcome
-            .infos
-            .into_iter()
-            .map(|info| proto::InfoDicts {
-                env_index: info.env_index as u32,
-                step_json: info.step.unwrap_or_default(),
-                reset_json: info.reset.unwrap_or_default(),
-            })
-            .collect(),
+        step_infos: infos_to_proto(outcome.step_infos),
+        reset_infos: infos_to_proto(outcome.reset_infos),
     }
 }
 
@@ -437,11 +431,26 @@ pub fn recv_to_proto(space: &Space, ready: &[bool], mut outcome: StepOutcome) ->
     }
 }
 
-/// The reset infos of the envs the session's last reset reset.
-pub fn reset_infos_to_proto(infos: &[(usize, String)]) -> Vec<proto::InfoDicts> {
+/// Info columns as the API sends them (`InfoColumn`): a numeric column's values as a tensor
+/// [envs, *shape], a text or JSON column's as texts.
+pub fn infos_to_proto(infos: Infos) -> Vec<proto::InfoColumn> {
     infos
-        .iter()
-        .map(|(env, info)| proto::InfoDicts { env_index: *env as u32, step_json: String::new(), reset_json: info.clone() })
+        .columns
+        .into_iter()
+        .map(|column| {
+            let kind = match column.kind {
+                InfoKind::Python => proto::InfoKind::Python,
+                InfoKind::Scalar => proto::InfoKind::Scalar,
+                InfoKind::Array => proto::InfoKind::Array,
+                InfoKind::Text => proto::InfoKind::Text,
+                InfoKind::Json => proto::InfoKind::Json,
+            };
+            let values = column.kind.numeric().then(|| {
+                let shape = std::iter::once(column.envs.len()).chain(column.shape.iter().map(|&d| d as usize)).collect();
+                tensor(column.dtype, shape, column.data)
+            });
+            proto::InfoColumn { path: column.path, envs: column.envs, kind: kind as i32, values, texts: column.texts }
+        })
         .collect()
 }
 

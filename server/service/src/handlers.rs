@@ -67,7 +67,7 @@ impl RadServeService {
             let obs = session.reset_with(&convert::reset_spec(&request)).await?;
             Ok(proto::ResetResponse {
                 obs: Some(observation_tensor(&session.observation_space, session.num_envs(), obs)),
-                infos: convert::reset_infos_to_proto(session.reset_infos()),
+                reset_infos: convert::infos_to_proto(session.reset_infos().clone()),
             })
         })
         .await

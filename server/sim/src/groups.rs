@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use async_trait::async_trait;
 use radserve_core::catalog::{engine_is_envpool, native_async_groups, OptionValue};
 use radserve_core::{
-    EnvGroup, EnvId, EnvNames, EnvSpec, FrameLayout, Options, PendingStep, ResetInfos, SimulatorError, Simulators, StepResult,
+    EnvGroup, EnvId, EnvNames, EnvSpec, FrameLayout, Infos, Options, PendingStep, SimulatorError, Simulators, StepResult,
 };
 use radserve_shm::MemFile;
 
@@ -39,7 +39,7 @@ impl EnvGroup for WorkerGroup {
         self.frames.as_slice()
     }
 
-    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<ResetInfos, SimulatorError> {
+    async fn reset(&mut self, seeds: Option<Vec<u64>>, mask: Option<Vec<bool>>) -> Result<Infos, SimulatorError> {
         match await_generation(self.worker.submit(Request::Reset { group: self.id, seeds, mask }).await).await {
             Ok((Response::Reset(infos), generation)) => {
                 self.generation = generation;

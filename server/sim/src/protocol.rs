@@ -8,7 +8,8 @@ use std::sync::Arc;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
-pub use radserve_core::simulators::{EnvSpec, GroupInfo, ResetInfos, StepResult};
+pub use radserve_core::simulators::{EnvSpec, StepResult};
+pub use radserve_core::Infos;
 use radserve_core::{EnvNames, Family, Options};
 
 /// A descriptor the server sends beside a request (not serialized: it travels as SCM_RIGHTS). Kept
@@ -87,8 +88,8 @@ pub enum Response {
     Specs(Vec<Result<EnvSpec, String>>),
     Created(EnvSpec),
     Attached,
-    /// The reset infos of the envs reset (index within the group, JSON text).
-    Reset(ResetInfos),
+    /// The reset infos of the envs reset (envs within the group).
+    Reset(Infos),
     Stepped(StepResult),
     /// An `AsyncReset` or `Send` was handed to the envs.
     Sent,

@@ -21,10 +21,10 @@ use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyDict};
 use serde::{Deserialize, Serialize};
 
-use radserve_core::{DType, EnvNames, Family, OptionValue, Options, Space};
+use radserve_core::{DType, EnvNames, Family, InfoColumn, InfoKind, Infos, OptionValue, Options, Space};
 use radserve_shm::MemFile;
 
-use crate::protocol::{self, EnvSpec, GroupConfig, GroupInfo, Request, Response, StepResult};
+use crate::protocol::{self, EnvSpec, GroupConfig, Request, Response, StepResult};
 
 /// The worker's Python package (server/sim/python/radserve_worker/), embedded in the binary: its
 /// modules in the order they import each other, the package first and the entry points last.
@@ -175,10 +175,37 @@ fn status_message(what: &'static str, status: &ffi::PyStatus) -> WorkerError {
     WorkerError::Python { what, detail }
 }
 
-/// What `Group.step` returns: rewards, terminated, truncated, (env, message) for simulators that raised.
-/// What a group's `step` returns: rewards, terminated, truncated, errors (env, message) and infos
-/// (env, step info JSON or None, reset info JSON or None).
-type GroupStepTuple = (Vec<f64>, Vec<bool>, Vec<bool>, Vec<(u32, String)>, Vec<(u32, Option<String>, Option<String>)>);
+/// An info column as `radserve_worker.common.info_columns` writes it: path, kind, dtype, shape, envs,
+/// data, texts.
+type ColumnTuple<'py> = (Vec<String>, String, String, Vec<u32>, Vec<u32>, Bound<'py, PyBytes>, Vec<String>);
+
+/// What a group's `step` returns: rewards, terminated, truncated, errors (env, message), and the
+/// step's and the resets' infos as columns.
+type GroupStepTuple<'py> = (Vec<f64>, Vec<bool>, Vec<bool>, Vec<(u32, String)>, Vec<ColumnTuple<'py>>, Vec<ColumnTuple<'py>>);
+
+/// Info columns as the worker's Python wrote them; the server checks them against the group
+/// (`Infos::check`) before it takes anything from them.
+fn extract_infos(columns: Vec<ColumnTuple<'_>>) -> PyResult<Infos> {
+    let columns = columns
+        .into_iter()
+        .map(|(path, kind, dtype, shape, envs, data, texts)| {
+            let kind = match kind.as_str() {
+                "python" => InfoKind::Python,
+                "scalar" => InfoKind::Scalar,
+                "array" => InfoKind::Array,
+                "text" => InfoKind::Text,
+                "json" => InfoKind::Json,
+                other => return Err(PyValueError::new_err(format!("unknown info column kind {other:?}"))),
+            };
+            let dtype = match kind.numeric() {
+                true => DType::from_name(&dtype).ok_or_else(|| PyValueError::new_err(format!("unsupported info dtype {dtype:?}")))?,
+                false => DType::Uint8,
+            };
+            Ok(InfoColumn { path, kind, envs, dtype, shape, data: data.as_bytes().to_vec(), texts })
+        })
+        .collect::<PyResult<Vec<_>>>()?;
+    Ok(Infos { columns })
+}
 
 struct HostedGroup {
     object: Py<PyAny>,
@@ -304,15 +331,15 @@ fn handle(
             Ok(Response::Attached)
         }
         Request::Reset { group, seeds, mask } => {
-            let infos = hosted_group(groups, group)?.object.bind(py).call_method1("reset", (seeds, mask))?.extract()?;
-            Ok(Response::Reset(infos))
+            let infos = hosted_group(groups, group)?.object.bind(py).call_method1("reset", (seeds, mask))?;
+            Ok(Response::Reset(extract_infos(infos.extract()?)?))
         }
         Request::Step { group, actions, skip } => {
             let hosted = hosted_group(groups, group)?;
             let outcome = hosted.object.bind(py).call_method1("step", (PyBytes::new(py, &actions), skip))?;
-            let (rewards, terminated, truncated, errors, infos): GroupStepTuple = outcome.extract()?;
-            let infos = infos.into_iter().map(|(env, step, reset)| GroupInfo { env, step, reset }).collect();
-            Ok(Response::Stepped(StepResult { rewards, terminated, truncated, errors, infos }))
+            let (rewards, terminated, truncated, errors, step_infos, reset_infos): GroupStepTuple = outcome.extract()?;
+            let (step_infos, reset_infos) = (extract_infos(step_infos)?, extract_infos(reset_infos)?);
+            Ok(Response::Stepped(StepResult { rewards, terminated, truncated, errors, step_infos, reset_infos }))
         }
         Request::AsyncReset { group, seeds } => {
             hosted_group(groups, group)?.object.bind(py).call_method1("async_reset", (seeds,))?;

@@ -7,8 +7,8 @@
 use std::collections::BTreeMap;
 
 use proptest::prelude::*;
-use radserve_core::{DType, EnvNames, Family, OptionValue, Space};
-use radserve_sim::protocol::{self, EnvSpec, GroupConfig, GroupInfo, Request, Response, StepResult, MAX_MESSAGE_BYTES};
+use radserve_core::{DType, EnvNames, Family, InfoColumn, InfoKind, Infos, OptionValue, Space};
+use radserve_sim::protocol::{self, EnvSpec, GroupConfig, Request, Response, StepResult, MAX_MESSAGE_BYTES};
 
 fn config() -> ProptestConfig {
     let cases = std::env::var("PROPTEST_CASES").ok().and_then(|value| value.parse().ok()).unwrap_or(2048);
@@ -32,8 +32,12 @@ fn options() -> impl Strategy<Value = BTreeMap<String, OptionValue>> {
     prop::collection::btree_map("[a-z_]{1,10}", option_value(), 0..4)
 }
 
+fn dtype() -> impl Strategy<Value = DType> {
+    prop::sample::select(vec![DType::Uint8, DType::Int32, DType::Int64, DType::Float32, DType::Float64, DType::Bool])
+}
+
 fn space() -> impl Strategy<Value = Space> {
-    let dtype = prop::sample::select(vec![DType::Uint8, DType::Int32, DType::Int64, DType::Float32, DType::Float64, DType::Bool]);
+    let dtype = dtype();
     prop_oneof![
         (dtype, prop::collection::vec(0usize..300, 0..4), prop::collection::vec(any::<f64>(), 0..4), prop::collection::vec(any::<f64>(), 0..4))
             .prop_map(|(dtype, shape, low, high)| Space::Box { dtype, shape, low, high }),
@@ -67,6 +71,37 @@ fn spec() -> impl Strategy<Value = EnvSpec> {
     (space(), space()).prop_map(|(observation, action)| EnvSpec { observation, action })
 }
 
+/// Info columns as a worker might send them: mostly consistent (envs ascending, values sized for
+/// them), sometimes not (the server must refuse those, never index past them).
+fn infos() -> impl Strategy<Value = Infos> {
+    let kind = prop::sample::select(vec![InfoKind::Python, InfoKind::Scalar, InfoKind::Array, InfoKind::Text, InfoKind::Json]);
+    let column = (
+        prop::collection::vec("\\PC{0,6}", 0..3),
+        kind,
+        prop::collection::btree_set(0u32..8, 0..5),
+        dtype(),
+        prop::collection::vec(0u32..4, 0..3),
+        prop::collection::vec(any::<u8>(), 0..48),
+        prop::collection::vec("\\PC{0,6}", 0..5),
+        any::<bool>(),
+    )
+        .prop_map(|(path, kind, envs, dtype, shape, bytes, texts, consistent)| {
+            let envs: Vec<u32> = envs.into_iter().collect();
+            if !consistent {
+                return InfoColumn { path, kind, envs, dtype, shape, data: bytes, texts };
+            }
+            let shape = if kind == InfoKind::Array { shape } else { Vec::new() };
+            let dtype = if kind == InfoKind::Python { DType::Float64 } else { dtype };
+            let row = shape.iter().map(|&d| d as usize).product::<usize>() * dtype.size_of();
+            let (data, texts) = match kind.numeric() {
+                true => ((0..envs.len() * row).map(|i| bytes.get(i).copied().unwrap_or(0)).collect(), Vec::new()),
+                false => (Vec::new(), envs.iter().map(|env| format!("{env}")).collect()),
+            };
+            InfoColumn { path: if path.is_empty() { vec!["k".into()] } else { path }, kind, envs, dtype, shape, data, texts }
+        });
+    prop::collection::vec(column, 0..3).prop_map(|columns| Infos { columns })
+}
+
 fn step_result() -> impl Strategy<Value = StepResult> {
     (0usize..6)
         .prop_flat_map(|n| (
@@ -74,11 +109,16 @@ fn step_result() -> impl Strategy<Value = StepResult> {
             prop::collection::vec(any::<bool>(), n),
             prop::collection::vec(any::<bool>(), n),
             prop::collection::vec((any::<u32>(), "\\PC{0,12}"), 0..2),
-            prop::collection::vec((any::<u32>(), prop::option::of("\\PC{0,12}"), prop::option::of("\\PC{0,12}")), 0..2),
+            infos(),
+            infos(),
         ))
-        .prop_map(|(rewards, terminated, truncated, errors, infos)| {
-            let infos = infos.into_iter().map(|(env, step, reset)| GroupInfo { env, step, reset }).collect();
-            StepResult { rewards, terminated, truncated, errors, infos }
+        .prop_map(|(rewards, terminated, truncated, errors, step_infos, reset_infos)| StepResult {
+            rewards,
+            terminated,
+            truncated,
+            errors,
+            step_infos,
+            reset_infos,
         })
 }
 
@@ -89,7 +129,7 @@ fn response() -> impl Strategy<Value = Response> {
         prop::collection::vec(prop_oneof![spec().prop_map(Ok), "\\PC{0,12}".prop_map(Err)], 0..3).prop_map(Response::Specs),
         spec().prop_map(Response::Created),
         Just(Response::Attached),
-        prop::collection::vec((any::<u32>(), "\\PC{0,12}"), 0..2).prop_map(Response::Reset),
+        infos().prop_map(Response::Reset),
         step_result().prop_map(Response::Stepped),
         Just(Response::Sent),
         (prop::collection::vec(any::<bool>(), 0..6), step_result()).prop_map(|(ready, result)| Response::Received { ready, result }),
@@ -159,6 +199,30 @@ proptest! {
     #[test]
     fn valid_responses_round_trip_and_their_mutations_never_panic(message in response(), edits in edits()) {
         check_round_trip_and_mutations(&message, &edits)?;
+    }
+
+    /// What a worker sends is checked before the server takes anything from it: the check never
+    /// panics, and columns that pass it join a session's columns (at any offset, any rows kept)
+    /// into columns that pass it too.
+    #[test]
+    fn step_results_are_checked_and_what_passes_joins_a_session_safely(
+        result in step_result(),
+        edits in edits(),
+        offset in 0usize..8,
+        dropped in 0usize..8,
+    ) {
+        let framed = protocol::encode(&Response::Stepped(result)).unwrap();
+        for body in [framed[4..].to_vec(), mutate(framed[4..].to_vec(), &edits)] {
+            let Ok(Response::Stepped(result)) = protocol::decode::<Response>(&body) else { continue };
+            let envs = result.rewards.len();
+            if result.check(envs).is_err() {
+                continue;
+            }
+            let mut session = Infos::default();
+            session.append(&result.step_infos, 0, |_| true);
+            session.append(&result.reset_infos, offset, |local| local != dropped);
+            prop_assert!(session.check(envs + offset).is_ok(), "{:?}", session);
+        }
     }
 
     #[test]

@@ -6,11 +6,12 @@ use std::task::Poll;
 
 use futures_util::future::join_all;
 
-use super::{copying, EnvInfo, Session, StepOutcome};
+use super::{copying, Session, StepOutcome};
 use crate::actions::{check_mask, check_seed, validate_actions, ScatteredActions};
 use crate::catalog::{async_batch, native_async_batch};
 use crate::error::CoreError;
-use crate::simulators::{GroupInfo, SimulatorError, StepResult};
+use crate::infos::Infos;
+use crate::simulators::{SimulatorError, StepResult};
 use crate::space::DType;
 
 impl Session {
@@ -117,7 +118,8 @@ impl Session {
                 terminated: vec![false; n],
                 truncated: vec![false; n],
                 errors: Vec::new(),
-                infos: infos.into_iter().map(|(env, info)| GroupInfo { env, step: None, reset: Some(info) }).collect(),
+                step_infos: Infos::default(),
+                reset_infos: infos,
             };
             return (index, Ok((vec![true; n], result)));
         }
@@ -310,20 +312,23 @@ impl Session {
         let num_envs = self.num_envs();
         let envs = self.groups[index].envs();
         let (local_ready, result) = match reply {
-            Ok((ready, result))
-                if ready.len() == envs.len()
-                    && result.fits(envs.len())
-                    && ready.iter().zip(&self.in_flight[envs.clone()]).all(|(&ready, &stepping)| stepping || !ready) =>
-            {
+            Ok((ready, result)) => {
+                let problem = if ready.len() != envs.len()
+                    || !ready.iter().zip(&self.in_flight[envs.clone()]).all(|(&ready, &stepping)| stepping || !ready)
+                {
+                    Some(format!(
+                        "worker answered a recv with {} of {} envs ready, or an env that was not stepping",
+                        ready.len(),
+                        envs.len()
+                    ))
+                } else {
+                    result.check(envs.len()).err()
+                };
+                if let Some(message) = problem {
+                    self.needs_reset = true;
+                    return Err(CoreError::Simulator(message));
+                }
                 (ready, result)
-            }
-            Ok((ready, _)) => {
-                self.needs_reset = true;
-                return Err(CoreError::Simulator(format!(
-                    "worker answered a recv with {} of {} envs ready, or an env that was not stepping",
-                    ready.len(),
-                    envs.len()
-                )));
             }
             Err(error) => {
                 self.needs_reset = true;
@@ -338,11 +343,8 @@ impl Session {
         };
         let mut ready = vec![false; num_envs];
         ready[envs.clone()].copy_from_slice(&local_ready);
-        outcome.infos.extend(result.infos.iter().filter(|info| local_ready[info.env as usize]).map(|info| EnvInfo {
-            env_index: envs.start + info.env as usize,
-            step: info.step.clone(),
-            reset: info.reset.clone(),
-        }));
+        outcome.step_infos.append(&result.step_infos, envs.start, |local| local_ready[local]);
+        outcome.reset_infos.append(&result.reset_infos, envs.start, |local| local_ready[local]);
         // A ready env's first result after async_reset is its reset's first frame: its stack starts
         // from it. The others took a step.
         let reset: Vec<bool> = (0..num_envs).map(|env| ready[env] && std::mem::take(&mut self.resetting[env])).collect();

@@ -15,7 +15,8 @@ use radserve_replay::ReplayBuffer;
 use crate::catalog::{async_batch, engine_is_envpool, EnvId, Options};
 use crate::error::CoreError;
 use crate::metrics::CoreMetrics;
-use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, PendingStep, ResetInfos, SimulatorError, Simulators};
+use crate::infos::Infos;
+use crate::simulators::{EnvGroup, EnvSpec, FrameLayout, PendingStep, SimulatorError, Simulators};
 use crate::space::Space;
 
 mod async_mode;
@@ -111,17 +112,11 @@ pub struct StepOutcome {
     pub episodes: Vec<EpisodeEnd>,
     /// [episodes.len(), *observation shape]: the last observation of each ended episode.
     pub final_obs: Vec<u8>,
-    /// The envs' own info dicts (JSON text from the simulators), for the envs that returned any.
-    pub infos: Vec<EnvInfo>,
-}
-
-/// An env's own info dicts from one step: the step's, and (when the step ended its episode) the
-/// reset's, as JSON text the simulator wrote; the server only carries them.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct EnvInfo {
-    pub env_index: usize,
-    pub step: Option<String>,
-    pub reset: Option<String>,
+    /// The envs' own info dicts from the step (gymnasium's `info`), of the envs that returned one.
+    pub step_infos: Infos,
+    /// The info dicts of the resets made in the step (same-step autoreset, a simulator that raised,
+    /// a lost worker's group rebuilt), of the envs that returned one.
+    pub reset_infos: Infos,
 }
 
 pub struct Session {
@@ -149,8 +144,8 @@ pub struct Session {
     pub stats: Arc<SessionStats>,
     /// The evaluation view observations are returned through (replay keeps the raw frames).
     view: Option<ImagePlan>,
-    /// The reset info dicts of the envs the last reset reset (env index, JSON text).
-    reset_infos: Vec<(usize, String)>,
+    /// The reset info dicts of the envs the last reset reset.
+    reset_infos: Infos,
     /// Where its steps and resets are counted (the manager's, shared by every session).
     metrics: Arc<CoreMetrics>,
     /// Asynchronous mode: envs sent an action (or reset) whose result `recv` has not returned yet.
@@ -162,7 +157,7 @@ pub struct Session {
     group_steps: Vec<Option<PendingStep>>,
     /// The same: groups whose async reset is done and not yet returned by `recv`, with their reset
     /// infos, in order.
-    group_resets: VecDeque<(usize, ResetInfos)>,
+    group_resets: VecDeque<(usize, Infos)>,
 }
 
 impl Session {
@@ -227,7 +222,7 @@ impl Session {
             replay: None,
             stats: Arc::new(SessionStats { seed: AtomicU64::new(config_seed), ..SessionStats::default() }),
             view: None,
-            reset_infos: Vec::new(),
+            reset_infos: Infos::default(),
             metrics: Arc::default(),
             in_flight: vec![false; config_num_envs],
             resetting: vec![false; config_num_envs],
@@ -251,9 +246,8 @@ impl Session {
         self.needs_reset
     }
 
-    /// The reset info dicts (env index, JSON text) of the envs the last reset reset, for those that
-    /// returned a non-empty one.
-    pub fn reset_infos(&self) -> &[(usize, String)] {
+    /// The reset info dicts of the envs the last reset reset, for those that returned a non-empty one.
+    pub fn reset_infos(&self) -> &Infos {
         &self.reset_infos
     }
 

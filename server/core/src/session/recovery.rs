@@ -1,15 +1,18 @@
 //! A group whose simulator process was lost (died, hung, or replaced for another session): it is
 //! rebuilt from its envs' seeds and its episodes end, truncated, with the error.
 
-use super::{EnvInfo, Session, StepOutcome};
+use super::{Session, StepOutcome};
 use crate::error::CoreError;
-use crate::simulators::ResetInfos;
+use crate::infos::Infos;
 
 impl Session {
     /// Resets one group with its envs' seeds (after its process was replaced); its reset infos.
-    pub(super) async fn reset_group(&mut self, index: usize) -> Result<ResetInfos, CoreError> {
+    pub(super) async fn reset_group(&mut self, index: usize) -> Result<Infos, CoreError> {
         let seeds = self.group_seeds(index);
-        Ok(self.groups[index].reset(Some(seeds), None).await?)
+        let infos = self.groups[index].reset(Some(seeds), None).await?;
+        let envs = self.groups[index].envs().len();
+        infos.check(envs).map_err(|error| CoreError::Simulator(format!("worker answered a reset with a bad info: {error}")))?;
+        Ok(infos)
     }
 
     /// After a group's process was lost mid-step: its envs' episodes end as truncated with the error,
@@ -27,12 +30,7 @@ impl Session {
                 return Err(error);
             }
         };
-        let start = self.groups[index].envs().start;
-        outcome.infos.extend(infos.into_iter().map(|(local, info)| EnvInfo {
-            env_index: start + local as usize,
-            step: None,
-            reset: Some(info),
-        }));
+        outcome.reset_infos.append(&infos, self.groups[index].envs().start, |_| true);
         let stack_bytes = self.stack_bytes();
         for env in self.groups[index].envs() {
             outcome.final_obs.extend_from_slice(&self.stacks[env * stack_bytes..(env + 1) * stack_bytes]);

@@ -5,7 +5,8 @@ use std::sync::atomic::Ordering;
 use futures_util::future::join_all;
 use radserve_replay::RecordedStep;
 
-use super::{copying, EnvInfo, ResetSpec, Session, StepOutcome};
+use super::{copying, ResetSpec, Session, StepOutcome};
+use crate::infos::Infos;
 use crate::actions::{check_mask, check_seed, validate_actions, MAX_SEED};
 use crate::error::CoreError;
 use crate::simulators::{SimulatorError, StepResult};
@@ -85,7 +86,7 @@ impl Session {
         // A group whose process was replaced was rebuilt from its seeds: it is reset whole, so every
         // env of it starts over (unmasked ones too: their simulator state went with the process).
         let mut whole = vec![spec.mask.is_none(); self.groups.len()];
-        self.reset_infos.clear();
+        self.reset_infos = Infos::default();
         for (index, result) in results.into_iter().enumerate() {
             let infos = match result {
                 None => continue,
@@ -96,10 +97,10 @@ impl Session {
                 }
                 Some(Err(error)) => return Err(error.into()),
             };
-            let start = self.groups[index].envs().start;
-            self.reset_infos.extend(infos.into_iter().map(|(local, info)| (start + local as usize, info)));
+            let envs = self.groups[index].envs();
+            infos.check(envs.len()).map_err(|error| CoreError::Simulator(format!("worker answered a reset with a bad info: {error}")))?;
+            self.reset_infos.append(&infos, envs.start, |_| true);
         }
-        self.reset_infos.sort_by_key(|(env, _)| *env);
         Ok(copying(self.step_copy_bytes(), || self.take_reset(spec.mask.as_deref(), &plans, &whole)))
     }
 
@@ -191,16 +192,13 @@ impl Session {
             let result = match result {
                 // A group's answer sized for another group (a bug, or a broken worker) ends the step
                 // cleanly instead of indexing past it below.
-                Ok(result) if result.fits(group_len) => result,
-                Ok(result) => {
-                    self.needs_reset = true;
-                    return Err(CoreError::Simulator(format!(
-                        "worker answered a step of {group_len} envs with {} rewards, {} terminated and {} truncated flags",
-                        result.rewards.len(),
-                        result.terminated.len(),
-                        result.truncated.len()
-                    )));
-                }
+                Ok(result) => match result.check(group_len) {
+                    Ok(()) => result,
+                    Err(message) => {
+                        self.needs_reset = true;
+                        return Err(CoreError::Simulator(message));
+                    }
+                },
                 // The group's process died, hung, or was replaced since this session last used it
                 // (another session's step crashed it): its episodes end here.
                 Err(SimulatorError::Lost(message)) => {
@@ -226,9 +224,8 @@ impl Session {
         let skipped = |env: usize| skip.is_some_and(|skip| skip[env]);
         let action_bytes = self.frame_spec.action.num_bytes();
         let group_envs = self.groups[index].envs();
-        outcome.infos.extend(result.infos.iter().filter(|info| !skipped(group_envs.start + info.env as usize)).map(|info| {
-            EnvInfo { env_index: group_envs.start + info.env as usize, step: info.step.clone(), reset: info.reset.clone() }
-        }));
+        outcome.step_infos.append(&result.step_infos, group_envs.start, |local| !skipped(group_envs.start + local));
+        outcome.reset_infos.append(&result.reset_infos, group_envs.start, |local| !skipped(group_envs.start + local));
         if let Some(replay) = &self.replay {
             let mut replay = replay.write().expect("replay lock");
             let group = &self.groups[index];

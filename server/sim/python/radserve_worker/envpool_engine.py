@@ -231,7 +231,7 @@ class EnvpoolGroup(Group):
         truncated = np.zeros(self.n, dtype=bool)
         active = self.ids if skip is None else self.ids[~np.asarray(skip, dtype=bool)]
         if not len(active):
-            return rewards.tolist(), terminated.tolist(), truncated.tolist(), [], []
+            return rewards.tolist(), terminated.tolist(), truncated.tolist(), [], [], []
         sent = actions if len(active) == self.n else actions[active]
         try:
             for repeat in range(self.repeat, 0, -1):
@@ -260,8 +260,8 @@ class EnvpoolGroup(Group):
             self._rebuild()
             parts, _, _, _, env_ids = self._call(None, self.ids)
             self._write(self.current, parts, None, env_ids)
-            return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)], []
-        return rewards.tolist(), terminated.tolist(), truncated.tolist(), [], []
+            return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)], [], []
+        return rewards.tolist(), terminated.tolist(), truncated.tolist(), [], [], []
 
     # EnvPool's asynchronous mode (batch_size < num_envs), the interface EnvPool's users step with:
     # send(actions, env_ids) hands envs their next action and returns at once, recv() waits for the first

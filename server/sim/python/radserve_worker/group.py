@@ -3,7 +3,7 @@ together under one GIL hold."""
 
 import numpy as np
 
-from radserve_worker.common import info_json
+from radserve_worker.common import info_columns
 
 
 class Group:
@@ -11,6 +11,8 @@ class Group:
 
     def __init__(self, adapter, name, options, seeds):
         self.adapter, self.name, self.options = adapter, name, options
+        # The session's option send_infos=False: the envs' info dicts are not collected or sent.
+        self.send_infos = bool(options.get("send_infos", True))
         self.seeds = list(seeds)
         self.envs = [adapter(name, options, seed) for seed in self.seeds]
         self._spec = self.envs[0].spec()
@@ -36,7 +38,7 @@ class Group:
 
     def reset(self, seeds, mask=None):
         """Resets every env, or those whose `mask` entry is true; `seeds` (one per env of the group)
-        re-seed the envs reset. Returns the non-empty reset infos: (env, JSON text)."""
+        re-seed the envs reset. Returns the reset infos as columns (common.info_columns)."""
         infos = []
         for j, env in enumerate(self.envs):
             if mask is not None and not mask[j]:
@@ -44,9 +46,9 @@ class Group:
             if seeds is not None:
                 self.seeds[j] = seeds[j]
             self.current[j], info = env.reset(None if seeds is None else seeds[j])
-            if info:
-                infos.append((j, info_json(info)))
-        return infos
+            if info and self.send_infos:
+                infos.append((j, info))
+        return info_columns(infos)
 
     def _restart(self, j):
         """Resets env j after its simulator raised (its frame and reset info); rebuilds it when even
@@ -59,13 +61,14 @@ class Group:
 
     def step(self, actions, skip=None):
         """Steps every env, except those whose `skip` entry is true (gymnasium NEXT_STEP's reset step:
-        they keep their frame, reward 0, no flag)."""
+        they keep their frame, reward 0, no flag). Returns rewards, terminated, truncated, errors
+        (env, message) and the step's and the resets' infos as columns (common.info_columns)."""
         n = len(self.envs)
         actions = np.frombuffer(actions, dtype=self.action_dtype).reshape((n,) + self.action_shape)
         rewards = [0.0] * n
         terminated = [False] * n
         truncated = [False] * n
-        errors, infos = [], []
+        errors, step_infos, reset_infos = [], [], []
         for j, env in enumerate(self.envs):
             if skip is not None and skip[j]:
                 continue
@@ -77,17 +80,20 @@ class Group:
                 self.final[j] = self.current[j]
                 truncated[j] = True
                 self.current[j], reset_info = self._restart(j)
-                if reset_info:
-                    infos.append((j, None, info_json(reset_info)))
+                if reset_info and self.send_infos:
+                    reset_infos.append((j, reset_info))
                 continue
             if terminated[j] or truncated[j]:
                 self.final[j] = frame
                 self.current[j], reset_info = env.reset(None)
             else:
                 self.current[j] = frame
-            if info or reset_info:
-                infos.append((j, info_json(info), info_json(reset_info)))
-        return rewards, terminated, truncated, errors, infos
+            if self.send_infos:
+                if info:
+                    step_infos.append((j, info))
+                if reset_info:
+                    reset_infos.append((j, reset_info))
+        return rewards, terminated, truncated, errors, info_columns(step_infos), info_columns(reset_infos)
 
     def close(self):
         for env in self.envs:

@@ -121,7 +121,7 @@ class ProcgenGroup(Group):
             self.final[:] = self.current
             self.vec = self._fresh_vector()
             self.current[:] = self._frames()
-            return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)], []
+            return [0.0] * self.n, [False] * self.n, [True] * self.n, [(j, message) for j in range(self.n)], [], []
         ended = first.astype(bool)
         rewards = rewards.astype(np.float64)
         if skipped:
@@ -139,7 +139,7 @@ class ProcgenGroup(Group):
         common.hwc_to_chw(obs["rgb"], self.current)
         if skipped:
             self.current[skipped] = held
-        return rewards.tolist(), ended.tolist(), [False] * self.n, [], []
+        return rewards.tolist(), ended.tolist(), [False] * self.n, [], [], []
 
     def close(self):
         if self.vec is not None:
