@@ -251,7 +251,7 @@ mapped = 0
 for pid in sys.argv[1:]:
     try:
         names = os.listdir(f"/proc/{pid}/fd")
-    except PermissionError:
+    except (PermissionError, FileNotFoundError):  # protected, or gone (a transient worker is killed)
         continue
     for name in names:
         path = f"/proc/{pid}/fd/{name}"
@@ -261,7 +261,8 @@ for pid in sys.argv[1:]:
             fd = os.open(path, os.O_RDWR)
         except OSError:
             continue
-        mmap.mmap(fd, 0).close()
+        if os.fstat(fd).st_size:  # an empty memfd cannot be mapped, but opening it was the breach
+            mmap.mmap(fd, 0).close()
         mapped += 1
 print(mapped)
 """
