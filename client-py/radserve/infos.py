@@ -72,34 +72,40 @@ def vector_infos(columns: "Sequence[pb.InfoColumn]", num_envs: int) -> "dict | N
     columns need each env's dict instead: a key with values of two types (gymnasium's array takes
     the first env's type and casts the others), a key both a value and a dict, JSON values, or
     gymnasium's special `final_obs`."""
-    infos: dict = {}
+    infos = _every_env_numbers(columns, num_envs)
+    if infos is not None:
+        return infos
+    infos = {}
     leaves, parents = set(), set()
+    every = None  # a mask of every env, copied for each key every env reported
     for column in columns:
-        path = tuple(column.path)
-        if column.kind == pb.INFO_KIND_JSON or "final_obs" in path or path in leaves or path in parents:
-            return None
-        prefixes = [path[:end] for end in range(1, len(path))]
-        if any(prefix in leaves for prefix in prefixes):
+        kind, path = column.kind, tuple(column.path)
+        if kind == pb.INFO_KIND_JSON or path in leaves or path in parents or "final_obs" in path:
             return None
         leaves.add(path)
-        parents.update(prefixes)
         # Envs are ascending and distinct: as many as the session has is every env.
         everyone = len(column.envs) == num_envs
         envs = slice(None) if everyone else np.asarray(column.envs, dtype=np.intp)
         target = infos
-        for part in path[:-1]:
-            mask = target.get(f"_{part}")
-            if mask is None:
-                target[part], target[f"_{part}"] = {}, np.zeros(num_envs, dtype=np.bool_)
-            target[f"_{part}"][envs] = True
-            target = target[part]
-        key = path[-1]
-        if column.kind == pb.INFO_KIND_TEXT:
+        if len(path) > 1:
+            prefixes = [path[:end] for end in range(1, len(path))]
+            if any(prefix in leaves for prefix in prefixes):
+                return None
+            parents.update(prefixes)
+            for part in path[:-1]:
+                if f"_{part}" not in target:
+                    target[part], target[f"_{part}"] = {}, np.zeros(num_envs, dtype=np.bool_)
+                target[f"_{part}"][envs] = True
+                target = target[part]
+        if kind == pb.INFO_KIND_TEXT:
             array = np.full(num_envs, None, dtype=object)
             array[envs] = np.array(list(column.texts), dtype=object)
         else:
-            values = _convert.to_numpy(column.values)
-            if column.kind == pb.INFO_KIND_SCALAR and values.dtype == np.bool_:
+            tensor = column.values
+            values = np.frombuffer(tensor.data, dtype=_convert.NUMPY_DTYPES[tensor.dtype])
+            if kind == pb.INFO_KIND_ARRAY:
+                values = values.reshape(tuple(tensor.shape))
+            if kind == pb.INFO_KIND_SCALAR and values.dtype == np.bool_:
                 # np.bool_ is no np.number: gymnasium keeps numpy bools in an object array.
                 array = np.full(num_envs, None, dtype=object)
                 for env, value in zip(column.envs, values):
@@ -110,11 +116,34 @@ def vector_infos(columns: "Sequence[pb.InfoColumn]", num_envs: int) -> "dict | N
                 array = np.zeros((num_envs,) + values.shape[1:], dtype=values.dtype)
                 array[envs] = values
         if everyone:
-            mask = np.ones(num_envs, dtype=np.bool_)
+            if every is None:
+                every = np.ones(num_envs, dtype=np.bool_)
+            mask = every.copy()
         else:
             mask = np.zeros(num_envs, dtype=np.bool_)
             mask[envs] = True
-        target[key], target[f"_{key}"] = array, mask
+        target[path[-1]], target[f"_{path[-1]}"] = array, mask
+    return infos
+
+
+def _every_env_numbers(columns: "Sequence[pb.InfoColumn]", num_envs: int) -> "dict | None":
+    """`vector_infos` of a step whose every key is a number every env reported (a gym step's infos),
+    in the fewest calls: each key's values as the array, every mask all true. None for anything else."""
+    infos: dict = {}
+    every = None
+    for column in columns:
+        kind = column.kind
+        if (kind != pb.INFO_KIND_PYTHON and kind != pb.INFO_KIND_SCALAR) or len(column.envs) != num_envs \
+                or len(column.path) != 1:
+            return None
+        key, tensor = column.path[0], column.values
+        dtype = _convert.NUMPY_DTYPES[tensor.dtype]
+        masked = "_" + key
+        if key in infos or masked in infos or key == "final_obs" or (kind == pb.INFO_KIND_SCALAR and dtype == np.bool_):
+            return None
+        if every is None:
+            every = np.ones(num_envs, dtype=np.bool_)
+        infos[key], infos[masked] = np.frombuffer(tensor.data, dtype).copy(), every.copy()
     return infos
 
 
