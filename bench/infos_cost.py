@@ -49,6 +49,9 @@ def serve_measurements(client_dir: str, binary: str) -> None:
 
     with radserve.LocalServer(workers=2, binary=binary, env={"RADSERVE__SIM__VENV": sys.prefix}) as server:
         client = radserve.Client(server.address)
+        # The catalog is built before anything is timed: its transient worker renders every task's
+        # spec (software GL here), which would otherwise run beside the first workload's turns.
+        client.list_envs()
         print(json.dumps({"ready": True}), flush=True)
         envs, actions, count = None, [], 0
         for line in sys.stdin:
@@ -162,13 +165,18 @@ def main() -> None:
             rows.append(row)
             print(record.plain(row))
     if not args.no_results:
+        before = ""
+        if args.before:
+            head = subprocess.run(["git", "-C", args.before, "rev-parse", "--short=12", "HEAD"], capture_output=True,
+                                  text=True).stdout.strip()
+            before = f" JSON (before): commit {head or 'unknown'}, its client and its binary."
         table = {"id": "infos_cost", "rows": rows, "align": ["l", "l"] + ["r"] * (3 * len(names) - 1),
                  "columns": ["workload", "delivery", *(f"{name}: env steps/s" for name in names),
                              *(f"{name} / off" for name in names[1:]),
                              *(f"{name}: CPU us per env step" for name in names)],
                  "note": f"One session per variant (2 workers, SameStep, random actions), the variants taking "
                          f"{args.chunks} turns of {args.steps} steps per round; median (range) of {args.rounds} "
-                         "rounds, ratios per round; CPU: the client's process, the server and its workers."}
+                         "rounds, ratios per round; CPU: the client's process, the server and its workers." + before}
         record.write("infos_cost", [table], {"rounds": args.rounds, "chunks": args.chunks, "steps": args.steps,
                                              "before": os.path.basename(args.before.rstrip("/")) if args.before else ""})
 
