@@ -120,9 +120,9 @@ impl Infos {
     }
 
     /// Appends the rows of `group`'s columns whose env (within the group) `keep` accepts, their envs
-    /// moved by `offset` (the group's first env in the session). Called for a session's groups in env order, so each
-    /// column's envs stay ascending: rows join the column of the same key and type when it ends
-    /// before them, else start a new one. `group` must have passed [`Infos::check`].
+    /// moved by `offset` (the group's first env in the session). Called for a session's groups in
+    /// env order, so each column's envs stay ascending: rows join the column of the same key and type
+    /// when it ends before them, else start a new one. `group` must have passed [`Infos::check`].
     pub fn append(&mut self, group: &Infos, offset: usize, keep: impl Fn(usize) -> bool) {
         for column in &group.columns {
             let kept: Vec<usize> = (0..column.envs.len()).filter(|&row| keep(column.envs[row] as usize)).collect();
@@ -133,7 +133,7 @@ impl Infos {
             let index = match self.columns.iter().position(|mine| mine.same_values(column) && mine.envs.last().is_some_and(|&last| last < first)) {
                 Some(index) => index,
                 None => {
-                    self.columns.push(InfoColumn { envs: Vec::new(), data: Vec::new(), texts: Vec::new(), ..column.clone_empty() });
+                    self.columns.push(column.clone_empty());
                     self.columns.len() - 1
                 }
             };

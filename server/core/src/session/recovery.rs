@@ -10,8 +10,13 @@ impl Session {
     pub(super) async fn reset_group(&mut self, index: usize) -> Result<Infos, CoreError> {
         let seeds = self.group_seeds(index);
         let infos = self.groups[index].reset(Some(seeds), None).await?;
-        let envs = self.groups[index].envs().len();
-        infos.check(envs).map_err(|error| CoreError::Simulator(format!("worker answered a reset with a bad info: {error}")))?;
+        self.checked_reset_infos(index, infos)
+    }
+
+    /// Group `index`'s reset infos, refused when a column does not fit the group (nothing of a
+    /// worker's answer is taken before it is checked).
+    pub(super) fn checked_reset_infos(&self, index: usize, infos: Infos) -> Result<Infos, CoreError> {
+        infos.check(self.groups[index].envs().len()).map_err(|error| CoreError::Simulator(format!("worker answered a reset with a bad info: {error}")))?;
         Ok(infos)
     }
 

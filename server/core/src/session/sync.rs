@@ -90,16 +90,14 @@ impl Session {
         for (index, result) in results.into_iter().enumerate() {
             let infos = match result {
                 None => continue,
-                Some(Ok(infos)) => infos,
+                Some(Ok(infos)) => self.checked_reset_infos(index, infos)?,
                 Some(Err(SimulatorError::Lost(_))) => {
                     whole[index] = true;
                     self.reset_group(index).await?
                 }
                 Some(Err(error)) => return Err(error.into()),
             };
-            let envs = self.groups[index].envs();
-            infos.check(envs.len()).map_err(|error| CoreError::Simulator(format!("worker answered a reset with a bad info: {error}")))?;
-            self.reset_infos.append(&infos, envs.start, |_| true);
+            self.reset_infos.append(&infos, self.groups[index].envs().start, |_| true);
         }
         Ok(copying(self.step_copy_bytes(), || self.take_reset(spec.mask.as_deref(), &plans, &whole)))
     }
