@@ -133,11 +133,11 @@ pub fn check_capacity(capacity: usize) -> Result<()> {
 }
 
 /// reward (f32), flags (u8), episode start (u64), step index (u64).
-const SLOT_METADATA_BYTES: usize = 4 + 1 + 8 + 8;
+pub(crate) const SLOT_METADATA_BYTES: usize = 4 + 1 + 8 + 8;
 
-const FIRST_OF_EPISODE: u8 = 1;
-const TERMINATED: u8 = 2;
-const TRUNCATED: u8 = 4;
+pub(crate) const FIRST_OF_EPISODE: u8 = 1;
+pub(crate) const TERMINATED: u8 = 2;
+pub(crate) const TRUNCATED: u8 = 4;
 
 /// Where a sampled transition lives.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -192,21 +192,25 @@ impl RecentBatches {
 }
 
 pub struct ReplayBuffer {
-    layout: ReplayLayout,
-    slots: usize,
-    frames: Vec<u8>,
-    actions: Vec<u8>,
-    rewards: Vec<f32>,
-    flags: Vec<u8>,
-    episode_starts: Vec<u64>,
-    step_indices: Vec<u64>,
+    pub(crate) layout: ReplayLayout,
+    pub(crate) slots: usize,
+    pub(crate) frames: Vec<u8>,
+    pub(crate) actions: Vec<u8>,
+    pub(crate) rewards: Vec<f32>,
+    pub(crate) flags: Vec<u8>,
+    pub(crate) episode_starts: Vec<u64>,
+    pub(crate) step_indices: Vec<u64>,
     /// Per env: frames written so far (the absolute index of the next one).
-    written: Vec<u64>,
+    pub(crate) written: Vec<u64>,
+    /// Per env: the first frame its slots hold for certain. 0, except after a restore whose snapshot
+    /// lost older frames (the snapshot writer was lapped, or the snapshot was compacted): frames below
+    /// it are stale, so no stack may reach below it.
+    pub(crate) floors: Vec<u64>,
     /// Per env: whether an episode is in progress (a first frame was recorded and it has not ended).
-    in_episode: Vec<bool>,
+    pub(crate) in_episode: Vec<bool>,
     /// One past the largest step index recorded.
-    steps_recorded: u64,
-    counters: ReplayCounters,
+    pub(crate) steps_recorded: u64,
+    pub(crate) counters: ReplayCounters,
     recent_batches: RecentBatches,
     /// Producers (sample streams) running on this buffer.
     active_producers: Arc<AtomicUsize>,
@@ -252,6 +256,7 @@ impl ReplayBuffer {
             episode_starts: vec![0; total],
             step_indices: vec![0; total],
             written: vec![0; layout.num_envs],
+            floors: vec![0; layout.num_envs],
             in_episode: vec![false; layout.num_envs],
             steps_recorded: 0,
             counters: ReplayCounters::default(),
@@ -298,15 +303,26 @@ impl ReplayBuffer {
         self.len() == 0
     }
 
-    fn slot(&self, env: usize, frame: u64) -> usize {
+    pub(crate) fn slot(&self, env: usize, frame: u64) -> usize {
         env * self.slots + (frame % self.slots as u64) as usize
     }
 
     /// The oldest absolute frame index whose transition's stacks are still whole.
-    fn oldest_sampleable(&self, env: usize) -> u64 {
+    pub(crate) fn oldest_sampleable(&self, env: usize) -> u64 {
         let written = self.written[env];
+        let stack = self.layout.frame_stack as u64;
         // The obs stack of the transition into frame i reaches back to frame i - frame_stack.
-        (written + self.layout.frame_stack as u64).saturating_sub(self.slots as u64).max(1)
+        let oldest = (written + stack).saturating_sub(self.slots as u64).max(1);
+        match self.floors[env] {
+            0 => oldest,
+            floor => oldest.max(floor + stack),
+        }
+    }
+
+    /// The oldest frame of `env` its slots still hold (older ones were overwritten, or lost in a
+    /// restore): what a snapshot can copy.
+    pub(crate) fn held_from(&self, env: usize) -> u64 {
+        self.written[env].saturating_sub(self.slots as u64).max(self.floors[env])
     }
 
     fn transitions_in(&self, env: usize) -> usize {

@@ -9,6 +9,7 @@ mod delivery;
 mod error;
 mod producer;
 mod shared;
+pub mod snapshot;
 
 pub use buffer::{
     check_capacity, BufferKind, ProducerPermit, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata,

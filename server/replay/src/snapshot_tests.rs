@@ -1,0 +1,292 @@
+//! Snapshots written while the buffer fills, restored into a new buffer: every transition the new
+//! buffer can sample equals the original's, episodes in progress end truncated, and any damage to the
+//! files is refused with the file named and the buffer left empty.
+
+use std::sync::RwLock;
+
+use proptest::prelude::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::*;
+use crate::buffer::{RecordedStep, TransitionRef};
+
+const IDENTITY: &str = "{\"env\":\"test/Pixels-v0\",\"num_envs\":3}";
+
+fn layout(capacity: usize) -> ReplayLayout {
+    ReplayLayout { kind: BufferKind::Replay, capacity, num_envs: 3, frame_stack: 3, frame_bytes: 48, action_bytes: 8 }
+}
+
+/// Records `steps` steps of every env: frames and actions from the rng, episodes that end (terminated
+/// or truncated) now and then.
+fn record(buffer: &RwLock<ReplayBuffer>, rng: &mut ChaCha8Rng, steps: usize, step_calls: &mut u64) {
+    let mut replay = buffer.write().unwrap();
+    let layout = replay.layout;
+    let mut frame = vec![0u8; layout.frame_bytes];
+    let mut action = vec![0u8; layout.action_bytes];
+    for _ in 0..steps {
+        for env in 0..layout.num_envs {
+            rng.fill(&mut frame[..]);
+            if !replay.in_episode[env] {
+                replay.record_first_frame(env, &frame, *step_calls);
+                continue;
+            }
+            rng.fill(&mut action[..]);
+            let end: u8 = rng.random_range(0..20);
+            let step = RecordedStep {
+                action: &action,
+                reward: rng.random_range(-1.0..1.0),
+                terminated: end == 0,
+                truncated: end == 1,
+                next_frame: &frame,
+                step_index: *step_calls,
+            };
+            replay.record_step(env, &step);
+        }
+        *step_calls += 1;
+    }
+}
+
+/// Every transition `restored` can sample, checked against `original`: frames, next frames and
+/// metadata equal, except that the last transition of an episode in progress ends truncated.
+fn assert_same_transitions(original: &ReplayBuffer, restored: &ReplayBuffer) -> usize {
+    let layout = original.layout;
+    let mut checked = 0;
+    for env in 0..layout.num_envs {
+        assert_eq!(restored.written[env], original.written[env], "env {env}");
+        for frame in restored.oldest_sampleable(env)..restored.written[env] {
+            let transition = TransitionRef { env, frame };
+            if restored.flags[restored.slot(env, frame)] & FIRST_OF_EPISODE != 0 {
+                continue;
+            }
+            let size = (layout.frame_stack + 1) * layout.frame_bytes;
+            let (mut a, mut b) = (vec![0u8; size], vec![0u8; size]);
+            original.copy_transition(transition, &mut a);
+            restored.copy_transition(transition, &mut b);
+            assert_eq!(a, b, "frames of env {env} frame {frame}");
+            let (mut left, mut right) = (TransitionMetadata::default(), TransitionMetadata::default());
+            original.gather_metadata(&[transition], &mut left);
+            restored.gather_metadata(&[transition], &mut right);
+            let open_end = frame + 1 == original.written[env] && original.in_episode[env];
+            if open_end {
+                assert_eq!(right.truncated, vec![1], "the open episode of env {env} ends truncated");
+                right.truncated = left.truncated.clone();
+            }
+            assert_eq!(left, right, "metadata of env {env} frame {frame}");
+            checked += 1;
+        }
+    }
+    checked
+}
+
+use crate::buffer::TransitionMetadata;
+
+fn session(step_calls: u64) -> SessionCounters {
+    SessionCounters { step_calls, total_env_steps: step_calls * 3, episodes_completed: step_calls / 7 }
+}
+
+#[test]
+fn a_restored_buffer_samples_what_the_original_held() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("alice").join("run-1");
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let original = RwLock::new(ReplayBuffer::new(layout(300)).unwrap());
+    let mut writer = SnapshotWriter::new(&path, IDENTITY, layout(300)).unwrap();
+    let mut step_calls = 0;
+    let mut reports = Vec::new();
+    // Fill past the ring several times, with a snapshot after each chunk: the first is full, the
+    // next ones append, and a full one comes back once the segments pass twice the buffer.
+    for chunk in [40, 17, 1, 90, 33, 120, 64, 5] {
+        record(&original, &mut rng, chunk, &mut step_calls);
+        let pending = writer.pending_frames(&original.read().unwrap());
+        let report = writer.write(&original, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+        let slots = (original.read().unwrap().slots * 3) as u64;
+        assert!(if report.full { report.frames <= slots } else { report.frames == pending }, "{report:?}");
+        reports.push(report);
+    }
+    assert!(reports[0].full);
+    assert!(!reports[1].full && reports[1].frames == 17 * 3, "an increment holds the new frames: {:?}", reports[1]);
+    assert!(reports[2..].iter().any(|report| report.full), "compaction happened: {reports:?}");
+    let segments = fs::read_dir(&path).unwrap().filter(|entry| entry.as_ref().unwrap().file_name().to_string_lossy().starts_with("seg-")).count();
+    assert_eq!(segments, writer.manifest.segments.len(), "a full snapshot deletes the segments before it");
+    assert_eq!(writer.disk_bytes(), fs::read_dir(&path).unwrap().map(|entry| {
+        let entry = entry.unwrap();
+        if entry.file_name() == MANIFEST { 0 } else { entry.metadata().unwrap().len() }
+    }).sum::<u64>());
+
+    let mut restored = ReplayBuffer::new(layout(300)).unwrap();
+    let (report, mut resumed) = restore(&path, IDENTITY, &mut restored).unwrap().expect("a snapshot");
+    let original = original.into_inner().unwrap();
+    assert_eq!(report.transitions, original.len(), "{report:?}");
+    assert_eq!(report.session, session(step_calls));
+    assert_eq!(restored.counters, original.counters);
+    assert_eq!(restored.steps_recorded, original.steps_recorded);
+    let open = original.in_episode.iter().filter(|&&open| open).count();
+    assert_eq!(report.truncated_episodes, open);
+    assert!(assert_same_transitions(&original, &restored) > 200);
+    assert!(restored.in_episode.iter().all(|&open| !open), "every env starts with a first frame");
+
+    // The restored buffer goes on: its writer appends after the restored segments.
+    let restored = RwLock::new(restored);
+    record(&restored, &mut rng, 25, &mut step_calls);
+    let report = resumed.write(&restored, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+    assert_eq!(report.frames, 25 * 3);
+    let mut again = ReplayBuffer::new(layout(300)).unwrap();
+    restore(&path, IDENTITY, &mut again).unwrap().expect("a snapshot");
+    assert!(assert_same_transitions(&restored.into_inner().unwrap(), &again) > 200);
+}
+
+#[test]
+fn no_snapshot_is_none_and_a_rollout_has_none() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut buffer = ReplayBuffer::new(layout(30)).unwrap();
+    assert!(restore(&dir.path().join("absent"), IDENTITY, &mut buffer).unwrap().is_none());
+    let rollout = ReplayLayout::rollout(8, 3, 1, 4, 4);
+    assert!(SnapshotWriter::new(dir.path(), IDENTITY, rollout).unwrap_err().to_string().contains("only replay buffers"));
+}
+
+/// A buffer of 120 transitions with a snapshot of it in two segments, in a temporary directory.
+fn snapshot_on_disk() -> (tempfile::TempDir, PathBuf, ReplayBuffer) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run");
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let buffer = RwLock::new(ReplayBuffer::new(layout(150)).unwrap());
+    let mut writer = SnapshotWriter::new(&path, IDENTITY, layout(150)).unwrap();
+    let mut step_calls = 0;
+    for chunk in [25, 15] {
+        record(&buffer, &mut rng, chunk, &mut step_calls);
+        writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+    }
+    (dir, path, buffer.into_inner().unwrap())
+}
+
+#[test]
+fn another_session_or_layout_is_refused_naming_the_manifest() {
+    let (_dir, path, _) = snapshot_on_disk();
+    let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
+    let error = restore(&path, "{\"env\":\"other\"}", &mut buffer).unwrap_err();
+    assert_eq!(error.file, path.join(MANIFEST));
+    assert!(error.to_string().contains("created as"), "{error}");
+    let mut bigger = ReplayBuffer::new(layout(151)).unwrap();
+    let error = restore(&path, IDENTITY, &mut bigger).unwrap_err();
+    assert!(error.to_string().contains("this session's is (151, 3, 3, 48, 8)"), "{error}");
+    assert!(bigger.is_empty() && buffer.is_empty());
+}
+
+#[test]
+fn a_crash_mid_write_leaves_the_previous_snapshot() {
+    let (_dir, path, original) = snapshot_on_disk();
+    // A segment written but never listed, and a manifest never renamed: what a kill leaves.
+    fs::write(path.join(segment_name(3)), b"RSNPSEGM half a segment").unwrap();
+    fs::write(path.join(MANIFEST_TMP), b"RSNPMANI half a manifest").unwrap();
+    let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
+    let (report, _) = restore(&path, IDENTITY, &mut buffer).unwrap().unwrap();
+    assert_eq!(report.transitions, original.len());
+    assert!(!path.join(segment_name(3)).exists() && !path.join(MANIFEST_TMP).exists(), "strays are removed");
+}
+
+#[test]
+fn a_failed_write_keeps_the_previous_snapshot_and_retries_the_same_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run");
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let buffer = RwLock::new(ReplayBuffer::new(layout(150)).unwrap());
+    let mut writer = SnapshotWriter::new(&path, IDENTITY, layout(150)).unwrap();
+    let mut step_calls = 0;
+    record(&buffer, &mut rng, 10, &mut step_calls);
+    writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+    record(&buffer, &mut rng, 10, &mut step_calls);
+    // The next segment's path is taken by a directory: creating the file fails, as a full disk would.
+    fs::create_dir(path.join(segment_name(2))).unwrap();
+    let error = writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap_err();
+    assert_eq!(error.file, path.join(segment_name(2)));
+    let mut restored = ReplayBuffer::new(layout(150)).unwrap();
+    restore(&path, IDENTITY, &mut restored).unwrap().unwrap();
+    assert_eq!(restored.written, vec![10; 3], "the previous snapshot is whole");
+    fs::remove_dir(path.join(segment_name(2))).unwrap();
+    let report = writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+    assert_eq!(report.frames, 30, "the frames of the failed write are written again");
+    let mut restored = ReplayBuffer::new(layout(150)).unwrap();
+    restore(&path, IDENTITY, &mut restored).unwrap().unwrap();
+    assert_same_transitions(&buffer.into_inner().unwrap(), &restored);
+}
+
+#[test]
+fn a_writer_lapped_by_acting_skips_what_was_overwritten() {
+    // Frames overwritten between the snapshot's blocks: simulated by writing a snapshot of a buffer
+    // whose ring has moved on since the last one (the increment starts below what is held).
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run");
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let buffer = RwLock::new(ReplayBuffer::new(layout(30)).unwrap());
+    let mut writer = SnapshotWriter::new(&path, IDENTITY, layout(30)).unwrap();
+    let mut step_calls = 0;
+    record(&buffer, &mut rng, 5, &mut step_calls);
+    writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+    record(&buffer, &mut rng, 40, &mut step_calls);
+    writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+    let mut restored = ReplayBuffer::new(layout(30)).unwrap();
+    restore(&path, IDENTITY, &mut restored).unwrap().unwrap();
+    let original = buffer.into_inner().unwrap();
+    assert!(restored.floors.iter().all(|&floor| floor > 0), "a gap: {:?}", restored.floors);
+    assert!(assert_same_transitions(&original, &restored) > 0);
+    assert!(restored.len() <= original.len());
+}
+
+/// Every file of a snapshot, by name.
+fn files(path: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = fs::read_dir(path).unwrap().map(|entry| entry.unwrap().path()).collect();
+    files.sort();
+    files
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(std::env::var("PROPTEST_CASES").ok().and_then(|cases| cases.parse().ok()).unwrap_or(256)))]
+
+    /// Any byte changed, any file cut short or extended: refused, naming a file of the snapshot, the
+    /// buffer left empty, nothing panics.
+    #[test]
+    fn damaged_files_are_refused(file in 0usize..3, at in any::<prop::sample::Index>(), xor in 1u8..=255, cut in any::<bool>(), extra in prop::collection::vec(any::<u8>(), 0..16)) {
+        let (_dir, path, _) = snapshot_on_disk();
+        let target = &files(&path)[file];
+        let mut bytes = fs::read(target).unwrap();
+        let at = at.index(bytes.len());
+        if cut {
+            bytes.truncate(at);
+        } else if extra.is_empty() {
+            bytes[at] ^= xor;
+        } else {
+            bytes.extend_from_slice(&extra);
+        }
+        fs::write(target, &bytes).unwrap();
+        let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
+        let error = restore(&path, IDENTITY, &mut buffer).unwrap_err();
+        prop_assert!(error.file.starts_with(&path), "{error}");
+        prop_assert!(buffer.is_empty() && buffer.counters == ReplayCounters::default());
+    }
+
+    /// Manifests with a valid checksum and any numbers in them: refused or restored, never a panic
+    /// or an allocation beyond the buffer made for the session.
+    #[test]
+    fn any_manifest_is_read_safely(
+        written in prop::collection::vec(prop_oneof![0u64..200, any::<u64>()], 0..5),
+        sequences in prop::collection::vec(prop_oneof![1u64..4, any::<u64>()], 0..4),
+        bytes in prop_oneof![0u64..100_000, any::<u64>()],
+        capacity in prop_oneof![Just(150u64), any::<u64>()],
+    ) {
+        let (_dir, path, _) = snapshot_on_disk();
+        let mut manifest = parse_manifest(&fs::read(path.join(MANIFEST)).unwrap()).unwrap();
+        let sizes: Vec<u64> = manifest.segments.iter().map(|segment| segment.bytes).collect();
+        manifest.written = written;
+        manifest.capacity = capacity;
+        manifest.segments = sequences.iter().enumerate().map(|(index, &sequence)| {
+            SegmentEntry { sequence, bytes: sizes.get(index).copied().unwrap_or(bytes) }
+        }).collect();
+        write_manifest(&path, &manifest).unwrap();
+        let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
+        match restore(&path, IDENTITY, &mut buffer) {
+            Ok(restored) => prop_assert!(restored.is_some()),
+            Err(error) => prop_assert!(buffer.is_empty() && error.file.starts_with(&path), "{error}"),
+        }
+    }
+}
