@@ -149,7 +149,7 @@ class ListEnvsResponse(_message.Message):
     def __init__(self, envs: _Optional[_Iterable[_Union[EnvInfo, _Mapping]]] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("env_id", "num_envs", "seed", "options", "replay", "observation_view")
+    __slots__ = ("env_id", "num_envs", "seed", "options", "replay", "observation_view", "name")
     class OptionsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -163,13 +163,15 @@ class CreateSessionRequest(_message.Message):
     OPTIONS_FIELD_NUMBER: _ClassVar[int]
     REPLAY_FIELD_NUMBER: _ClassVar[int]
     OBSERVATION_VIEW_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
     env_id: str
     num_envs: int
     seed: int
     options: _containers.MessageMap[str, OptionValue]
     replay: ReplayOptions
     observation_view: str
-    def __init__(self, env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., replay: _Optional[_Union[ReplayOptions, _Mapping]] = ..., observation_view: _Optional[str] = ...) -> None: ...
+    name: str
+    def __init__(self, env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., replay: _Optional[_Union[ReplayOptions, _Mapping]] = ..., observation_view: _Optional[str] = ..., name: _Optional[str] = ...) -> None: ...
 
 class ReplayOptions(_message.Message):
     __slots__ = ("capacity", "rollout_steps")
@@ -180,7 +182,7 @@ class ReplayOptions(_message.Message):
     def __init__(self, capacity: _Optional[int] = ..., rollout_steps: _Optional[int] = ...) -> None: ...
 
 class ReplayInfo(_message.Message):
-    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition", "active_streams", "rollout_steps", "batches", "batches_per_second")
+    __slots__ = ("capacity", "size", "inserts", "samples", "memory_bytes", "frames_per_transition", "active_streams", "rollout_steps", "batches", "batches_per_second", "snapshot")
     CAPACITY_FIELD_NUMBER: _ClassVar[int]
     SIZE_FIELD_NUMBER: _ClassVar[int]
     INSERTS_FIELD_NUMBER: _ClassVar[int]
@@ -191,6 +193,7 @@ class ReplayInfo(_message.Message):
     ROLLOUT_STEPS_FIELD_NUMBER: _ClassVar[int]
     BATCHES_FIELD_NUMBER: _ClassVar[int]
     BATCHES_PER_SECOND_FIELD_NUMBER: _ClassVar[int]
+    SNAPSHOT_FIELD_NUMBER: _ClassVar[int]
     capacity: int
     size: int
     inserts: int
@@ -201,10 +204,21 @@ class ReplayInfo(_message.Message):
     rollout_steps: int
     batches: int
     batches_per_second: float
-    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ..., active_streams: _Optional[int] = ..., rollout_steps: _Optional[int] = ..., batches: _Optional[int] = ..., batches_per_second: _Optional[float] = ...) -> None: ...
+    snapshot: ReplaySnapshot
+    def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ..., active_streams: _Optional[int] = ..., rollout_steps: _Optional[int] = ..., batches: _Optional[int] = ..., batches_per_second: _Optional[float] = ..., snapshot: _Optional[_Union[ReplaySnapshot, _Mapping]] = ...) -> None: ...
+
+class ReplaySnapshot(_message.Message):
+    __slots__ = ("restored_transitions", "disk_bytes", "age_seconds")
+    RESTORED_TRANSITIONS_FIELD_NUMBER: _ClassVar[int]
+    DISK_BYTES_FIELD_NUMBER: _ClassVar[int]
+    AGE_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    restored_transitions: int
+    disk_bytes: int
+    age_seconds: float
+    def __init__(self, restored_transitions: _Optional[int] = ..., disk_bytes: _Optional[int] = ..., age_seconds: _Optional[float] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay")
+    __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay", "name")
     class OptionsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -224,6 +238,7 @@ class SessionInfo(_message.Message):
     TOTAL_ENV_STEPS_FIELD_NUMBER: _ClassVar[int]
     EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
     REPLAY_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     env_id: str
     num_envs: int
@@ -236,7 +251,8 @@ class SessionInfo(_message.Message):
     total_env_steps: int
     episodes_completed: int
     replay: ReplayInfo
-    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., frame_stack: _Optional[int] = ..., autoreset_mode: _Optional[str] = ..., total_env_steps: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., replay: _Optional[_Union[ReplayInfo, _Mapping]] = ...) -> None: ...
+    name: str
+    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., frame_stack: _Optional[int] = ..., autoreset_mode: _Optional[str] = ..., total_env_steps: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., replay: _Optional[_Union[ReplayInfo, _Mapping]] = ..., name: _Optional[str] = ...) -> None: ...
 
 class DescribeSessionRequest(_message.Message):
     __slots__ = ("session_id",)
@@ -245,10 +261,12 @@ class DescribeSessionRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class CloseSessionRequest(_message.Message):
-    __slots__ = ("session_id",)
+    __slots__ = ("session_id", "discard_snapshot")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    DISCARD_SNAPSHOT_FIELD_NUMBER: _ClassVar[int]
     session_id: str
-    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+    discard_snapshot: bool
+    def __init__(self, session_id: _Optional[str] = ..., discard_snapshot: _Optional[bool] = ...) -> None: ...
 
 class CloseSessionResponse(_message.Message):
     __slots__ = ()
@@ -259,7 +277,7 @@ class ListSessionsRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class SessionSummary(_message.Message):
-    __slots__ = ("session_id", "env_id", "num_envs", "memory_bytes", "idle_seconds", "open_streams", "age_seconds", "owner")
+    __slots__ = ("session_id", "env_id", "num_envs", "memory_bytes", "idle_seconds", "open_streams", "age_seconds", "owner", "name")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     ENV_ID_FIELD_NUMBER: _ClassVar[int]
     NUM_ENVS_FIELD_NUMBER: _ClassVar[int]
@@ -268,6 +286,7 @@ class SessionSummary(_message.Message):
     OPEN_STREAMS_FIELD_NUMBER: _ClassVar[int]
     AGE_SECONDS_FIELD_NUMBER: _ClassVar[int]
     OWNER_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     env_id: str
     num_envs: int
@@ -276,7 +295,8 @@ class SessionSummary(_message.Message):
     open_streams: int
     age_seconds: float
     owner: str
-    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., idle_seconds: _Optional[float] = ..., open_streams: _Optional[int] = ..., age_seconds: _Optional[float] = ..., owner: _Optional[str] = ...) -> None: ...
+    name: str
+    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., idle_seconds: _Optional[float] = ..., open_streams: _Optional[int] = ..., age_seconds: _Optional[float] = ..., owner: _Optional[str] = ..., name: _Optional[str] = ...) -> None: ...
 
 class ListSessionsResponse(_message.Message):
     __slots__ = ("sessions", "idle_timeout_seconds")

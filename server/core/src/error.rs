@@ -87,6 +87,14 @@ pub enum CoreError {
 
     #[error("the server is shutting down")]
     ShuttingDown,
+
+    /// A session name its owner already uses for a live session.
+    #[error("{0}")]
+    NameTaken(String),
+
+    /// A named session's snapshot that cannot be restored, on a server configured to refuse it.
+    #[error("{0}")]
+    BadSnapshot(String),
 }
 
 impl From<SimulatorError> for CoreError {

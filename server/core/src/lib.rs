@@ -20,11 +20,14 @@ pub mod simulators;
 pub mod space;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod snapshot_tests;
 
 pub use catalog::{EnvId, EnvNames, Family, OptionValue, Options};
 pub use error::CoreError;
 pub use manager::{
-    BufferRequest, CatalogEntry, LeaseHold, Limits, Progress, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionManager, SessionSummary,
+    BufferRequest, CatalogEntry, LeaseHold, Limits, OnBadSnapshot, Progress, ReplayConfig, ReplayInfo, ReplaySource, SessionExtras,
+    SessionInfo, SessionManager, SessionSummary, SnapshotInfo, MAX_NAME_BYTES,
 };
 pub use principal::{Principal, PrincipalLimits, Role};
 pub use infos::{InfoColumn, InfoKind, Infos};

@@ -24,6 +24,23 @@ pub struct CoreMetrics {
     /// Minibatches sent to learners (both deliveries).
     batches: AtomicU64,
     step_seconds: Histogram,
+    snapshots: SnapshotCounters,
+}
+
+/// Named sessions' replay snapshots since the server started.
+#[derive(Debug, Default)]
+pub struct SnapshotCounters {
+    pub written: AtomicU64,
+    pub bytes: AtomicU64,
+    pub nanos: AtomicU64,
+    pub failures: AtomicU64,
+    pub restores: AtomicU64,
+    pub restored_transitions: AtomicU64,
+    pub restore_nanos: AtomicU64,
+}
+
+fn nanos(elapsed: Duration) -> u64 {
+    u64::try_from(elapsed.as_nanos()).unwrap_or(u64::MAX)
 }
 
 /// A histogram over [`STEP_SECONDS_BUCKETS`]: per-bucket counts (the last bucket is +Inf), the sum
@@ -104,6 +121,29 @@ impl CoreMetrics {
 
     pub fn batches(&self) -> u64 {
         self.batches.load(Ordering::Relaxed)
+    }
+
+    /// A snapshot written: its bytes and how long it took.
+    pub fn record_snapshot(&self, bytes: u64, elapsed: Duration) {
+        self.snapshots.written.fetch_add(1, Ordering::Relaxed);
+        self.snapshots.bytes.fetch_add(bytes, Ordering::Relaxed);
+        self.snapshots.nanos.fetch_add(nanos(elapsed), Ordering::Relaxed);
+    }
+
+    /// A snapshot that could not be written, or read at creation.
+    pub fn record_snapshot_failure(&self) {
+        self.snapshots.failures.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// A replay restored from its snapshot.
+    pub fn record_restore(&self, transitions: u64, elapsed: Duration) {
+        self.snapshots.restores.fetch_add(1, Ordering::Relaxed);
+        self.snapshots.restored_transitions.fetch_add(transitions, Ordering::Relaxed);
+        self.snapshots.restore_nanos.fetch_add(nanos(elapsed), Ordering::Relaxed);
+    }
+
+    pub fn snapshots(&self) -> &SnapshotCounters {
+        &self.snapshots
     }
 
     pub fn step_seconds(&self) -> HistogramSnapshot {

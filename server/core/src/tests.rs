@@ -142,7 +142,7 @@ async fn stacks_and_same_step_autoreset_follow_the_episodes_of_each_env() {
 async fn replay_records_every_transition_with_both_kinds_of_episode_end() {
     let (_, manager) = manager(2, limits());
     let (num_envs, k) = (3, 2);
-    let extras = SessionExtras { buffer: Some(BufferRequest::Replay { capacity: 1000 }), observation_view: None };
+    let extras = SessionExtras { buffer: Some(BufferRequest::Replay { capacity: 1000 }), observation_view: None, name: None };
     let id = create(&manager, num_envs, 4, k as i64, extras).await;
     reset(&manager, &id, None).await;
     for step_index in 0..30 {
@@ -187,7 +187,7 @@ async fn replay_records_every_transition_with_both_kinds_of_episode_end() {
 #[tokio::test]
 async fn a_lost_group_ends_its_episodes_and_restarts_from_its_seeds() {
     let (simulators, manager) = manager(2, limits());
-    let extras = SessionExtras { buffer: Some(BufferRequest::Replay { capacity: 100 }), observation_view: None };
+    let extras = SessionExtras { buffer: Some(BufferRequest::Replay { capacity: 100 }), observation_view: None, name: None };
     let id = create(&manager, 4, 19, 2, extras).await;
     reset(&manager, &id, None).await;
     step(&manager, &id, &[0, 0, 0, 0]).await.unwrap();
@@ -296,7 +296,7 @@ async fn limits_refuse_before_anything_is_built_and_closing_returns_everything()
 #[tokio::test]
 async fn the_memory_budget_refuses_what_would_not_fit() {
     let (simulators, manager) = manager(1, limits());
-    let extras = |capacity| SessionExtras { buffer: Some(BufferRequest::Replay { capacity }), observation_view: None };
+    let extras = |capacity| SessionExtras { buffer: Some(BufferRequest::Replay { capacity }), observation_view: None, name: None };
     // 16 fake envs at 2 MiB each take half of the 64 MiB budget.
     let first = manager.create_session(&local(), FAKE_ENV, 16, 0, &fake::fake_options(1), &extras(100_000)).await.unwrap();
     let creates = simulators.creates();

@@ -23,6 +23,7 @@ pub struct Config {
     pub sim: SimConfig,
     pub augment: AugmentConfig,
     pub limits: Limits,
+    pub replay: radserve_core::ReplayConfig,
     pub auth: AuthConfig,
     pub tls: TlsConfig,
     pub metrics: MetricsConfig,
@@ -292,6 +293,15 @@ impl Config {
                 self.sim.worker_create_timeout_s,
                 self.sim.worker_stuck_after_s
             );
+        }
+        let replay = &self.replay;
+        if !positive(replay.snapshot_interval_s) {
+            bail!("replay.snapshot_interval_s is seconds in (0, 86400], got {}", replay.snapshot_interval_s);
+        }
+        if let Some(dir) = &replay.snapshot_dir {
+            if dir.as_os_str().is_empty() || dir.is_file() {
+                bail!("replay.snapshot_dir {} is not a directory (it is made if it does not exist)", dir.display());
+            }
         }
         let limits = &self.limits;
         if !(0..=19).contains(&self.augment.nice) {

@@ -28,6 +28,8 @@ pub struct ServerSettings {
     pub gl: GlBackend,
     pub workers: usize,
     pub limits: Limits,
+    /// Snapshots of named sessions' replay (the `[replay]` section).
+    pub replay: radserve_core::ReplayConfig,
     /// A worker that does not answer a reset, step or close within this is killed and replaced.
     pub worker_call_timeout: Duration,
     /// The same for building environments.
@@ -43,7 +45,7 @@ pub fn session_manager(settings: ServerSettings) -> (Arc<SessionManager>, Arc<Wo
         ..WorkerLauncher::new(settings.worker_program, settings.venv, settings.gl)
     };
     let pool = Arc::new(WorkerPool::start(launcher, settings.workers));
-    (Arc::new(SessionManager::new(pool.clone(), settings.limits)), pool)
+    (Arc::new(SessionManager::new(pool.clone(), settings.limits).with_snapshots(settings.replay)), pool)
 }
 
 /// How the server serves and stops (the `[server]` and `[augment]` sections of the configuration).
@@ -237,6 +239,8 @@ pub async fn serve(
 
     // Sessions whose lease expired (a learner that died without closing them) are closed here.
     let reaper = tokio::spawn(manager.clone().run_reaper());
+    // Named sessions' replay, written to `[replay] snapshot_dir` every snapshot_interval_s.
+    let snapshots = tokio::spawn(manager.clone().run_snapshots());
 
     let (stop_accepting, accepting_stopped) = tokio::sync::oneshot::channel::<()>();
     let (signalled, signal_seen) = tokio::sync::oneshot::channel::<tokio::time::Instant>();
@@ -316,6 +320,7 @@ pub async fn serve(
         }
     }
     reaper.abort();
+    snapshots.abort();
     let closing = manager.shutdown();
     match deadline {
         Some(deadline) => {

@@ -195,6 +195,7 @@ fn settings(config: &Config) -> anyhow::Result<ServerSettings> {
         gl: config.sim.gl,
         workers: config.worker_count(),
         limits: config.limits.clone(),
+        replay: config.replay.clone(),
         worker_call_timeout: std::time::Duration::from_secs_f64(config.sim.worker_call_timeout_s),
         worker_create_timeout: std::time::Duration::from_secs_f64(config.sim.worker_create_timeout_s),
     })

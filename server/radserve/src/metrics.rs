@@ -81,6 +81,24 @@ impl Collector for Sources {
         for (name, help, value) in counters {
             ConstCounter::new(value).encode(encoder.encode_descriptor(name, help, None, MetricType::Counter)?)?;
         }
+        let snapshots = core.snapshots();
+        let load = |counter: &std::sync::atomic::AtomicU64| counter.load(std::sync::atomic::Ordering::Relaxed);
+        let snapshot_counters = [
+            ("radserve_snapshots", "Replay snapshots of named sessions written", load(&snapshots.written)),
+            ("radserve_snapshot_bytes", "Bytes of replay snapshots written", load(&snapshots.bytes)),
+            ("radserve_snapshot_failures", "Replay snapshots that could not be written, or read when a named session was created", load(&snapshots.failures)),
+            ("radserve_snapshot_restores", "Named sessions whose replay was restored from a snapshot", load(&snapshots.restores)),
+            ("radserve_snapshot_restored_transitions", "Transitions restored from snapshots", load(&snapshots.restored_transitions)),
+        ];
+        for (name, help, value) in snapshot_counters {
+            ConstCounter::new(value).encode(encoder.encode_descriptor(name, help, None, MetricType::Counter)?)?;
+        }
+        for (name, help, nanos) in [
+            ("radserve_snapshot_duration_seconds", "Time spent writing replay snapshots (paced by replay.snapshot_bytes_per_second)", &snapshots.nanos),
+            ("radserve_snapshot_restore_duration_seconds", "Time spent restoring replay from snapshots", &snapshots.restore_nanos),
+        ] {
+            ConstCounter::new(load(nanos) as f64 / 1e9).encode(encoder.encode_descriptor(name, help, None, MetricType::Counter)?)?;
+        }
         let restarts = self.workers.as_ref().map_or(0, |pool| pool.workers().iter().map(|worker| worker.restarts()).sum());
         ConstCounter::new(restarts).encode(encoder.encode_descriptor(
             "radserve_worker_restarts",
@@ -111,6 +129,8 @@ impl Collector for Sources {
             ("radserve_open_streams", "Streams holding a session open (sample streams, acting channels, joined dm_env_rpc streams)", sessions.iter().map(|s| s.open_streams as u64).sum()),
             ("radserve_replay_transitions", "Transitions held by the open sessions' replay buffers", sessions.iter().map(|s| s.replay_transitions).sum()),
             ("radserve_replay_bytes", "Memory of the open sessions' replay buffers", sessions.iter().map(|s| s.replay_bytes).sum()),
+            ("radserve_snapshot_disk_bytes", "Bytes the open named sessions' replay snapshots take on disk", sessions.iter().filter_map(|s| s.snapshot.as_ref()).map(|s| s.disk_bytes).sum()),
+            ("radserve_snapshot_age_seconds", "Age of the oldest replay snapshot of an open named session (0: none)", sessions.iter().filter_map(|s| s.snapshot.as_ref()?.age).max().map_or(0, |age| age.as_secs())),
             ("radserve_memory_used_bytes", "Memory reserved against the budget (limits.memory_bytes)", used),
             ("radserve_memory_budget_bytes", "The memory budget", budget),
             ("radserve_workers", "Simulator worker processes", self.workers.as_ref().map_or(0, |pool| pool.len() as u64)),

@@ -86,7 +86,7 @@ async fn closing_a_session_frees_its_acting_channel() {
             let mut stream = connect_socket(&channel.socket).await;
             present(&mut stream, &channel.token).await;
             assert_eq!(reset(&mut stream).await, 0);
-            client.close_session(proto::CloseSessionRequest { session_id }).await.unwrap();
+            client.close_session(proto::CloseSessionRequest { session_id, discard_snapshot: false }).await.unwrap();
             // The server ends the channel: the client reads the end of the stream.
             let mut byte = [0u8; 1];
             let read = tokio::time::timeout(Duration::from_secs(5), stream.read(&mut byte)).await;

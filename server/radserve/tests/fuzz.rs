@@ -38,6 +38,8 @@ const DOCUMENTED: &[Code] = &[
     Code::Ok,
     Code::InvalidArgument,
     Code::NotFound,
+    // A session name its owner already uses.
+    Code::AlreadyExists,
     Code::FailedPrecondition,
     Code::ResourceExhausted,
     Code::DeadlineExceeded,
@@ -240,7 +242,7 @@ impl Case {
                     // The base sessions stay; closing another one (or a made-up id) is the case.
                     Ok(())
                 } else {
-                    let result = self.client.close_session(proto::CloseSessionRequest { session_id: session_id.clone() }).await;
+                    let result = self.client.close_session(proto::CloseSessionRequest { session_id: session_id.clone(), discard_snapshot: false }).await;
                     if result.is_ok() {
                         self.created.retain(|id| *id != session_id);
                     }
@@ -360,7 +362,7 @@ impl Case {
     /// reservation of the case (sessions, streams, channels) to be returned.
     async fn finish(mut self, baseline: u64, manager: &radserve_core::SessionManager) -> Result<(), TestCaseError> {
         for session_id in std::mem::take(&mut self.created) {
-            let result = self.client.close_session(proto::CloseSessionRequest { session_id }).await;
+            let result = self.client.close_session(proto::CloseSessionRequest { session_id, discard_snapshot: false }).await;
             if let Err(status) = result {
                 check(&status, "closing a created session")?;
             }
@@ -521,7 +523,7 @@ fn arbitrary_bytes_as_any_message_get_documented_answers() {
             // A raw CreateSession that decodes creates a session like any other: close it.
             for summary in listed.unwrap().into_inner().sessions {
                 if !harness.base.contains(&summary.session_id) {
-                    client.close_session(proto::CloseSessionRequest { session_id: summary.session_id }).await.unwrap();
+                    client.close_session(proto::CloseSessionRequest { session_id: summary.session_id, discard_snapshot: false }).await.unwrap();
                 }
             }
             Ok(())

@@ -96,7 +96,7 @@ async fn serves_health_reflection_and_answers_bad_input() {
         .await
         .unwrap_err();
     assert_eq!(third.code(), Code::ResourceExhausted);
-    client.close_session(proto::CloseSessionRequest { session_id: second.into_inner().session_id }).await.unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id: second.into_inner().session_id, discard_snapshot: false }).await.unwrap();
 
     let info = server.manager.describe(&radserve_core::Principal::local(), &session_id).await.unwrap();
     assert_eq!(info.total_env_steps, 2);

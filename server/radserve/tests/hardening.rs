@@ -376,7 +376,7 @@ async fn every_allocation_is_charged_to_one_memory_budget() {
         }
     };
     drop(second);
-    client.close_session(proto::CloseSessionRequest { session_id }).await.unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id, discard_snapshot: false }).await.unwrap();
     let deadline = Instant::now() + Duration::from_secs(10);
     while server.manager.memory().0 > 0 {
         assert!(Instant::now() < deadline, "{} bytes still reserved", server.manager.memory().0);

@@ -82,7 +82,7 @@ async fn metrics_show_what_the_sessions_did() {
     assert!(after["radserve_memory_used_bytes"] > 0.0 && after["radserve_memory_used_bytes"] <= after["radserve_memory_budget_bytes"]);
 
     // Counters stay when the session goes; its gauges do not.
-    client.close_session(proto::CloseSessionRequest { session_id: session }).await.unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id: session, discard_snapshot: false }).await.unwrap();
     let closed = samples(&render(&sources).unwrap());
     assert_eq!(closed["radserve_env_steps_total{family=\"gym\"}"], 30.0);
     assert_eq!((closed["radserve_sessions"], closed["radserve_envs{family=\"gym\"}"], closed["radserve_replay_transitions"]), (0.0, 0.0, 0.0));

@@ -65,7 +65,7 @@ const TABLE: &[Row] = &[
         proto::DescribeSessionRequest { session_id: id.into() }.encode_to_vec()
     } },
     Row { method: "CloseSession", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
-        proto::CloseSessionRequest { session_id: id.into() }.encode_to_vec()
+        proto::CloseSessionRequest { session_id: id.into(), discard_snapshot: false }.encode_to_vec()
     } },
     Row { method: "Reset", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
         proto::ResetRequest { session_id: id.into(), seed: Some(1), ..Default::default() }.encode_to_vec()

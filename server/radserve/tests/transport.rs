@@ -117,7 +117,7 @@ async fn a_stream_ends_when_its_session_is_closed() {
     let request = proto::SampleBatchesRequest { session_id: id.clone(), batch_size: 4, ..Default::default() };
     let mut chunks = client.sample_batches(request).await.unwrap().into_inner();
     chunks.next().await.unwrap().unwrap();
-    client.close_session(proto::CloseSessionRequest { session_id: id }).await.unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id: id, discard_snapshot: false }).await.unwrap();
     // The stream runs on until the close reaches it, then ends with the session's status: it must
     // not keep the closed session's buffer alive.
     let ended = tokio::time::timeout(std::time::Duration::from_secs(10), async {
@@ -177,7 +177,7 @@ async fn an_unread_stream_stops_keeping_its_session_and_a_read_one_keeps_it() {
     // The reaped session's stream gave back its memory (its producer and reservation) though its
     // client still has not read: only the read stream's and its session's remain.
     drop(read_chunks);
-    client.close_session(proto::CloseSessionRequest { session_id: read }).await.unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id: read, discard_snapshot: false }).await.unwrap();
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
     while server.manager.memory().0 > 0 && std::time::Instant::now() < deadline {
         tokio::time::sleep(std::time::Duration::from_millis(20)).await;

@@ -269,6 +269,11 @@ impl ReplayBuffer {
         &self.layout
     }
 
+    /// One past the largest step index recorded (restored with the buffer).
+    pub fn steps_recorded(&self) -> u64 {
+        self.steps_recorded
+    }
+
     pub fn counters(&self) -> ReplayCounters {
         self.counters
     }

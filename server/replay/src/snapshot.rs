@@ -525,9 +525,12 @@ fn read_segments(dir: &Path, manifest: &Manifest, buffer: &mut ReplayBuffer) -> 
             return Err(invalid(format!("{length} bytes, the manifest says {}: truncated or replaced", segment.bytes)));
         }
         let mut read_exact = |into: &mut [u8], what: &str| {
-            file.read_exact(into).map_err(|error| match error.kind() {
-                io::ErrorKind::UnexpectedEof => invalid(format!("ends inside {what}")),
-                _ => SnapshotError::io(&path, error),
+            file.read_exact(into).map_err(|error| {
+                if error.kind() == io::ErrorKind::UnexpectedEof {
+                    invalid(format!("ends inside {what}"))
+                } else {
+                    SnapshotError::io(&path, error)
+                }
             })
         };
         let mut header = [0u8; SEGMENT_HEADER_BYTES];

@@ -121,7 +121,13 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
             frames_per_transition: replay.frames_per_transition,
             active_streams: replay.active_streams as u32,
             rollout_steps: replay.rollout_steps.unwrap_or(0) as u32,
+            snapshot: replay.snapshot.as_ref().map(|snapshot| proto::ReplaySnapshot {
+                restored_transitions: snapshot.restored_transitions,
+                disk_bytes: snapshot.disk_bytes,
+                age_seconds: snapshot.age.map(|age| age.as_secs_f64()),
+            }),
         }),
+        name: info.name.clone().unwrap_or_default(),
     }
 }
 
@@ -135,6 +141,7 @@ pub fn session_summary_to_proto(summary: &SessionSummary) -> proto::SessionSumma
         open_streams: summary.open_streams as u32,
         age_seconds: summary.age.as_secs_f64(),
         owner: summary.owner.clone(),
+        name: summary.name.clone().unwrap_or_default(),
     }
 }
 

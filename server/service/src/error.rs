@@ -68,6 +68,8 @@ impl From<ServiceError> for Status {
                 CoreError::OverLimit(_) | CoreError::OutOfMemory(_) => Code::ResourceExhausted,
                 CoreError::TooLarge(_) => Code::InvalidArgument,
                 CoreError::WorkersUnavailable(_) | CoreError::ShuttingDown => Code::Unavailable,
+                CoreError::NameTaken(_) => Code::AlreadyExists,
+                CoreError::BadSnapshot(_) => Code::FailedPrecondition,
                 CoreError::Simulator(_) | CoreError::Host(_) => Code::Internal,
             },
             ServiceError::Replay(replay) => replay_code(replay),

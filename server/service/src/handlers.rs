@@ -186,6 +186,7 @@ impl RadServe for RadServeService {
                 &SessionExtras {
                     buffer: convert::buffer_request(request.replay.as_ref()),
                     observation_view: (!request.observation_view.is_empty()).then(|| request.observation_view.clone()),
+                    name: (!request.name.is_empty()).then(|| request.name.clone()),
                 },
             )
             .await
@@ -216,7 +217,11 @@ impl RadServe for RadServeService {
         request: Request<proto::CloseSessionRequest>,
     ) -> Result<Response<proto::CloseSessionResponse>, Status> {
         let caller = caller(&request)?;
-        self.manager.close_session(&caller, &request.into_inner().session_id).await.map_err(ServiceError::from)?;
+        let request = request.into_inner();
+        self.manager
+            .close_session_with(&caller, &request.session_id, request.discard_snapshot)
+            .await
+            .map_err(ServiceError::from)?;
         Ok(Response::new(proto::CloseSessionResponse {}))
     }
 

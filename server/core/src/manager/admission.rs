@@ -44,6 +44,9 @@ impl SessionManager {
         if let Some(buffer) = extras.buffer {
             self.precheck_buffer(buffer, num_envs)?;
         }
+        if let Some(name) = &extras.name {
+            super::snapshots::check_name(name)?;
+        }
         let env = self.names().await?.parse(env_id)?;
         let options = catalog::resolve_options(&env, overrides)?;
         let frame_stack = options[FRAME_STACK].as_int().unwrap_or(1) as usize;
@@ -58,6 +61,10 @@ impl SessionManager {
             &format!("{num_envs} envs of {} (~{} each)", env.full(), budget::human(per_env)),
         )?;
         let place = self.reserve(caller, num_envs)?;
+        let name = match &extras.name {
+            Some(name) => Some(self.hold_name(&place.owner, name)?),
+            None => None,
+        };
         let config = SessionConfig { env, num_envs, seed, options, frame_stack };
         let mut session = Session::create(self.simulators.as_ref(), config).await?.with_metrics(self.metrics.clone());
         let prepared = match &extras.observation_view {
@@ -85,8 +92,22 @@ impl SessionManager {
                 return Err(error);
             }
         };
+        let snapshot = match &name {
+            Some(name) => match self.open_snapshot(&mut session, &place.owner, &name.name).await {
+                Ok(snapshot) => snapshot,
+                Err(error) => {
+                    session.close().await;
+                    return Err(error);
+                }
+            },
+            None => None,
+        };
         let session_id = self.new_session_id();
-        let info = describe(&session_id, &session);
+        let mut info = describe(&session_id, &session);
+        info.name = extras.name.clone();
+        if let (Some(replay), Some(snapshot)) = (info.replay.as_mut(), &snapshot) {
+            replay.snapshot = Some(snapshot.info());
+        }
         let (stats, replay) = (session.stats.clone(), session.replay().cloned());
         let shared = Arc::new(Mutex::new(session));
         let registered = {
@@ -103,6 +124,8 @@ impl SessionManager {
                     replay,
                     lease: Arc::new(Lease::new(elapsed_ms(self.clock))),
                     created: Instant::now(),
+                    name: extras.name.clone(),
+                    snapshot,
                 };
                 registry.sessions.insert(session_id.clone(), entry);
                 true
@@ -117,6 +140,9 @@ impl SessionManager {
         let owner = place.keep();
         if let Some(share) = replay_share {
             share.keep();
+        }
+        if let Some(name) = name {
+            name.keep();
         }
         info!(session = log_id(&session_id), owner = %owner, env = %info.env_id, envs = num_envs, seed, "session created");
         Ok(info)
@@ -171,6 +197,23 @@ impl SessionManager {
         usage.envs += num_envs;
         usage.sessions += 1;
         Ok(Place { manager: self, owner: name, num_envs, kept: false })
+    }
+
+    /// Takes `name` among `owner`'s session names until the returned guard drops (unless kept: then
+    /// until the session closes).
+    fn hold_name(&self, owner: &Arc<str>, name: &str) -> Result<NameHold<'_>, CoreError> {
+        let mut registry = self.sessions.lock().expect("registry lock");
+        if !registry.names.insert((owner.clone(), name.to_string())) {
+            let live = registry
+                .sessions
+                .iter()
+                .find(|(_, entry)| entry.owner == *owner && entry.name.as_deref() == Some(name))
+                .map_or_else(|| "is being created".to_string(), |(id, _)| format!("is session {id}"));
+            return Err(CoreError::NameTaken(format!(
+                "principal '{owner}' already has a session named '{name}' (it {live}): close it first, or use it"
+            )));
+        }
+        Ok(NameHold { manager: self, owner: owner.clone(), name: name.to_string(), kept: false })
     }
 
     /// What can be known of a buffer before any environment is built (its frame size comes from the
@@ -321,6 +364,30 @@ impl Drop for Place<'_> {
     fn drop(&mut self) {
         if !self.kept {
             self.manager.release(&self.owner, self.num_envs, 1);
+        }
+    }
+}
+
+/// A session name taken by a session being created: given back when dropped, unless `keep` hands it
+/// to the registered session (whose close gives it back).
+pub(super) struct NameHold<'a> {
+    manager: &'a SessionManager,
+    owner: Arc<str>,
+    name: String,
+    kept: bool,
+}
+
+impl NameHold<'_> {
+    fn keep(mut self) {
+        self.kept = true;
+    }
+}
+
+impl Drop for NameHold<'_> {
+    fn drop(&mut self) {
+        if !self.kept {
+            let key = (self.owner.clone(), std::mem::take(&mut self.name));
+            self.manager.sessions.lock().expect("registry lock").names.remove(&key);
         }
     }
 }

@@ -126,7 +126,7 @@ impl SessionManager {
                 idle.as_secs(),
                 timeout.as_secs()
             );
-            self.close_entry(&id, entry, &reason).await;
+            self.close_entry(&id, entry, &reason, false).await;
             reaped.push(id);
         }
         reaped

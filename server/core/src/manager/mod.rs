@@ -21,16 +21,20 @@ use crate::simulators::Simulators;
 mod admission;
 mod lease;
 mod replay;
+mod snapshots;
 mod types;
 
 pub use admission::MAX_STEP_OBSERVATION_BYTES;
 pub use lease::{LeaseHold, Progress};
+pub use snapshots::{OnBadSnapshot, ReplayConfig, MAX_NAME_BYTES};
 pub use types::{
     BufferRequest, CatalogEntry, Limits, ReplayInfo, ReplaySource, SessionExtras, SessionInfo, SessionSummary, SharedSession,
+    SnapshotInfo,
 };
 
 use lease::{elapsed_ms, Lease};
 use replay::replay_info;
+use snapshots::{SnapshotSlot, Snapshots};
 
 struct Entry {
     session: SharedSession,
@@ -45,6 +49,10 @@ struct Entry {
     replay: Option<Arc<RwLock<ReplayBuffer>>>,
     lease: Arc<Lease>,
     created: Instant,
+    /// The name it was created with (unique per owner while it lives).
+    name: Option<String>,
+    /// Its replay's snapshot, for a named session with a replay buffer on a server that snapshots.
+    snapshot: Option<Arc<SnapshotSlot>>,
 }
 
 pub struct SessionManager {
@@ -60,6 +68,8 @@ pub struct SessionManager {
     clock: Instant,
     /// What every session has done since the server started (for the metrics endpoint).
     metrics: Arc<CoreMetrics>,
+    /// Where and how named sessions' replay is snapshotted (None: it is not).
+    snapshots: Option<Snapshots>,
 }
 
 #[derive(Default)]
@@ -69,6 +79,8 @@ struct Registry {
     reserved_envs: usize,
     reserved_sessions: usize,
     reserved_replay_bytes: u64,
+    /// (owner, name) of every named session, live or being created.
+    names: std::collections::HashSet<(Arc<str>, String)>,
     /// The same counts per principal, and each principal's memory quota.
     principals: HashMap<Arc<str>, Usage>,
     closing: bool,
@@ -103,6 +115,7 @@ impl SessionManager {
             id_salt: std::collections::hash_map::RandomState::new(),
             clock: Instant::now(),
             metrics: Arc::default(),
+            snapshots: None,
         }
     }
 
@@ -197,6 +210,7 @@ impl SessionManager {
             .filter(|(_, entry)| caller.may_see(&entry.owner))
             .map(|(id, entry)| SessionSummary {
                 session_id: id.clone(),
+                name: entry.name.clone(),
                 owner: entry.owner.to_string(),
                 env_id: entry.info.env_id.clone(),
                 num_envs: entry.info.num_envs,
@@ -206,6 +220,7 @@ impl SessionManager {
                 age: entry.created.elapsed(),
                 replay_transitions: entry.replay.as_ref().map_or(0, |replay| replay.read().expect("replay lock").len() as u64),
                 replay_bytes: entry.replay.as_ref().map_or(0, |replay| replay.read().expect("replay lock").layout().memory_bytes() as u64),
+                snapshot: entry.snapshot.as_ref().map(|snapshot| snapshot.info()),
             })
             .collect();
         sessions.sort_by(|a, b| b.age.cmp(&a.age).then_with(|| a.session_id.cmp(&b.session_id)));
@@ -214,20 +229,29 @@ impl SessionManager {
 
     /// Never waits for the session's lock: a step in progress (or a stuck worker) does not delay it.
     pub async fn describe(&self, caller: &Principal, session_id: &str) -> Result<SessionInfo, CoreError> {
-        let (mut info, stats, replay) = {
+        let (mut info, stats, replay, snapshot) = {
             let registry = self.sessions.lock().expect("registry lock");
             let entry = self.touch_if(&registry, session_id, |owner| caller.may_see(owner))?;
-            (entry.info.clone(), entry.stats.clone(), entry.replay.clone())
+            (entry.info.clone(), entry.stats.clone(), entry.replay.clone(), entry.snapshot.clone())
         };
         info.seed = stats.seed.load(Ordering::Relaxed);
         info.total_env_steps = stats.total_env_steps.load(Ordering::Relaxed);
         info.episodes_completed = stats.episodes_completed.load(Ordering::Relaxed);
         info.replay = replay.map(|replay| replay_info(&replay.read().expect("replay lock")));
+        if let (Some(replay), Some(snapshot)) = (info.replay.as_mut(), snapshot) {
+            replay.snapshot = Some(snapshot.info());
+        }
         Ok(info)
     }
 
-    /// Closes a session of `caller` (an admin: any session).
+    /// Closes a session of `caller` (an admin: any session); a named session's replay gets its last
+    /// snapshot.
     pub async fn close_session(&self, caller: &Principal, session_id: &str) -> Result<(), CoreError> {
+        self.close_session_with(caller, session_id, false).await
+    }
+
+    /// The same, removing the named session's snapshot instead when `discard_snapshot`.
+    pub async fn close_session_with(&self, caller: &Principal, session_id: &str, discard_snapshot: bool) -> Result<(), CoreError> {
         let entry = {
             let mut registry = self.sessions.lock().expect("registry lock");
             match registry.sessions.get(session_id) {
@@ -240,15 +264,21 @@ impl SessionManager {
         } else {
             format!("admin '{}' closed it", caller.name())
         };
-        self.close_entry(session_id, entry, &reason).await;
+        self.close_entry(session_id, entry, &reason, discard_snapshot).await;
         Ok(())
     }
 
     /// Closes a session already taken out of the registry; its memory returns with the entry.
-    async fn close_entry(&self, session_id: &str, entry: Entry, reason: &str) {
+    async fn close_entry(&self, session_id: &str, entry: Entry, reason: &str, discard_snapshot: bool) {
         entry.lease.closed.send_replace(true);
         let mut session = entry.session.lock().await;
         session.close().await;
+        // Nothing records any more: the last snapshot holds everything. The name is free only after
+        // it, so a session created again under it restores all of it.
+        self.final_snapshot(session_id, &entry, discard_snapshot).await;
+        if let Some(name) = &entry.name {
+            self.sessions.lock().expect("registry lock").names.remove(&(entry.owner.clone(), name.clone()));
+        }
         self.release(&entry.owner, session.num_envs(), 1);
         self.release_replay(&session);
         info!(session = log_id(session_id), owner = %entry.owner, env = %entry.info.env_id, reason, "session closed");
@@ -267,8 +297,9 @@ impl SessionManager {
             registry.closing = true;
             registry.sessions.drain().collect()
         };
+        self.hurry_snapshots();
         for (id, entry) in entries {
-            self.close_entry(&id, entry, "the server is shutting down").await;
+            self.close_entry(&id, entry, "the server is shutting down", false).await;
         }
     }
 }
@@ -276,6 +307,7 @@ impl SessionManager {
 pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
     SessionInfo {
         session_id: session_id.to_string(),
+        name: None,
         env_id: session.config.env.full(),
         num_envs: session.num_envs(),
         seed: session.config.seed,

@@ -114,5 +114,6 @@ pub(super) fn replay_info(replay: &ReplayBuffer) -> ReplayInfo {
             BufferKind::Rollout { steps } => Some(steps),
             BufferKind::Replay => None,
         },
+        snapshot: None,
     }
 }

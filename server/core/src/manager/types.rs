@@ -64,6 +64,9 @@ pub struct SessionExtras {
     pub buffer: Option<BufferRequest>,
     /// Return observations through this evaluation view (`center_crop(84)`, `center_translate(108)`).
     pub observation_view: Option<String>,
+    /// A name unique among its owner's live sessions; with `[replay] snapshot_dir` set, its replay
+    /// is snapshotted and restored when a session of the same name is created after a restart.
+    pub name: Option<String>,
 }
 
 /// The buffer a session is created with.
@@ -93,6 +96,19 @@ pub struct ReplayInfo {
     pub active_streams: usize,
     /// For a rollout buffer: the steps per env it keeps.
     pub rollout_steps: Option<usize>,
+    /// For a named session's replay on a server that snapshots.
+    pub snapshot: Option<SnapshotInfo>,
+}
+
+/// A named session's replay snapshot.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SnapshotInfo {
+    /// Transitions restored from the snapshot when the session was created (0: none).
+    pub restored_transitions: u64,
+    /// Bytes the snapshot takes on disk.
+    pub disk_bytes: u64,
+    /// How old the snapshot on disk is (None: none written yet).
+    pub age: Option<Duration>,
 }
 
 /// What a sampler needs of a session: its buffer, what its observations and actions are, and the
@@ -117,6 +133,7 @@ pub struct CatalogEntry {
 #[derive(Clone, Debug)]
 pub struct SessionInfo {
     pub session_id: String,
+    pub name: Option<String>,
     pub env_id: String,
     pub num_envs: usize,
     pub seed: u64,
@@ -136,6 +153,7 @@ pub type SharedSession = Arc<Mutex<Session>>;
 #[derive(Clone, Debug, PartialEq)]
 pub struct SessionSummary {
     pub session_id: String,
+    pub name: Option<String>,
     /// The principal that created it.
     pub owner: String,
     pub env_id: String,
@@ -147,4 +165,6 @@ pub struct SessionSummary {
     /// Transitions its replay buffer holds now, and the bytes the buffer takes (0 without one).
     pub replay_transitions: u64,
     pub replay_bytes: u64,
+    /// A named session's replay snapshot.
+    pub snapshot: Option<SnapshotInfo>,
 }

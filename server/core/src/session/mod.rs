@@ -241,6 +241,16 @@ impl Session {
         self.config.num_envs
     }
 
+    /// A session whose replay was restored from a snapshot continues the counters it was taken
+    /// with: step indices after those of the restored transitions, and the totals Describe shows.
+    pub fn continue_from(&mut self, counters: radserve_replay::snapshot::SessionCounters) {
+        self.step_calls = self.step_calls.max(counters.step_calls);
+        self.total_env_steps = counters.total_env_steps;
+        self.episodes_completed = counters.episodes_completed;
+        self.stats.total_env_steps.store(self.total_env_steps, std::sync::atomic::Ordering::Relaxed);
+        self.stats.episodes_completed.store(self.episodes_completed, std::sync::atomic::Ordering::Relaxed);
+    }
+
     /// Whether the session must be reset (every env) before it steps: new, or after a failed step.
     pub fn needs_reset(&self) -> bool {
         self.needs_reset

@@ -42,6 +42,7 @@ pub async fn start_server_with(limits: Limits, adjust: impl FnOnce(&mut ServerSe
         limits,
         worker_call_timeout: Duration::from_secs(60),
         worker_create_timeout: Duration::from_secs(300),
+        replay: radserve_core::ReplayConfig::default(),
     };
     let mut options = radserve::ServeOptions { augment_threads: 1, ..radserve::ServeOptions::default() };
     adjust(&mut settings, &mut options);
@@ -86,7 +87,7 @@ pub async fn still_serves(client: &mut RadServeClient<Channel>) {
     let request = proto::CreateSessionRequest { env_id: "gym/CartPole-v1".into(), num_envs: 1, ..Default::default() };
     let session = client.create_session(request).await.expect("the server still serves").into_inner();
     client.reset(proto::ResetRequest { session_id: session.session_id.clone(), seed: Some(1), ..Default::default() }).await.unwrap();
-    client.close_session(proto::CloseSessionRequest { session_id: session.session_id }).await.unwrap();
+    client.close_session(proto::CloseSessionRequest { session_id: session.session_id, discard_snapshot: false }).await.unwrap();
 }
 
 pub fn f32_tensor(shape: &[i64], values: &[f32]) -> proto::Tensor {

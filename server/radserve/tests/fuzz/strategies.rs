@@ -203,14 +203,17 @@ pub fn op() -> impl Strategy<Value = Op> {
         options(),
         prop::option::of((edge_u64(), edge_u32()).prop_map(|(capacity, rollout_steps)| proto::ReplayOptions { capacity, rollout_steps })),
         prop_oneof![3 => Just(String::new()), 1 => stage_text()],
+        // Names: none, a few that repeat (ALREADY_EXISTS while their session lives), anything.
+        prop_oneof![3 => Just(String::new()), 2 => "run-[0-2]", 1 => any::<String>()],
     )
-        .prop_map(|(env_id, num_envs, seed, options, replay, observation_view)| proto::CreateSessionRequest {
+        .prop_map(|(env_id, num_envs, seed, options, replay, observation_view, name)| proto::CreateSessionRequest {
             env_id,
             num_envs,
             seed,
             options,
             replay,
             observation_view,
+            name,
         });
     let act_message = prop_oneof![
         1 => Just(None),

@@ -80,7 +80,7 @@ impl Connection {
         let info = self
             .service
             .manager
-            .create_session(&self.caller, &env_id, num_envs, seed, &options, &SessionExtras { buffer: None, observation_view: None })
+            .create_session(&self.caller, &env_id, num_envs, seed, &options, &SessionExtras::default())
             .await?;
         Ok(dm::CreateWorldResponse { world_name: info.session_id })
     }
