@@ -10,6 +10,7 @@ from ._transport import resolve as resolve_addresses
 from .batches import Batch, BatchStream, SharedBatchStream
 from .client import Client
 from .errors import (
+    AlreadyExistsError,
     CancelledError,
     DeadlineExceededError,
     FailedPreconditionError,
@@ -35,5 +36,6 @@ __all__ = [
     "resolve_addresses",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",
-    "UnauthenticatedError", "PermissionDeniedError", "DeadlineExceededError", "CancelledError", "UnimplementedError",
+    "UnauthenticatedError", "PermissionDeniedError", "DeadlineExceededError", "AlreadyExistsError",
+    "CancelledError", "UnimplementedError",
 ]

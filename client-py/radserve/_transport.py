@@ -123,9 +123,10 @@ class Transport:
         self.open_sessions.add(info.session_id)
         return info
 
-    def close_session(self, session_id: str, timeout: "float | None" = None) -> None:
+    def close_session(self, session_id: str, timeout: "float | None" = None, discard_snapshot: bool = False) -> None:
         self.open_sessions.discard(session_id)
-        self.call("CloseSession", pb.CloseSessionRequest(session_id=session_id), timeout=timeout)
+        self.call("CloseSession", pb.CloseSessionRequest(session_id=session_id, discard_snapshot=discard_snapshot),
+                  timeout=timeout)
 
     @staticmethod
     def negotiate(delivery: str, shared: Callable[[], T], fallback: Callable[[], T]) -> T:

@@ -125,6 +125,7 @@ class Client:
         observation_view: str = "",
         autoreset_mode: "str | Any | None" = None,
         channels_last: bool = False,
+        name: str = "",
         **options: Any,
     ):
         """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
@@ -150,6 +151,11 @@ class Client:
         through RAD's evaluation view, matching what the learner trains on; replay keeps raw frames.
         `channels_last=True` returns image observations as `[H, W, C]` (gymnasium's pixel layout, which
         `gymnasium.wrappers.vector.GrayscaleObservation` needs) instead of the server's `[C, H, W]`.
+        `name` names the session (unique among this principal's live sessions on each server:
+        `AlreadyExistsError` otherwise). On a server with `[replay] snapshot_dir` set, a named
+        session's replay is snapshotted to disk, and a session created under the same name (same
+        env, num_envs, options and capacity), after a restart too, starts with it restored; a sharded
+        session that gets a lost server back (`on_server_loss="continue"`) gets its replay back with it.
         """
         request = pb.CreateSessionRequest(
             env_id=env_id,
@@ -160,6 +166,7 @@ class Client:
             if replay_capacity or rollout_steps
             else None,
             observation_view=observation_view,
+            name=name,
         )
         settings = dict(stream=stream, delivery=delivery, autoreset_mode=autoreset_mode, channels_last=channels_last)
         check_delivery(delivery)
@@ -249,13 +256,14 @@ class Client:
         return SessionInfo.from_proto(
             transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id)))
 
-    def close_session(self, session_id: str) -> None:
-        """Closes a session (a sharded one: its session on every server)."""
+    def close_session(self, session_id: str, *, discard_snapshot: bool = False) -> None:
+        """Closes a session (a sharded one: its session on every server). A named session's replay
+        gets a last snapshot, unless `discard_snapshot` removes its snapshot instead."""
         sharded = self._sharded.pop(session_id, None)
         if sharded is not None:
-            sharded.close()
+            sharded.close(discard_snapshot=discard_snapshot)
             return
-        self._for_session(session_id).close_session(session_id)
+        self._for_session(session_id).close_session(session_id, discard_snapshot=discard_snapshot)
 
     def list_sessions(self) -> "list[SessionSummary]":
         """Every open session the caller may see: its own, or every principal's for an admin or a

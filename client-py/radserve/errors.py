@@ -22,6 +22,10 @@ class InvalidArgumentError(RadServeError, ValueError):
     """The request does not fit: action shape/dtype/bounds, option names or values, seeds."""
 
 
+class AlreadyExistsError(RadServeError):
+    """The caller already has a live session of this name (`make_vec(name=...)`): close it first."""
+
+
 class FailedPreconditionError(RadServeError):
     """The session is not in a state to take the request (e.g. Step before Reset)."""
 
@@ -72,6 +76,7 @@ _BY_CODE = {
     grpc.StatusCode.NOT_FOUND: NotFoundError,
     grpc.StatusCode.INVALID_ARGUMENT: InvalidArgumentError,
     grpc.StatusCode.FAILED_PRECONDITION: FailedPreconditionError,
+    grpc.StatusCode.ALREADY_EXISTS: AlreadyExistsError,
     grpc.StatusCode.RESOURCE_EXHAUSTED: ResourceExhaustedError,
     grpc.StatusCode.UNAVAILABLE: UnavailableError,
     grpc.StatusCode.INTERNAL: InternalError,

@@ -365,13 +365,13 @@ class ShardedVectorEnv(VectorEnv):
         if self.closed:
             raise RuntimeError("the sharded session is closed")
 
-    def close(self, **kwargs) -> None:
+    def close(self, *, discard_snapshot: bool = False, **kwargs) -> None:
         if getattr(self, "closed", False):
             return
         self.closed = True
         for shard in self.shards:
             if shard.env is not None:
-                shard.env.close(timeout=2.0)
+                shard.env.close(timeout=2.0, discard_snapshot=discard_snapshot)
 
 
 def _ready(transport: Transport, timeout: float) -> bool:

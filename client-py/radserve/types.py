@@ -48,6 +48,8 @@ class SessionInfo:
     total_env_steps: int
     episodes_completed: int
     replay: "dict | None" = None
+    # The name it was created with ("": none).
+    name: str = ""
 
     @staticmethod
     def from_proto(message: "pb.SessionInfo") -> "SessionInfo":
@@ -74,9 +76,19 @@ class SessionInfo:
                 "frames_per_transition": message.replay.frames_per_transition,
                 "active_streams": message.replay.active_streams,
                 "rollout_steps": message.replay.rollout_steps or None,
+                # A named session's snapshot on a server that snapshots (`[replay] snapshot_dir`).
+                "snapshot": {
+                    "restored_transitions": message.replay.snapshot.restored_transitions,
+                    "disk_bytes": message.replay.snapshot.disk_bytes,
+                    "age_seconds": message.replay.snapshot.age_seconds
+                    if message.replay.snapshot.HasField("age_seconds") else None,
+                }
+                if message.replay.HasField("snapshot")
+                else None,
             }
             if message.HasField("replay")
             else None,
+            name=message.name,
         )
 
 
@@ -96,6 +108,8 @@ class SessionSummary:
     idle_timeout_seconds: float
     # The address of the server that holds it.
     server: str = ""
+    # The name it was created with ("": none).
+    name: str = ""
 
     @staticmethod
     def from_proto(message: "pb.SessionSummary", idle_timeout_seconds: float, server: str = "") -> "SessionSummary":
@@ -110,4 +124,5 @@ class SessionSummary:
             age_seconds=message.age_seconds,
             idle_timeout_seconds=idle_timeout_seconds,
             server=server,
+            name=message.name,
         )

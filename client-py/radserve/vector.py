@@ -583,8 +583,9 @@ class RemoteVectorEnv(VectorEnv):
         return SessionInfo.from_proto(
             self._transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=self.session_id)))
 
-    def close(self, *, timeout: "float | None" = None, **kwargs):
-        """Closes the session on the server (waiting at most `timeout` s for it to answer)."""
+    def close(self, *, timeout: "float | None" = None, discard_snapshot: bool = False, **kwargs):
+        """Closes the session on the server (waiting at most `timeout` s for it to answer). A named
+        session's replay gets a last snapshot, unless `discard_snapshot` removes its snapshot."""
         if self.closed:
             return
         self.closed = True
@@ -593,7 +594,7 @@ class RemoteVectorEnv(VectorEnv):
         if self._requests is not None:
             self._requests.put(None)
         try:
-            self._transport.close_session(self.session_id, timeout=timeout)
+            self._transport.close_session(self.session_id, timeout=timeout, discard_snapshot=discard_snapshot)
         except Exception:  # the server may already be gone; closing must not raise
             pass
 

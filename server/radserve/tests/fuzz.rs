@@ -19,7 +19,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
-use common::{connect, start_server, RawCodec, TestServer};
+use common::{connect, start_server_with, RawCodec, TestServer};
 use proptest::prelude::*;
 use proptest::test_runner::{TestCaseError, TestRunner};
 use radserve_service::proto::{self, rad_serve_client::RadServeClient};
@@ -79,7 +79,17 @@ fn harness() -> &'static Harness {
             memory_bytes: 1 << 30,
         };
         let (server, channel, base) = runtime.block_on(async {
-            let server = start_server(limits).await;
+            // Named sessions are snapshotted (every 0.2 s) and restored: names repeat across cases
+            // (in target/tmp, left for the next run to ignore: the harness lives as long as the process).
+            let snapshots = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap().keep();
+            let server = start_server_with(limits, |settings, _| {
+                settings.replay = radserve_core::ReplayConfig {
+                    snapshot_dir: Some(snapshots),
+                    snapshot_interval_s: 0.2,
+                    ..radserve_core::ReplayConfig::default()
+                };
+            })
+            .await;
             let channel = connect(&server.address).await;
             let mut client = RadServeClient::new(channel.clone());
             // The catalog is built once, by a low-priority worker: on a loaded host that takes longer
