@@ -15,12 +15,14 @@ import numpy as np
 import pytest
 
 import radserve
+from test_metrics import free_port, scrape, value
 
 ENV = "gym/CartPole-v1"
 
 
-def _server(directory, interval="0.3", address="127.0.0.1:0"):
-    env = {"RADSERVE__REPLAY__SNAPSHOT_DIR": str(directory), "RADSERVE__REPLAY__SNAPSHOT_INTERVAL_S": interval}
+def _server(directory, interval="0.3", address="127.0.0.1:0", **settings):
+    env = {"RADSERVE__REPLAY__SNAPSHOT_DIR": str(directory), "RADSERVE__REPLAY__SNAPSHOT_INTERVAL_S": interval,
+           **settings}
     server = radserve.LocalServer(workers=1, env=env, address=address)
     server.start()
     return server
@@ -150,3 +152,48 @@ def test_a_sharded_learner_gets_a_killed_servers_replay_back(tmp_path):
     finally:
         for server in servers:
             server.stop()
+
+
+def test_a_failed_snapshot_is_a_warning_and_a_metric_and_the_previous_one_stays(tmp_path):
+    """The session's directory replaced by a file (the writes fail, as on a full or broken disk):
+    the failures are counted, acting goes on, the last good snapshot is untouched, and the next
+    snapshot once the directory is back holds everything."""
+    port = free_port()
+    server = _server(tmp_path, RADSERVE__METRICS__ADDRESS=f"127.0.0.1:{port}")
+    try:
+        with radserve.Client(server.address) as client:
+            envs = client.make_vec(ENV, num_envs=2, seed=0, replay_capacity=1000, name="metered",
+                                   autoreset_mode="SameStep")
+            envs.reset(seed=0)
+            _steps(envs, 50)
+            saved = _snapshot_after(client, envs.session_id, time.time())
+            families = scrape(port)
+            assert value(families, "radserve_snapshots", "_total") >= 1
+            assert value(families, "radserve_snapshot_bytes", "_total") >= saved["snapshot"]["disk_bytes"] > 0
+            assert value(families, "radserve_snapshot_disk_bytes") == saved["snapshot"]["disk_bytes"]
+            assert value(families, "radserve_snapshot_failures", "_total") == 0
+            assert value(families, "radserve_snapshot_age_seconds") < 5
+
+            directory = next(tmp_path.iterdir()) / "metered"
+            kept = directory.with_name("kept")
+            directory.rename(kept)
+            directory.write_text("not a directory")
+            _steps(envs, 20)
+            deadline = time.monotonic() + 20
+            while value(scrape(port), "radserve_snapshot_failures", "_total") == 0 and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert value(scrape(port), "radserve_snapshot_failures", "_total") >= 1
+            _steps(envs, 5)  # the server keeps serving
+            assert client.describe_session(envs.session_id).replay["snapshot"]["disk_bytes"] == saved["snapshot"]["disk_bytes"]
+            directory.unlink()
+            kept.rename(directory)
+            latest = _snapshot_after(client, envs.session_id, time.time())
+            assert latest["size"] == saved["size"] + 50
+        _kill(server)
+        server = _server(tmp_path)
+        with radserve.Client(server.address) as client:
+            envs = client.make_vec(ENV, num_envs=2, seed=0, replay_capacity=1000, name="metered",
+                                   autoreset_mode="SameStep")
+            assert envs.info.replay["snapshot"]["restored_transitions"] == latest["size"]
+    finally:
+        server.stop()

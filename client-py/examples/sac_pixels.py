@@ -108,6 +108,10 @@ class Args:
     """agent steps between loss logs"""
     runs_dir: str = "runs"
     """where the run directory is created"""
+    session_name: str = ""
+    """name of the training session on its server(s) (`make_vec(name=...)`): a server that snapshots replay (`[replay] snapshot_dir`) gives a session of this name its replay back after a restart; empty: anonymous"""
+    on_server_loss: str = "raise"
+    """with several servers, what a lost server does to the run: "raise" stops it, "continue" acts and samples on the others until it is back (docs/deployment.md)"""
     checkpoint: bool = True
     """save actor, critic and optimizers to checkpoint.pt at every evaluation"""
     address: str = ""
@@ -291,10 +295,10 @@ def train(args: Args, address: str) -> RunLog:
     if args.image_size:
         options["height"] = options["width"] = args.image_size
 
-    client = radserve.Client(address)
+    client = radserve.Client(address, on_server_loss=args.on_server_loss)
     # Acting sees the evaluation view (the centre of what the learner trains on); replay keeps raw frames.
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
-                           replay_capacity=args.replay_capacity,
+                           replay_capacity=args.replay_capacity, name=args.session_name,
                            observation_view=view, delivery=args.delivery, **options)
     eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 10), seed=args.seed + 10_000,
                                 autoreset_mode="SameStep", observation_view=view, delivery=args.delivery, **options)

@@ -88,6 +88,10 @@ class Args:
     """environment steps between loss logs"""
     runs_dir: str = "runs"
     """where the run directory is created"""
+    session_name: str = ""
+    """name of the training session on its server(s) (`make_vec(name=...)`): a server that snapshots replay (`[replay] snapshot_dir`) gives a session of this name its replay back after a restart; empty: anonymous"""
+    on_server_loss: str = "raise"
+    """with several servers, what a lost server does to the run: "raise" stops it, "continue" acts and samples on the others until it is back (docs/deployment.md)"""
     checkpoint: bool = True
     """save the networks and optimizers to checkpoint.pt at every evaluation"""
     address: str = ""
@@ -255,9 +259,9 @@ def train(args: Args, address: str) -> RunLog:
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     torch.manual_seed(args.seed)
-    client = radserve.Client(address)
+    client = radserve.Client(address, on_server_loss=args.on_server_loss)
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
-                           delivery=args.delivery,
+                           delivery=args.delivery, name=args.session_name,
                            replay_capacity=min(args.buffer_size, max(args.total_steps, args.batch_size)))
     eval_envs = client.make_vec(args.env, num_envs=min(args.eval_episodes, 10), seed=args.seed + 10_000,
                                 autoreset_mode="SameStep", delivery=args.delivery)

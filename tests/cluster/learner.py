@@ -36,7 +36,7 @@ class Learner:
         self.strict_envs = self.strict.make_vec("gym/CartPole-v1", num_envs=6, seed=0, autoreset_mode="SameStep")
         self.strict_envs.reset(seed=0)
         self.envs = self.lenient.make_vec(ENV, num_envs=6, seed=0, autoreset_mode="SameStep",
-                                          replay_capacity=3000, delivery="auto", **OPTIONS)
+                                          replay_capacity=3000, delivery="auto", name="cluster-sac", **OPTIONS)
         self.envs.reset(seed=0)
         for _ in range(20):
             self._step()
@@ -74,6 +74,17 @@ class Learner:
                 "batch_size": len(batch), "batch_servers": sorted(set(batch.server.tolist())),
                 "warnings": self.warnings[-3:]}
 
+    def wait_snapshot(self, shard: str, timeout: str = "60") -> dict:
+        """Waits (not stepping) until shard's server has a snapshot of everything recorded so far."""
+        asked, deadline = time.time(), time.monotonic() + float(timeout)
+        while time.monotonic() < deadline:
+            replay = self.envs.shards[int(shard)].env.describe().replay
+            age = replay["snapshot"]["age_seconds"]
+            if age is not None and time.time() - age > asked:
+                return {"size": replay["size"], "disk_bytes": replay["snapshot"]["disk_bytes"]}
+            time.sleep(0.2)
+        raise TimeoutError(f"no snapshot of shard {shard} within {timeout} s")
+
     def until_active(self, timeout: str = "180") -> dict:
         deadline = time.monotonic() + float(timeout)
         steps = 0
@@ -81,15 +92,14 @@ class Learner:
             self._step()
             steps += 1
             time.sleep(0.05)
-        # Fill the new session's replay, then wait for the returned server to take its share again.
-        for _ in range(20):
-            self._step()
+        restored = [info.replay["snapshot"]["restored_transitions"] for info in self.envs.describe()]
+        # The returned server's replay is restored: it takes its share again without refilling.
         seen: "set[int]" = set()
         while seen != {0, 1, 2} and time.monotonic() < deadline:
             self._step()
             seen = set(next(self.stream).server.tolist())
         return {"active": self.envs.active.tolist(), "steps": steps, "batch_servers": sorted(seen),
-                "warnings": self.warnings[-3:]}
+                "restored": restored, "warnings": self.warnings[-3:]}
 
     def watch_drain(self, server: str) -> dict:
         """While the host stops `server`: its health status over time (another thread), and the

@@ -53,8 +53,12 @@ def wait_healthy(name: str, timeout: float = 240) -> float:
 
 
 def start_server(name: str) -> None:
+    # Replay snapshots of named sessions go to a volume of the container's own (kept across `docker
+    # start`, removed with it), every second.
     docker("run", "-d", "--name", container(name), "--network", NETWORK, "--network-alias", name,
-           "-e", "RADSERVE__SIM__WORKERS=1", "--stop-timeout", str(GRACE_S), *HARDENED, SERVER_IMAGE, "serve", "--insecure")
+           "-e", "RADSERVE__SIM__WORKERS=1", "-v", "/var/lib/radserve/snapshots",
+           "-e", "RADSERVE__REPLAY__SNAPSHOT_DIR=/var/lib/radserve/snapshots", "-e", "RADSERVE__REPLAY__SNAPSHOT_INTERVAL_S=1",
+           "--stop-timeout", str(GRACE_S), *HARDENED, SERVER_IMAGE, "serve", "--insecure")
 
 
 class LearnerContainer:
@@ -128,7 +132,11 @@ def test_a_learner_container_over_three_server_containers(cluster):
                        *[container(name) for name in NAMES])
         print(f"\nserver containers with 2 dm_control pixel envs each and 1,000 transitions of replay:\n{usage}")
 
-        # A server killed: the default raises naming it; "continue" goes on with the other two.
+        # The learner's session is named: each server snapshots its share of the replay. Once the
+        # snapshot holds everything recorded so far, a server is killed (SIGKILL): the default
+        # raises naming it; "continue" goes on with the other two.
+        saved = learner.ask("wait_snapshot 1")
+        assert saved["size"] > 0, saved
         docker("kill", container("radserve-1"))
         strict = learner.ask("step_strict")
         assert strict["error"] == "UnavailableError" and strict["server"] == "radserve-1:50051", strict
@@ -140,12 +148,15 @@ def test_a_learner_container_over_three_server_containers(cluster):
         assert survived["batch_size"] == 32 and survived["batch_servers"] == [0, 2]
         assert any("radserve-1:50051 lost" in warning for warning in survived["warnings"])
 
-        # It comes back (same name, maybe another address): a new session there, its share again.
+        # It comes back (same name, maybe another address): a new session there under the same
+        # session name, with the replay of its last snapshot restored, and its share again.
         docker("start", container("radserve-1"))
         wait_healthy("radserve-1")
         back = learner.ask("until_active")
         assert back["active"] == [True] * 6 and back["batch_servers"] == [0, 1, 2], back
         assert any("is back" in warning for warning in back["warnings"])
+        assert back["restored"][1] >= saved["size"], (back, saved)
+        print(f"\nreplay of radserve-1: {saved['size']} transitions at its last snapshot, {back['restored'][1]} restored")
 
         # `docker stop` (SIGTERM) of a server the learner is acting and sampling on: NOT_SERVING at
         # once, its batch stream ends with the shutdown status (the learner goes on over the other
