@@ -33,16 +33,15 @@ def _kill(server):
     server.process.wait()
 
 
-def _snapshot_after(client, session_id, moment, timeout=20.0):
-    """The session's replay once a snapshot written after `moment` (time.time()) is on disk."""
+def _snapshot_of_everything(client, session_id, timeout=20.0):
+    """The session's replay once a snapshot on disk holds everything it recorded."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         replay = client.describe_session(session_id).replay
-        age = replay["snapshot"]["age_seconds"]
-        if age is not None and time.time() - age > moment:
+        if replay["snapshot"]["age_seconds"] is not None and replay["snapshot"]["pending_frames"] == 0:
             return replay
         time.sleep(0.1)
-    raise AssertionError(f"no snapshot of {session_id} written after the last step within {timeout} s")
+    raise AssertionError(f"no snapshot of everything {session_id} recorded within {timeout} s: {replay}")
 
 
 def _steps(envs, count, seed=0):
@@ -58,12 +57,13 @@ def test_a_named_replay_survives_sigkill_and_restart(tmp_path):
             envs = client.make_vec(ENV, num_envs=4, seed=3, replay_capacity=2000, name="cartpole-sac",
                                    autoreset_mode="SameStep")
             assert envs.info.name == "cartpole-sac"
-            assert envs.info.replay["snapshot"] == {"restored_transitions": 0, "disk_bytes": 0, "age_seconds": None}
+            assert envs.info.replay["snapshot"] == {"restored_transitions": 0, "disk_bytes": 0, "age_seconds": None,
+                                                    "pending_frames": 0}
             with pytest.raises(radserve.AlreadyExistsError, match="cartpole-sac"):
                 client.make_vec(ENV, num_envs=4, seed=3, replay_capacity=2000, name="cartpole-sac")
             envs.reset(seed=3)
             _steps(envs, 150)
-            saved = _snapshot_after(client, envs.session_id, time.time())
+            saved = _snapshot_of_everything(client, envs.session_id)
             assert saved["size"] == 600 and saved["snapshot"]["disk_bytes"] > 0
             with client.sample_batches(envs.session_id, 32) as stream:
                 before = next(stream)
@@ -87,10 +87,9 @@ def test_a_named_replay_survives_sigkill_and_restart(tmp_path):
             envs.close()
             # Another session under the same name (other num_envs): the snapshot is set aside, the
             # session starts empty, and the old files stay beside it.
-            created = time.time()
             other = client.make_vec(ENV, num_envs=2, seed=3, replay_capacity=2000, name="cartpole-sac")
             assert other.info.replay["size"] == 0
-            _snapshot_after(client, other.session_id, created)
+            _snapshot_of_everything(client, other.session_id)
             owner = next(path for path in tmp_path.iterdir())
             names = sorted(path.name for path in owner.iterdir())
             assert names[0] == "cartpole-sac" and names[1].startswith("cartpole-sac.rejected-"), names
@@ -115,7 +114,7 @@ def test_a_sharded_learner_gets_a_killed_servers_replay_back(tmp_path):
         _steps(envs, 60)
         victim = servers[1]
         with radserve.Client(victim.address) as direct:
-            saved = _snapshot_after(direct, envs.shards[1].env.session_id, time.time())
+            saved = _snapshot_of_everything(direct, envs.shards[1].env.session_id)
         stream = client.sample_batches(envs.session_id, 24, min_size=24)
         assert set(next(stream).server.tolist()) == {0, 1, 2}
         _kill(victim)
@@ -166,7 +165,7 @@ def test_a_failed_snapshot_is_a_warning_and_a_metric_and_the_previous_one_stays(
                                    autoreset_mode="SameStep")
             envs.reset(seed=0)
             _steps(envs, 50)
-            saved = _snapshot_after(client, envs.session_id, time.time())
+            saved = _snapshot_of_everything(client, envs.session_id)
             families = scrape(port)
             assert value(families, "radserve_snapshots", "_total") >= 1
             assert value(families, "radserve_snapshot_bytes", "_total") >= saved["snapshot"]["disk_bytes"] > 0
@@ -187,7 +186,7 @@ def test_a_failed_snapshot_is_a_warning_and_a_metric_and_the_previous_one_stays(
             assert client.describe_session(envs.session_id).replay["snapshot"]["disk_bytes"] == saved["snapshot"]["disk_bytes"]
             directory.unlink()
             kept.rename(directory)
-            latest = _snapshot_after(client, envs.session_id, time.time())
+            latest = _snapshot_of_everything(client, envs.session_id)
             assert latest["size"] == saved["size"] + 50
         _kill(server)
         server = _server(tmp_path)

@@ -82,6 +82,7 @@ class SessionInfo:
                     "disk_bytes": message.replay.snapshot.disk_bytes,
                     "age_seconds": message.replay.snapshot.age_seconds
                     if message.replay.snapshot.HasField("age_seconds") else None,
+                    "pending_frames": message.replay.snapshot.pending_frames,
                 }
                 if message.replay.HasField("snapshot")
                 else None,

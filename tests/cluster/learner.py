@@ -76,11 +76,10 @@ class Learner:
 
     def wait_snapshot(self, shard: str, timeout: str = "60") -> dict:
         """Waits (not stepping) until shard's server has a snapshot of everything recorded so far."""
-        asked, deadline = time.time(), time.monotonic() + float(timeout)
+        deadline = time.monotonic() + float(timeout)
         while time.monotonic() < deadline:
             replay = self.envs.shards[int(shard)].env.describe().replay
-            age = replay["snapshot"]["age_seconds"]
-            if age is not None and time.time() - age > asked:
+            if replay["snapshot"]["age_seconds"] is not None and replay["snapshot"]["pending_frames"] == 0:
                 return {"size": replay["size"], "disk_bytes": replay["snapshot"]["disk_bytes"]}
             time.sleep(0.2)
         raise TimeoutError(f"no snapshot of shard {shard} within {timeout} s")

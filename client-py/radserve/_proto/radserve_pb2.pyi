@@ -208,14 +208,16 @@ class ReplayInfo(_message.Message):
     def __init__(self, capacity: _Optional[int] = ..., size: _Optional[int] = ..., inserts: _Optional[int] = ..., samples: _Optional[int] = ..., memory_bytes: _Optional[int] = ..., frames_per_transition: _Optional[float] = ..., active_streams: _Optional[int] = ..., rollout_steps: _Optional[int] = ..., batches: _Optional[int] = ..., batches_per_second: _Optional[float] = ..., snapshot: _Optional[_Union[ReplaySnapshot, _Mapping]] = ...) -> None: ...
 
 class ReplaySnapshot(_message.Message):
-    __slots__ = ("restored_transitions", "disk_bytes", "age_seconds")
+    __slots__ = ("restored_transitions", "disk_bytes", "age_seconds", "pending_frames")
     RESTORED_TRANSITIONS_FIELD_NUMBER: _ClassVar[int]
     DISK_BYTES_FIELD_NUMBER: _ClassVar[int]
     AGE_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    PENDING_FRAMES_FIELD_NUMBER: _ClassVar[int]
     restored_transitions: int
     disk_bytes: int
     age_seconds: float
-    def __init__(self, restored_transitions: _Optional[int] = ..., disk_bytes: _Optional[int] = ..., age_seconds: _Optional[float] = ...) -> None: ...
+    pending_frames: int
+    def __init__(self, restored_transitions: _Optional[int] = ..., disk_bytes: _Optional[int] = ..., age_seconds: _Optional[float] = ..., pending_frames: _Optional[int] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
     __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay", "name")

@@ -77,11 +77,14 @@ async fn a_named_replay_comes_back_in_a_restarted_server() {
     let described = first.describe(&local, &info.session_id).await.unwrap();
     let snapshot = described.replay.as_ref().unwrap().snapshot.clone().expect("a snapshot");
     assert!(snapshot.disk_bytes > 0 && snapshot.age.is_some() && snapshot.restored_transitions == 0, "{snapshot:?}");
+    assert_eq!(snapshot.pending_frames, 0, "the snapshot holds everything recorded");
     let saved = described.replay.unwrap().size;
     assert_eq!(saved, 90);
     // Steps after the last snapshot are lost with the process (the manager is dropped unclosed,
     // as a killed server is).
     run(&first, &info.session_id, 4).await;
+    let behind = first.describe(&local, &info.session_id).await.unwrap().replay.unwrap().snapshot.unwrap();
+    assert!(behind.pending_frames >= 12, "4 steps of 3 envs (and first frames of episodes) since the snapshot: {behind:?}");
     std::mem::forget(first);
 
     let second = manager(Some(dir.path()), OnBadSnapshot::Empty);

@@ -269,6 +269,11 @@ impl ReplayBuffer {
         &self.layout
     }
 
+    /// Frames recorded so far, over all envs (first frames included).
+    pub fn frames_written(&self) -> u64 {
+        self.written.iter().sum()
+    }
+
     /// One past the largest step index recorded (restored with the buffer).
     pub fn steps_recorded(&self) -> u64 {
         self.steps_recorded

@@ -229,6 +229,12 @@ impl SnapshotWriter {
         self.manifest.bytes()
     }
 
+    /// Frames the snapshot on disk holds or skipped, over all envs: once the buffer's
+    /// `frames_written` equals it, the snapshot holds everything recorded.
+    pub fn covered_frames(&self) -> u64 {
+        self.manifest.written.iter().sum()
+    }
+
     /// Whether a snapshot was ever written (a manifest exists).
     pub fn written(&self) -> bool {
         !self.manifest.segments.is_empty()

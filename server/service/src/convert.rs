@@ -125,6 +125,7 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
                 restored_transitions: snapshot.restored_transitions,
                 disk_bytes: snapshot.disk_bytes,
                 age_seconds: snapshot.age.map(|age| age.as_secs_f64()),
+                pending_frames: snapshot.pending_frames,
             }),
         }),
         name: info.name.clone().unwrap_or_default(),

@@ -105,8 +105,8 @@ impl SessionManager {
         let session_id = self.new_session_id();
         let mut info = describe(&session_id, &session);
         info.name = extras.name.clone();
-        if let (Some(replay), Some(snapshot)) = (info.replay.as_mut(), &snapshot) {
-            replay.snapshot = Some(snapshot.info());
+        if let (Some(replay_info), Some(snapshot), Some(replay)) = (info.replay.as_mut(), &snapshot, session.replay()) {
+            replay_info.snapshot = Some(snapshot.info(replay));
         }
         let (stats, replay) = (session.stats.clone(), session.replay().cloned());
         let shared = Arc::new(Mutex::new(session));

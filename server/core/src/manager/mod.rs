@@ -220,7 +220,7 @@ impl SessionManager {
                 age: entry.created.elapsed(),
                 replay_transitions: entry.replay.as_ref().map_or(0, |replay| replay.read().expect("replay lock").len() as u64),
                 replay_bytes: entry.replay.as_ref().map_or(0, |replay| replay.read().expect("replay lock").layout().memory_bytes() as u64),
-                snapshot: entry.snapshot.as_ref().map(|snapshot| snapshot.info()),
+                snapshot: entry.snapshot.as_ref().zip(entry.replay.as_ref()).map(|(snapshot, replay)| snapshot.info(replay)),
             })
             .collect();
         sessions.sort_by(|a, b| b.age.cmp(&a.age).then_with(|| a.session_id.cmp(&b.session_id)));
@@ -237,9 +237,9 @@ impl SessionManager {
         info.seed = stats.seed.load(Ordering::Relaxed);
         info.total_env_steps = stats.total_env_steps.load(Ordering::Relaxed);
         info.episodes_completed = stats.episodes_completed.load(Ordering::Relaxed);
-        info.replay = replay.map(|replay| replay_info(&replay.read().expect("replay lock")));
-        if let (Some(replay), Some(snapshot)) = (info.replay.as_mut(), snapshot) {
-            replay.snapshot = Some(snapshot.info());
+        info.replay = replay.as_ref().map(|replay| replay_info(&replay.read().expect("replay lock")));
+        if let (Some(replay_info), Some(snapshot), Some(replay)) = (info.replay.as_mut(), snapshot, replay) {
+            replay_info.snapshot = Some(snapshot.info(&replay));
         }
         Ok(info)
     }

@@ -85,8 +85,10 @@ pub(crate) struct SnapshotSlot {
     writer: StdMutex<SnapshotWriter>,
     /// Milliseconds since the Unix epoch of the last snapshot that landed (or of the restored one).
     last_success_unix_ms: AtomicU64,
-    /// Bytes of the snapshot on disk (kept here: reading the writer's would wait for a write).
+    /// Bytes of the snapshot on disk, and the frames it covers (kept here: reading the writer's
+    /// would wait for a write in progress).
     disk_bytes: AtomicU64,
+    covered_frames: AtomicU64,
     /// Transitions the session's buffer got back from its snapshot at creation.
     pub(crate) restored_transitions: u64,
 }
@@ -98,11 +100,14 @@ impl SnapshotSlot {
         (last > 0).then(|| Duration::from_millis(unix_ms().saturating_sub(last)))
     }
 
-    pub(crate) fn info(&self) -> super::SnapshotInfo {
+    /// What Describe shows of it, as of `replay` (the buffer it snapshots).
+    pub(crate) fn info(&self, replay: &RwLock<ReplayBuffer>) -> super::SnapshotInfo {
+        let frames_written = replay.read().expect("replay lock").frames_written();
         super::SnapshotInfo {
             restored_transitions: self.restored_transitions,
             disk_bytes: self.disk_bytes.load(Ordering::Relaxed),
             age: self.age(),
+            pending_frames: frames_written.saturating_sub(self.covered_frames.load(Ordering::Relaxed)),
         }
     }
 }
@@ -191,6 +196,7 @@ impl SessionManager {
         }
         Ok(Some(Arc::new(SnapshotSlot {
             disk_bytes: AtomicU64::new(writer.disk_bytes()),
+            covered_frames: AtomicU64::new(writer.covered_frames()),
             writer: StdMutex::new(writer),
             last_success_unix_ms: AtomicU64::new(last_success_unix_ms),
             restored_transitions,
@@ -294,6 +300,7 @@ impl Snapshotted {
             Ok(report) => {
                 self.slot.last_success_unix_ms.store(unix_ms(), Ordering::Relaxed);
                 self.slot.disk_bytes.store(report.disk_bytes, Ordering::Relaxed);
+                self.slot.covered_frames.store(writer.covered_frames(), Ordering::Relaxed);
                 metrics.record_snapshot(report.bytes, report.duration);
             }
             Err(error) => {

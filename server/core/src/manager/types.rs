@@ -109,6 +109,8 @@ pub struct SnapshotInfo {
     pub disk_bytes: u64,
     /// How old the snapshot on disk is (None: none written yet).
     pub age: Option<Duration>,
+    /// Frames recorded since the snapshot on disk (0: it holds everything recorded so far).
+    pub pending_frames: u64,
 }
 
 /// What a sampler needs of a session: its buffer, what its observations and actions are, and the
