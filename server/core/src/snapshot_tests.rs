@@ -140,6 +140,7 @@ async fn a_snapshot_of_another_session_is_set_aside_or_refused() {
     let lenient = manager(Some(dir.path()), OnBadSnapshot::Empty);
     let started = create(&lenient, &local, 2, &named("sac", 1000)).await.unwrap();
     assert_eq!(started.replay.unwrap().size, 0);
+    assert_eq!(lenient.metrics().snapshots().failures.load(std::sync::atomic::Ordering::Relaxed), 1, "set aside, and counted");
     let names = listing();
     assert!(names.len() == 1 && names[0].starts_with("sac.rejected-"), "{names:?}");
 }

@@ -145,89 +145,120 @@ fn no_snapshot_is_none_and_a_rollout_has_none() {
     assert!(SnapshotWriter::new(dir.path(), IDENTITY, rollout).unwrap_err().to_string().contains("only replay buffers"));
 }
 
-/// A buffer of 120 transitions with a snapshot of it in two segments, in a temporary directory.
-fn snapshot_on_disk() -> (tempfile::TempDir, PathBuf, ReplayBuffer) {
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("run");
-    let mut rng = ChaCha8Rng::seed_from_u64(11);
-    let buffer = RwLock::new(ReplayBuffer::new(layout(150)).unwrap());
-    let mut writer = SnapshotWriter::new(&path, IDENTITY, layout(150)).unwrap();
-    let mut step_calls = 0;
-    for chunk in [25, 15] {
-        record(&buffer, &mut rng, chunk, &mut step_calls);
-        writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+/// A buffer being recorded and its snapshots, in a temporary directory.
+struct Recording {
+    _dir: tempfile::TempDir,
+    path: PathBuf,
+    rng: ChaCha8Rng,
+    buffer: RwLock<ReplayBuffer>,
+    writer: SnapshotWriter,
+    step_calls: u64,
+}
+
+impl Recording {
+    fn new(seed: u64, capacity: usize) -> Recording {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run");
+        let writer = SnapshotWriter::new(&path, IDENTITY, layout(capacity)).unwrap();
+        let buffer = RwLock::new(ReplayBuffer::new(layout(capacity)).unwrap());
+        Recording { _dir: dir, path, rng: ChaCha8Rng::seed_from_u64(seed), buffer, writer, step_calls: 0 }
     }
-    (dir, path, buffer.into_inner().unwrap())
+
+    fn record(&mut self, steps: usize) {
+        record(&self.buffer, &mut self.rng, steps, &mut self.step_calls);
+    }
+
+    fn snapshot(&mut self) -> Result<SnapshotReport> {
+        self.writer.write(&self.buffer, session(self.step_calls), &mut Throttle::new(0, None))
+    }
+
+    /// A new buffer restored from the snapshot on disk.
+    fn restored(&self) -> ReplayBuffer {
+        let mut restored = ReplayBuffer::new(self.buffer.read().unwrap().layout).unwrap();
+        restore(&self.path, IDENTITY, &mut restored).unwrap().expect("a snapshot");
+        restored
+    }
+}
+
+/// A buffer of 120 transitions with a snapshot of it in two segments, in a temporary directory.
+fn snapshot_on_disk() -> Recording {
+    let mut recording = Recording::new(11, 150);
+    for chunk in [25, 15] {
+        recording.record(chunk);
+        recording.snapshot().unwrap();
+    }
+    recording
 }
 
 #[test]
 fn another_session_or_layout_is_refused_naming_the_manifest() {
-    let (_dir, path, _) = snapshot_on_disk();
+    let recording = snapshot_on_disk();
+    let path = &recording.path;
     let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-    let error = restore(&path, "{\"env\":\"other\"}", &mut buffer).unwrap_err();
+    let error = restore(path, "{\"env\":\"other\"}", &mut buffer).unwrap_err();
     assert_eq!(error.file, path.join(MANIFEST));
     assert!(error.to_string().contains("created as"), "{error}");
     let mut bigger = ReplayBuffer::new(layout(151)).unwrap();
-    let error = restore(&path, IDENTITY, &mut bigger).unwrap_err();
+    let error = restore(path, IDENTITY, &mut bigger).unwrap_err();
     assert!(error.to_string().contains("this session's is (151, 3, 3, 48, 8)"), "{error}");
     assert!(bigger.is_empty() && buffer.is_empty());
 }
 
 #[test]
+fn a_foreign_file_or_another_format_version_is_named_as_such() {
+    let recording = snapshot_on_disk();
+    let manifest = recording.path.join(MANIFEST);
+    let mut bytes = fs::read(&manifest).unwrap();
+    bytes[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
+    fs::write(&manifest, &bytes).unwrap();
+    let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
+    let error = restore(&recording.path, IDENTITY, &mut buffer).unwrap_err();
+    assert!(error.to_string().contains("snapshot format version 2; this server reads version 1"), "{error}");
+    fs::write(&manifest, b"{\"identity\": \"someone else's JSON\"}").unwrap();
+    let error = restore(&recording.path, IDENTITY, &mut buffer).unwrap_err();
+    assert!(error.to_string().contains("not a radserve snapshot manifest") && error.file == manifest, "{error}");
+}
+
+#[test]
 fn a_crash_mid_write_leaves_the_previous_snapshot() {
-    let (_dir, path, original) = snapshot_on_disk();
+    let recording = snapshot_on_disk();
+    let path = &recording.path;
     // A segment written but never listed, and a manifest never renamed: what a kill leaves.
     fs::write(path.join(segment_name(3)), b"RSNPSEGM half a segment").unwrap();
     fs::write(path.join(MANIFEST_TMP), b"RSNPMANI half a manifest").unwrap();
     let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-    let (report, _) = restore(&path, IDENTITY, &mut buffer).unwrap().unwrap();
-    assert_eq!(report.transitions, original.len());
+    let (report, _) = restore(path, IDENTITY, &mut buffer).unwrap().unwrap();
+    assert_eq!(report.transitions, recording.buffer.read().unwrap().len());
     assert!(!path.join(segment_name(3)).exists() && !path.join(MANIFEST_TMP).exists(), "strays are removed");
 }
 
 #[test]
 fn a_failed_write_keeps_the_previous_snapshot_and_retries_the_same_frames() {
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("run");
-    let mut rng = ChaCha8Rng::seed_from_u64(3);
-    let buffer = RwLock::new(ReplayBuffer::new(layout(150)).unwrap());
-    let mut writer = SnapshotWriter::new(&path, IDENTITY, layout(150)).unwrap();
-    let mut step_calls = 0;
-    record(&buffer, &mut rng, 10, &mut step_calls);
-    writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
-    record(&buffer, &mut rng, 10, &mut step_calls);
+    let mut recording = Recording::new(3, 150);
+    recording.record(10);
+    recording.snapshot().unwrap();
+    recording.record(10);
     // The next segment's path is taken by a directory: creating the file fails, as a full disk would.
-    fs::create_dir(path.join(segment_name(2))).unwrap();
-    let error = writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap_err();
-    assert_eq!(error.file, path.join(segment_name(2)));
-    let mut restored = ReplayBuffer::new(layout(150)).unwrap();
-    restore(&path, IDENTITY, &mut restored).unwrap().unwrap();
-    assert_eq!(restored.written, vec![10; 3], "the previous snapshot is whole");
-    fs::remove_dir(path.join(segment_name(2))).unwrap();
-    let report = writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
+    let taken = recording.path.join(segment_name(2));
+    fs::create_dir(&taken).unwrap();
+    assert_eq!(recording.snapshot().unwrap_err().file, taken);
+    assert_eq!(recording.restored().written, vec![10; 3], "the previous snapshot is whole");
+    fs::remove_dir(&taken).unwrap();
+    let report = recording.snapshot().unwrap();
     assert_eq!(report.frames, 30, "the frames of the failed write are written again");
-    let mut restored = ReplayBuffer::new(layout(150)).unwrap();
-    restore(&path, IDENTITY, &mut restored).unwrap().unwrap();
-    assert_same_transitions(&buffer.into_inner().unwrap(), &restored);
+    assert_same_transitions(&recording.buffer.read().unwrap(), &recording.restored());
 }
 
 #[test]
 fn a_writer_lapped_by_acting_skips_what_was_overwritten() {
     // Frames overwritten between the snapshot's blocks: simulated by writing a snapshot of a buffer
     // whose ring has moved on since the last one (the increment starts below what is held).
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("run");
-    let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let buffer = RwLock::new(ReplayBuffer::new(layout(30)).unwrap());
-    let mut writer = SnapshotWriter::new(&path, IDENTITY, layout(30)).unwrap();
-    let mut step_calls = 0;
-    record(&buffer, &mut rng, 5, &mut step_calls);
-    writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
-    record(&buffer, &mut rng, 40, &mut step_calls);
-    writer.write(&buffer, session(step_calls), &mut Throttle::new(0, None)).unwrap();
-    let mut restored = ReplayBuffer::new(layout(30)).unwrap();
-    restore(&path, IDENTITY, &mut restored).unwrap().unwrap();
-    let original = buffer.into_inner().unwrap();
+    let mut recording = Recording::new(5, 30);
+    recording.record(5);
+    recording.snapshot().unwrap();
+    recording.record(40);
+    recording.snapshot().unwrap();
+    let (original, restored) = (recording.buffer.read().unwrap(), recording.restored());
     assert!(restored.floors.iter().all(|&floor| floor > 0), "a gap: {:?}", restored.floors);
     assert!(assert_same_transitions(&original, &restored) > 0);
     assert!(restored.len() <= original.len());
@@ -247,8 +278,9 @@ proptest! {
     /// buffer left empty, nothing panics.
     #[test]
     fn damaged_files_are_refused(file in 0usize..3, at in any::<prop::sample::Index>(), xor in 1u8..=255, cut in any::<bool>(), extra in prop::collection::vec(any::<u8>(), 0..16)) {
-        let (_dir, path, _) = snapshot_on_disk();
-        let target = &files(&path)[file];
+        let recording = snapshot_on_disk();
+        let path = &recording.path;
+        let target = &files(path)[file];
         let mut bytes = fs::read(target).unwrap();
         let at = at.index(bytes.len());
         if cut {
@@ -260,8 +292,8 @@ proptest! {
         }
         fs::write(target, &bytes).unwrap();
         let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-        let error = restore(&path, IDENTITY, &mut buffer).unwrap_err();
-        prop_assert!(error.file.starts_with(&path), "{error}");
+        let error = restore(path, IDENTITY, &mut buffer).unwrap_err();
+        prop_assert!(error.file.starts_with(path), "{error}");
         prop_assert!(buffer.is_empty() && buffer.counters == ReplayCounters::default());
     }
 
@@ -274,7 +306,8 @@ proptest! {
         bytes in prop_oneof![0u64..100_000, any::<u64>()],
         capacity in prop_oneof![Just(150u64), any::<u64>()],
     ) {
-        let (_dir, path, _) = snapshot_on_disk();
+        let recording = snapshot_on_disk();
+        let path = &recording.path;
         let mut manifest = parse_manifest(&fs::read(path.join(MANIFEST)).unwrap()).unwrap();
         let sizes: Vec<u64> = manifest.segments.iter().map(|segment| segment.bytes).collect();
         manifest.written = written;
@@ -282,11 +315,11 @@ proptest! {
         manifest.segments = sequences.iter().enumerate().map(|(index, &sequence)| {
             SegmentEntry { sequence, bytes: sizes.get(index).copied().unwrap_or(bytes) }
         }).collect();
-        write_manifest(&path, &manifest).unwrap();
+        write_manifest(path, &manifest).unwrap();
         let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-        match restore(&path, IDENTITY, &mut buffer) {
+        match restore(path, IDENTITY, &mut buffer) {
             Ok(restored) => prop_assert!(restored.is_some()),
-            Err(error) => prop_assert!(buffer.is_empty() && error.file.starts_with(&path), "{error}"),
+            Err(error) => prop_assert!(buffer.is_empty() && error.file.starts_with(path), "{error}"),
         }
     }
 }

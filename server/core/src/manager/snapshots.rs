@@ -164,7 +164,8 @@ impl SessionManager {
         let (dir, identity) = (snapshots.dir(owner, name), identity(session));
         let policy = snapshots.config.on_bad_snapshot;
         let metrics = self.metrics.clone();
-        let opened = tokio::task::spawn_blocking(move || restore_or_start(&replay, &dir, &identity, policy))
+        let failures = metrics.clone();
+        let opened = tokio::task::spawn_blocking(move || restore_or_start(&replay, &dir, &identity, policy, &failures))
             .await
             .map_err(|error| CoreError::Host(format!("the snapshot restore did not finish: {error}")))?;
         let (writer, restored) = match opened {
@@ -316,12 +317,14 @@ impl Snapshotted {
 }
 
 /// Reads the snapshot in `dir` into `replay` (or starts a new one): the writer, and what was restored.
-/// A snapshot that cannot be used is set aside (policy "empty") or returned as the error ("refuse").
+/// A snapshot that cannot be used is set aside (policy "empty": a warning and a failure counted) or
+/// returned as the error ("refuse": the caller counts it).
 fn restore_or_start(
     replay: &RwLock<ReplayBuffer>,
     dir: &Path,
     identity: &str,
     policy: OnBadSnapshot,
+    metrics: &CoreMetrics,
 ) -> Result<(SnapshotWriter, Option<RestoreReport>), SnapshotError> {
     let mut buffer = replay.write().expect("replay lock");
     let layout = *buffer.layout();
@@ -330,6 +333,7 @@ fn restore_or_start(
         Ok(Some((report, writer))) => Ok((writer, Some(report))),
         Ok(None) => Ok((fresh()?, None)),
         Err(error) if policy == OnBadSnapshot::Empty => {
+            metrics.record_snapshot_failure();
             match snapshot::set_aside(dir) {
                 Ok(aside) => warn!(%error, moved_to = %aside.display(), "a snapshot that cannot be restored was set aside; the session starts empty"),
                 Err(move_error) => warn!(%error, %move_error, "a snapshot that cannot be restored could not be set aside either"),
