@@ -2,14 +2,20 @@
 //! buffer can sample equals the original's, episodes in progress end truncated, and any damage to the
 //! files is refused with the file named and the buffer left empty.
 
+use std::fs;
+use std::path::{Path, PathBuf};
 use std::sync::RwLock;
 
 use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::read::parse_manifest;
+use super::write::write_manifest;
 use super::*;
-use crate::buffer::{RecordedStep, TransitionRef};
+use crate::buffer::{
+    BufferKind, RecordedStep, ReplayBuffer, ReplayCounters, TransitionMetadata, TransitionRef, FIRST_OF_EPISODE,
+};
 
 const IDENTITY: &str = "{\"env\":\"test/Pixels-v0\",\"num_envs\":3}";
 
@@ -79,7 +85,6 @@ fn assert_same_transitions(original: &ReplayBuffer, restored: &ReplayBuffer) -> 
     checked
 }
 
-use crate::buffer::TransitionMetadata;
 
 fn session(step_calls: u64) -> SessionCounters {
     SessionCounters { step_calls, total_env_steps: step_calls * 3, episodes_completed: step_calls / 7 }

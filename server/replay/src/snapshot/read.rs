@@ -1,0 +1,315 @@
+//! Reading a snapshot back into a new buffer, trusting nothing: sizes checked against the session's
+//! layout before anything is read, every block's CRC before it is applied.
+
+use std::fs::{self, File};
+use std::io::{self, Read};
+use std::path::Path;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use super::{
+    block_records, segment_name, Manifest, Result, SessionCounters, SnapshotError, SnapshotWriter, BLOCK_HEADER_BYTES,
+    FORMAT_VERSION, MANIFEST, MANIFEST_MAGIC, MANIFEST_TMP, MAX_MANIFEST_BYTES, MAX_SEGMENTS, SEGMENT_HEADER_BYTES,
+    SEGMENT_MAGIC,
+};
+use crate::buffer::{ReplayBuffer, ReplayCounters, ReplayLayout, FIRST_OF_EPISODE, TERMINATED, TRUNCATED};
+
+/// What a restore read.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RestoreReport {
+    /// Transitions that can be sampled from the restored buffer.
+    pub transitions: usize,
+    /// Bytes of segments read.
+    pub bytes: u64,
+    /// Episodes that were in progress when the snapshot was taken, now ended as truncated.
+    pub truncated_episodes: usize,
+    pub session: SessionCounters,
+    /// How old the snapshot was when restored.
+    pub age: Duration,
+    pub duration: Duration,
+}
+
+/// Fill `buffer` (new, empty, made with the layout the snapshot must have) from the snapshot in
+/// `dir`; None when there is none. Episodes in progress when it was taken end as truncated. On an
+/// error the buffer is left empty.
+pub fn restore(dir: &Path, identity: &str, buffer: &mut ReplayBuffer) -> Result<Option<(RestoreReport, SnapshotWriter)>> {
+    let started = Instant::now();
+    let manifest_path = dir.join(MANIFEST);
+    if !manifest_path.is_file() {
+        return Ok(None);
+    }
+    let result = read_manifest(&manifest_path, identity, &buffer.layout).and_then(|manifest| {
+        let (bytes, truncated_episodes) = read_segments(dir, &manifest, buffer)?;
+        Ok((manifest, bytes, truncated_episodes))
+    });
+    let (manifest, bytes, truncated_episodes) = match result {
+        Ok(read) => read,
+        Err(error) => {
+            buffer.clear();
+            return Err(error);
+        }
+    };
+    remove_strays(dir, &manifest);
+    let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |since| since.as_secs());
+    let report = RestoreReport {
+        transitions: buffer.len(),
+        bytes,
+        truncated_episodes,
+        session: manifest.session,
+        age: Duration::from_secs(now.saturating_sub(manifest.unix_time_s)),
+        duration: started.elapsed(),
+    };
+    let next_sequence = manifest.segments.last().map_or(1, |last| last.sequence + 1);
+    let writer = SnapshotWriter { dir: dir.to_path_buf(), layout: buffer.layout, manifest, next_sequence };
+    Ok(Some((report, writer)))
+}
+
+/// Segments a crash left behind unlisted, and a half-written manifest.
+fn remove_strays(dir: &Path, manifest: &Manifest) {
+    let Ok(entries) = fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let listed = manifest.segments.iter().any(|segment| segment_name(segment.sequence) == name);
+        if (name.starts_with("seg-") && name.ends_with(".rsnap") && !listed) || name == MANIFEST_TMP {
+            let _ = fs::remove_file(entry.path());
+        }
+    }
+}
+
+fn read_manifest(path: &Path, identity: &str, layout: &ReplayLayout) -> Result<Manifest> {
+    let invalid = |message: String| SnapshotError::new(path, message);
+    let length = fs::metadata(path).map_err(|error| SnapshotError::io(path, error))?.len();
+    if length > MAX_MANIFEST_BYTES {
+        return Err(invalid(format!("{length} bytes, more than a manifest can be ({MAX_MANIFEST_BYTES})")));
+    }
+    let contents = fs::read(path).map_err(|error| SnapshotError::io(path, error))?;
+    let manifest = parse_manifest(&contents).map_err(invalid)?;
+    let expected = Manifest::empty(identity, layout);
+    if manifest.identity != expected.identity {
+        return Err(invalid(format!(
+            "it is the snapshot of a session created as {}, not as {}: create the session as it was, or under \
+             another name",
+            manifest.identity, expected.identity
+        )));
+    }
+    let saved = (manifest.capacity, manifest.num_envs, manifest.frame_stack, manifest.frame_bytes, manifest.action_bytes);
+    let wanted = (expected.capacity, expected.num_envs, expected.frame_stack, expected.frame_bytes, expected.action_bytes);
+    if saved != wanted {
+        return Err(invalid(format!(
+            "it holds a buffer of (capacity, envs, frame stack, frame bytes, action bytes) {saved:?}; this session's \
+             is {wanted:?}"
+        )));
+    }
+    if manifest.written.len() != layout.num_envs {
+        return Err(invalid(format!("it counts frames for {} envs, not {}", manifest.written.len(), layout.num_envs)));
+    }
+    if manifest.segments.is_empty() || manifest.segments.len() > MAX_SEGMENTS {
+        return Err(invalid(format!("it lists {} segments; a snapshot has 1 to {MAX_SEGMENTS}", manifest.segments.len())));
+    }
+    if manifest.segments.windows(2).any(|pair| pair[0].sequence >= pair[1].sequence) {
+        return Err(invalid("its segments are not in ascending order".into()));
+    }
+    Ok(manifest)
+}
+
+/// The manifest in `contents`, checked for what it is, its version and its checksum.
+pub(super) fn parse_manifest(contents: &[u8]) -> std::result::Result<Manifest, String> {
+    if contents.len() < 20 || &contents[..8] != MANIFEST_MAGIC {
+        return Err("not a radserve snapshot manifest".into());
+    }
+    let version = u32::from_le_bytes(contents[8..12].try_into().expect("4 bytes"));
+    if version != FORMAT_VERSION {
+        return Err(format!("snapshot format version {version}; this server reads version {FORMAT_VERSION}"));
+    }
+    let length = u32::from_le_bytes(contents[12..16].try_into().expect("4 bytes")) as usize;
+    if contents.len() != 16 + length + 4 {
+        return Err(format!("{} bytes where the header announces {}: truncated or extended", contents.len(), 16 + length + 4));
+    }
+    let (body, crc) = contents[16..].split_at(length);
+    if crc32fast::hash(body).to_le_bytes() != crc {
+        return Err("checksum mismatch: the manifest is corrupted".into());
+    }
+    serde_json::from_slice(body).map_err(|error| format!("unreadable manifest: {error}"))
+}
+
+/// A little-endian integer at `at` of `bytes` (the caller checked the length).
+fn le_u32(bytes: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"))
+}
+
+fn le_u64(bytes: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"))
+}
+
+/// Apply every segment of `manifest` to `buffer`; (bytes read, episodes ended as truncated).
+fn read_segments(dir: &Path, manifest: &Manifest, buffer: &mut ReplayBuffer) -> Result<(u64, usize)> {
+    let layout = buffer.layout;
+    let (num_envs, slots) = (layout.num_envs, buffer.slots as u64);
+    let record_bytes = layout.slot_bytes();
+    let per_block = block_records(&layout);
+    // Per env: the first frame of the last run of consecutive frames, and one past its end.
+    let (mut lo, mut hi) = (vec![0u64; num_envs], vec![0u64; num_envs]);
+    let mut block = vec![0u8; per_block * record_bytes + 4];
+    let mut total = 0u64;
+    for segment in &manifest.segments {
+        let path = dir.join(segment_name(segment.sequence));
+        let invalid = |message: String| SnapshotError::new(&path, message);
+        let mut file = File::open(&path).map_err(|error| SnapshotError::io(&path, error))?;
+        let length = file.metadata().map_err(|error| SnapshotError::io(&path, error))?.len();
+        if length != segment.bytes {
+            return Err(invalid(format!("{length} bytes, the manifest says {}: truncated or replaced", segment.bytes)));
+        }
+        let mut read_exact = |into: &mut [u8], what: &str| {
+            file.read_exact(into).map_err(|error| {
+                if error.kind() == io::ErrorKind::UnexpectedEof {
+                    invalid(format!("ends inside {what}"))
+                } else {
+                    SnapshotError::io(&path, error)
+                }
+            })
+        };
+        let mut header = [0u8; SEGMENT_HEADER_BYTES];
+        read_exact(&mut header, "its header")?;
+        if &header[..8] != SEGMENT_MAGIC {
+            return Err(invalid("not a radserve snapshot segment".into()));
+        }
+        if le_u32(&header, SEGMENT_HEADER_BYTES - 4) != crc32fast::hash(&header[..SEGMENT_HEADER_BYTES - 4]) {
+            return Err(invalid("header checksum mismatch: corrupted".into()));
+        }
+        let version = le_u32(&header, 8);
+        if version != FORMAT_VERSION {
+            return Err(invalid(format!("snapshot format version {version}; this server reads version {FORMAT_VERSION}")));
+        }
+        let described = (le_u64(&header, 12), le_u32(&header, 20) as usize, le_u32(&header, 24) as usize, le_u32(&header, 28) as usize);
+        let expected = (segment.sequence, num_envs, layout.frame_bytes, layout.action_bytes);
+        if described != expected {
+            return Err(invalid(format!(
+                "header says (sequence, envs, frame bytes, action bytes) {described:?}, the manifest {expected:?}"
+            )));
+        }
+        let mut offset = SEGMENT_HEADER_BYTES as u64;
+        while offset < length {
+            let mut head = [0u8; BLOCK_HEADER_BYTES];
+            read_exact(&mut head, "a block header")?;
+            let (env, count, first) = (le_u32(&head, 0) as usize, le_u32(&head, 4) as usize, le_u64(&head, 8));
+            if env >= num_envs || count == 0 || count > per_block {
+                return Err(invalid(format!(
+                    "a block at byte {offset} of env {env} with {count} frames (envs: {num_envs}, frames per block: 1 to \
+                     {per_block})"
+                )));
+            }
+            let end = first.checked_add(count as u64).filter(|&end| end <= manifest.written[env]);
+            let Some(end) = end.filter(|_| first >= hi[env]) else {
+                return Err(invalid(format!(
+                    "a block at byte {offset} holds frames {first}.. of env {env}, outside {}..{} (after what is read, \
+                     within what the manifest counts)",
+                    hi[env], manifest.written[env]
+                )));
+            };
+            let data = &mut block[..count * record_bytes + 4];
+            read_exact(data, "a block")?;
+            let mut hasher = crc32fast::Hasher::new();
+            hasher.update(&head);
+            hasher.update(&data[..count * record_bytes]);
+            if hasher.finalize() != le_u32(data, count * record_bytes) {
+                return Err(invalid(format!("block at byte {offset} of env {env}: checksum mismatch: corrupted")));
+            }
+            if first > hi[env] {
+                lo[env] = first;
+            }
+            let keep_from = manifest.written[env].saturating_sub(slots);
+            for (index, record) in data[..count * record_bytes].chunks_exact(record_bytes).enumerate() {
+                let frame = first + index as u64;
+                buffer.import_record(env, frame, record, frame >= keep_from).map_err(|message| {
+                    invalid(format!("block at byte {offset}, frame {frame} of env {env}: {message}"))
+                })?;
+            }
+            hi[env] = end;
+            offset += (BLOCK_HEADER_BYTES + count * record_bytes + 4) as u64;
+        }
+        total += length;
+    }
+    if let Some(env) = (0..num_envs).find(|&env| hi[env] != manifest.written[env]) {
+        return Err(SnapshotError::new(
+            &dir.join(MANIFEST),
+            format!("it counts {} frames of env {env}; its segments hold {}", manifest.written[env], hi[env]),
+        ));
+    }
+    let counters = ReplayCounters {
+        inserts: manifest.counters.inserts,
+        samples: manifest.counters.samples,
+        batches: manifest.counters.batches,
+    };
+    let truncated = buffer.finish_restore(&lo, &hi, counters);
+    Ok((total, truncated))
+}
+
+impl ReplayBuffer {
+    /// Check one record read from a snapshot and, when `keep` (its frame is among the last the ring
+    /// holds), store it. An episode that did not end before an episode's first frame ends as truncated.
+    fn import_record(&mut self, env: usize, frame: u64, record: &[u8], keep: bool) -> std::result::Result<(), String> {
+        let (frame_bytes, action_bytes) = (self.layout.frame_bytes, self.layout.action_bytes);
+        let at = frame_bytes + action_bytes;
+        let reward = f32::from_le_bytes(record[at..at + 4].try_into().expect("4 bytes"));
+        let flags = record[at + 4];
+        let (episode_start, step_index) = (le_u64(record, at + 5), le_u64(record, at + 13));
+        if flags & !(FIRST_OF_EPISODE | TERMINATED | TRUNCATED) != 0 || (flags & FIRST_OF_EPISODE != 0 && flags != FIRST_OF_EPISODE) {
+            return Err(format!("flags {flags:#04b} are not a transition's"));
+        }
+        if episode_start > frame || (flags & FIRST_OF_EPISODE != 0 && episode_start != frame) {
+            return Err(format!("its episode starts at frame {episode_start}"));
+        }
+        if step_index == u64::MAX {
+            return Err("its step index is out of range".into());
+        }
+        if flags & FIRST_OF_EPISODE != 0 && frame > 0 && self.written[env] == frame {
+            // The previous frame's episode never ended (the snapshot was taken mid-episode, or its
+            // worker died): it ends as truncated.
+            let previous = self.slot(env, frame - 1);
+            if self.flags[previous] & (FIRST_OF_EPISODE | TERMINATED | TRUNCATED) == 0 {
+                self.flags[previous] |= TRUNCATED;
+            }
+        }
+        self.written[env] = frame + 1;
+        if !keep {
+            return Ok(());
+        }
+        let slot = self.slot(env, frame);
+        self.frames[slot * frame_bytes..(slot + 1) * frame_bytes].copy_from_slice(&record[..frame_bytes]);
+        self.actions[slot * action_bytes..(slot + 1) * action_bytes].copy_from_slice(&record[frame_bytes..at]);
+        self.rewards[slot] = reward;
+        self.flags[slot] = flags;
+        self.episode_starts[slot] = episode_start;
+        self.step_indices[slot] = step_index;
+        self.steps_recorded = self.steps_recorded.max(step_index + 1);
+        Ok(())
+    }
+
+    /// After the last record: each env's runs, the episodes still open end as truncated, the counters
+    /// as saved. The number of episodes ended.
+    fn finish_restore(&mut self, lo: &[u64], hi: &[u64], counters: ReplayCounters) -> usize {
+        let mut truncated = 0;
+        for env in 0..self.layout.num_envs {
+            self.written[env] = hi[env];
+            self.floors[env] = lo[env];
+            self.in_episode[env] = false;
+            if hi[env] > self.held_from(env) {
+                let last = self.slot(env, hi[env] - 1);
+                if self.flags[last] & (FIRST_OF_EPISODE | TERMINATED | TRUNCATED) == 0 {
+                    self.flags[last] |= TRUNCATED;
+                    truncated += 1;
+                }
+            }
+        }
+        self.counters = counters;
+        truncated
+    }
+
+    /// Forget everything recorded (a restore that failed part way).
+    fn clear(&mut self) {
+        self.written.fill(0);
+        self.floors.fill(0);
+        self.in_episode.fill(false);
+        self.steps_recorded = 0;
+        self.counters = ReplayCounters::default();
+    }
+}
