@@ -106,6 +106,8 @@ class Args:
     """save the network and optimizer to checkpoint.pt at every evaluation"""
     address: str = ""
     """an existing radserve server, or several separated by commas (one sharded session over them); empty starts one on a free localhost port"""
+    wait_ready_s: float = 0.0
+    """seconds to wait for every server to answer SERVING before starting (a learner started beside its servers, as a Kubernetes Job is); 0: only the connection is waited for, 10 s"""
     workers: int = 0
     """worker processes of a started server (0: one per core)"""
 
@@ -197,7 +199,7 @@ def train(args: Args, address: str) -> RunLog:
     minibatch_size = batch_size // args.num_minibatches
     num_updates = max(1, args.total_timesteps // batch_size)
 
-    client = radserve.Client(address)
+    client = radserve.Client(address, wait_ready_s=args.wait_ready_s or None)
     game = {"distribution_mode": args.distribution_mode}
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
                            rollout_steps=args.num_steps,

@@ -28,6 +28,8 @@ class Args:
     """dm_control look: "default" (the paper's pixels) or "fast" (no shadows/reflections/multisampling)"""
     address: str = ""
     """an existing server to use; empty starts one on a free localhost port"""
+    wait_ready_s: float = 0.0
+    """seconds to wait for every server to answer SERVING before starting (a learner started beside its servers, as a Kubernetes Job is); 0: only the connection is waited for, 10 s"""
     workers: int = 0
     """worker processes of the started server (0: one per core)"""
 
@@ -40,7 +42,7 @@ def parse_args() -> Args:
 
 
 def run(args: Args, address: str) -> None:
-    client = radserve.Client(address)
+    client = radserve.Client(address, wait_ready_s=args.wait_ready_s or None)
     options = {"render_profile": args.render_profile} if args.env.startswith("dmc/") else {}
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, **options)
     print(f"{args.env}: {args.num_envs} envs, observation {envs.single_observation_space}, "

@@ -108,6 +108,8 @@ class Args:
     """agent steps between loss logs"""
     runs_dir: str = "runs"
     """where the run directory is created"""
+    wait_ready_s: float = 0.0
+    """seconds to wait for every server to answer SERVING before starting (a learner started beside its servers, as a Kubernetes Job is); 0: only the connection is waited for, 10 s"""
     session_name: str = ""
     """name of the training session on its server(s) (`make_vec(name=...)`): a server that snapshots replay (`[replay] snapshot_dir`) gives a session of this name its replay back after a restart; empty: anonymous"""
     on_server_loss: str = "raise"
@@ -295,7 +297,7 @@ def train(args: Args, address: str) -> RunLog:
     if args.image_size:
         options["height"] = options["width"] = args.image_size
 
-    client = radserve.Client(address, on_server_loss=args.on_server_loss)
+    client = radserve.Client(address, on_server_loss=args.on_server_loss, wait_ready_s=args.wait_ready_s or None)
     # Acting sees the evaluation view (the centre of what the learner trains on); replay keeps raw frames.
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
                            replay_capacity=args.replay_capacity, name=args.session_name,

@@ -88,6 +88,8 @@ class Args:
     """environment steps between loss logs"""
     runs_dir: str = "runs"
     """where the run directory is created"""
+    wait_ready_s: float = 0.0
+    """seconds to wait for every server to answer SERVING before starting (a learner started beside its servers, as a Kubernetes Job is); 0: only the connection is waited for, 10 s"""
     session_name: str = ""
     """name of the training session on its server(s) (`make_vec(name=...)`): a server that snapshots replay (`[replay] snapshot_dir`) gives a session of this name its replay back after a restart; empty: anonymous"""
     on_server_loss: str = "raise"
@@ -259,7 +261,7 @@ def train(args: Args, address: str) -> RunLog:
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     torch.manual_seed(args.seed)
-    client = radserve.Client(address, on_server_loss=args.on_server_loss)
+    client = radserve.Client(address, on_server_loss=args.on_server_loss, wait_ready_s=args.wait_ready_s or None)
     envs = client.make_vec(args.env, num_envs=args.num_envs, seed=args.seed, autoreset_mode="SameStep",
                            delivery=args.delivery, name=args.session_name,
                            replay_capacity=min(args.buffer_size, max(args.total_steps, args.batch_size)))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import atexit
 import socket
+import time
 import weakref
 from typing import Callable, TypeVar
 
@@ -94,6 +95,19 @@ class Transport:
     def target(self) -> str:
         return _target(self.address)[0]
 
+    def serving(self, timeout: float) -> "str | None":
+        """None when the server's grpc.health.v1 answers SERVING within `timeout` s (waiting for the
+        connection meanwhile); otherwise what it answered or why it did not."""
+        check = self.channel.unary_unary(_HEALTH_CHECK, request_serializer=_empty_health_request,
+                                         response_deserializer=_health_status)
+        try:
+            status = check(None, timeout=timeout, wait_for_ready=True)
+        except grpc.RpcError as error:
+            code = error.code() if hasattr(error, "code") else None
+            details = error.details() if hasattr(error, "details") else str(error)
+            return f"{code.name if code else 'no answer'}: {details}"
+        return None if status == _SERVING else _STATUS_NAMES.get(status, f"status {status}")
+
     def error(self, error: grpc.RpcError):
         """The radserve error for a failed call (naming this server when the client has several)."""
         mapped = from_rpc_error(error)
@@ -156,3 +170,65 @@ class Transport:
     def close(self) -> None:
         _LIVE.discard(self)
         self.raw_channel.close()
+
+
+# grpc.health.v1 (https://github.com/grpc/grpc/blob/master/doc/health-checking.md), the protocol
+# kubelet probes and `radserve healthcheck` speak. Its two messages have one field each: the request's
+# `service` (empty: the server as a whole, which proto3 encodes as no bytes at all) and the response's
+# enum `status` (field 1, a varint). They are coded here rather than through grpcio-health-checking,
+# which would be a dependency of the client for these two fields.
+_HEALTH_CHECK = "/grpc.health.v1.Health/Check"
+_SERVING = 1
+_STATUS_NAMES = {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}
+
+
+def _empty_health_request(_request) -> bytes:
+    return b""
+
+
+def _health_status(response: bytes) -> int:
+    """`HealthCheckResponse.status`: field 1 as a varint (0, UNKNOWN, when absent)."""
+    status, shift, index = 0, 0, 0
+    while index < len(response):
+        tag = response[index]
+        index += 1
+        if tag != 0x08:  # not field 1 as a varint: nothing else is in this message
+            break
+        status, shift = 0, 0
+        while index < len(response):
+            byte = response[index]
+            index += 1
+            status |= (byte & 0x7F) << shift
+            shift += 7
+            if not byte & 0x80:
+                break
+    return status
+
+
+def wait_serving(transports: "list[Transport]", timeout: float, *, first_backoff: float = 0.25,
+                 max_backoff: float = 5.0) -> None:
+    """Waits until every server answers SERVING on grpc.health.v1, asking again with exponential
+    backoff (a server still starting, or building its catalog, answers NOT_SERVING or nothing);
+    raises UnavailableError naming each server that did not within `timeout` s, and why."""
+    deadline = time.monotonic() + timeout
+    waiting = {transport.address: "not asked" for transport in transports}
+    backoff = first_backoff
+    while True:
+        for transport in transports:
+            if transport.address in waiting:
+                left = deadline - time.monotonic()
+                answer = transport.serving(max(0.05, min(left, 10.0)))
+                if answer is None:
+                    del waiting[transport.address]
+                else:
+                    waiting[transport.address] = answer
+        if not waiting:
+            return
+        left = deadline - time.monotonic()
+        if left <= 0:
+            named = "; ".join(f"{address}: {why}" for address, why in waiting.items())
+            raise UnavailableError(f"{len(waiting)} of {len(transports)} radserve servers did not answer SERVING "
+                                   f"within {timeout} s ({named})", server=next(iter(waiting)))
+        time.sleep(min(backoff, left))
+        backoff = min(backoff * 2, max_backoff)
+

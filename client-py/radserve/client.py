@@ -6,7 +6,7 @@ from typing import Any
 from . import _convert
 from ._proto import radserve_pb2 as pb
 from ._security import TlsConfig
-from ._transport import Transport, check_delivery, resolve
+from ._transport import Transport, check_delivery, resolve, wait_serving
 from .batches import SHARING, open_batch_stream
 from .errors import InvalidArgumentError, RadServeError
 from .sharded import SERVER_LOSS, ShardedBatchStream, ShardedVectorEnv
@@ -40,11 +40,17 @@ class Client:
     "raise" (the default: `UnavailableError` naming the server) or "continue" (act and sample on the
     others; see `ShardedVectorEnv`). `reconnect_backoff` is the first wait (s) before trying a lost
     server again, doubled after each failed try up to `reconnect_backoff_max`.
+
+    `wait_ready` (s) is how long a server has to accept the connection. A learner started beside its
+    servers (a Kubernetes Job, a Compose service) gives `wait_ready_s` instead: every server must
+    answer SERVING on grpc.health.v1 (a server reports NOT_SERVING until its catalog is built), asked
+    again with exponential backoff up to 5 s; past `wait_ready_s` the Client raises
+    `UnavailableError` naming each server that did not and what it last answered.
     """
 
     def __init__(self, address: "str | list[str]", *, token: "str | None" = None,
-                 tls: "TlsConfig | bool | None" = None, wait_ready: float = 10.0, on_server_loss: str = "raise",
-                 reconnect_backoff: float = 1.0, reconnect_backoff_max: float = 30.0):
+                 tls: "TlsConfig | bool | None" = None, wait_ready: float = 10.0, wait_ready_s: "float | None" = None,
+                 on_server_loss: str = "raise", reconnect_backoff: float = 1.0, reconnect_backoff_max: float = 30.0):
         if on_server_loss not in SERVER_LOSS:
             raise InvalidArgumentError(f"on_server_loss must be one of {SERVER_LOSS}, got {on_server_loss!r}")
         self.addresses = resolve(address)
@@ -57,8 +63,11 @@ class Client:
         self._transports: "list[Transport]" = []
         try:
             for server in self.addresses:
-                self._transports.append(Transport(server, token=token, tls=tls, wait_ready=wait_ready,
+                self._transports.append(Transport(server, token=token, tls=tls,
+                                                  wait_ready=0 if wait_ready_s is not None else wait_ready,
                                                   name_in_errors=several))
+            if wait_ready_s is not None:
+                wait_serving(self._transports, wait_ready_s)
         except BaseException:
             self.close()
             raise
