@@ -14,6 +14,13 @@ import radserve
 from radserve.server import find_binary
 
 
+def _free_port() -> int:
+    import socket
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
 def new_token(name: str, role: str = "user") -> "tuple[str, str]":
     """`radserve token`: the token (stdout) and its tokens-file entry (stderr)."""
     made = subprocess.run([find_binary(), "token", "--name", name, "--role", role], capture_output=True, text=True,
@@ -146,14 +153,37 @@ def test_mutual_tls_admits_only_clients_the_ca_signed(tmp_path, ca):
         issued.private_key_pem.write_to_path(str(tmp_path / f"{name}.key"))
         return radserve.TlsConfig(ca=tmp_path / "ca.pem", cert=tmp_path / f"{name}.pem", key=tmp_path / f"{name}.key")
 
+    health_port = _free_port()
+    env["RADSERVE__SERVER__HEALTH_ADDRESS"] = f"127.0.0.1:{health_port}"
     with radserve.LocalServer(workers=1, env=env) as server:
         address = "grpcs://localhost:" + server.address.rsplit(":", 1)[1]
-        with radserve.Client(address, tls=client_cert(client_ca, "learner")) as admitted:
+        with radserve.Client(address, tls=client_cert(client_ca, "learner"), wait_ready_s=120) as admitted:
             assert any(env.id == "gym/CartPole-v1" for env in admitted.list_envs("gym/"))
         for refused in (radserve.TlsConfig(ca=tmp_path / "ca.pem"), client_cert(trustme.CA(), "stranger")):
             with pytest.raises(radserve.RadServeError):
                 with radserve.Client(address, tls=refused, wait_ready=3) as client:
                     client.list_sessions()
+
+        # `radserve healthcheck` presents a client certificate to a mutual-TLS server (an exec probe).
+        def healthcheck(*args):
+            return subprocess.run([find_binary(), "healthcheck", "--address", server.address, "--ca",
+                                   str(tmp_path / "ca.pem"), "--server-name", "localhost", *args],
+                                  capture_output=True, text=True, timeout=60)
+        checked = healthcheck("--cert", str(tmp_path / "learner.pem"), "--key", str(tmp_path / "learner.key"))
+        assert checked.returncode == 0 and checked.stdout.strip() == "SERVING", checked.stderr
+        assert healthcheck().returncode != 0, "without a certificate the server refuses the probe"
+
+        # The health-only listener: kubelet's gRPC probe in plaintext, no certificate, no token;
+        # it serves grpc.health.v1 and nothing else.
+        with grpc.insecure_channel(f"127.0.0.1:{health_port}") as channel:
+            probe = health_pb2_grpc.HealthStub(channel)
+            assert probe.Check(health_pb2.HealthCheckRequest(), timeout=10).status == health_pb2.HealthCheckResponse.SERVING
+            service = health_pb2.HealthCheckRequest(service="radserve.v1.RadServe")
+            assert probe.Check(service, timeout=10).status == health_pb2.HealthCheckResponse.SERVING
+            from radserve._proto import radserve_pb2, radserve_pb2_grpc
+            with pytest.raises(grpc.RpcError) as refused_call:
+                radserve_pb2_grpc.RadServeStub(channel).ListSessions(radserve_pb2.ListSessionsRequest(), timeout=10)
+            assert refused_call.value.code() == grpc.StatusCode.UNIMPLEMENTED
 
 
 def test_an_open_server_on_a_reachable_address_is_refused_unless_insecure():

@@ -170,6 +170,11 @@ pub struct ServerConfig {
     /// Local users (uids) besides the server's own that may receive shared memory (same-host
     /// acting and batches); checked on the socket with SO_PEERCRED.
     pub shared_memory_uids: Vec<u32>,
+    /// host:port of a second listener that serves grpc.health.v1 only, in plaintext and without
+    /// tokens, for probes that cannot speak TLS or present a certificate (kubelet's gRPC probes)
+    /// when the main port has TLS. It answers SERVING or NOT_SERVING as the main port does, and
+    /// nothing else. Empty: none.
+    pub health_address: String,
 }
 
 impl Default for ServerConfig {
@@ -184,6 +189,7 @@ impl Default for ServerConfig {
             keepalive_timeout_s: 20.0,
             insecure: false,
             shared_memory_uids: Vec::new(),
+            health_address: String::new(),
         }
     }
 }
@@ -248,6 +254,11 @@ impl Config {
             .address
             .parse::<SocketAddr>()
             .with_context(|| format!("server.address '{}' is not a host:port socket address", self.server.address))?;
+        if !self.server.health_address.is_empty() {
+            self.server.health_address.parse::<SocketAddr>().with_context(|| {
+                format!("server.health_address '{}' is not a host:port socket address (empty: none)", self.server.health_address)
+            })?;
+        }
         if !self.metrics.address.is_empty() {
             self.metrics.address.parse::<SocketAddr>().with_context(|| {
                 format!("metrics.address '{}' is not a host:port socket address (empty: no metrics endpoint)", self.metrics.address)
@@ -372,6 +383,7 @@ impl Config {
             keepalive_timeout: Duration::from_secs_f64(self.server.keepalive_timeout_s),
             security: crate::Security::default(),
             shared_memory_uids: self.server.shared_memory_uids.clone(),
+            health_address: (!self.server.health_address.is_empty()).then(|| self.server.health_address.clone()),
             worker_stuck_after: Duration::from_secs_f64(self.sim.worker_stuck_after_s),
         }
     }

@@ -74,6 +74,8 @@ pub struct ServeOptions {
     pub security: Security,
     /// Users besides the server's own that may receive shared memory (acting, batches).
     pub shared_memory_uids: Vec<u32>,
+    /// A plaintext listener serving grpc.health.v1 only (`server.health_address`).
+    pub health_address: Option<String>,
     /// A worker in one reset, step or close for longer than this turns the RadServe and dm_env_rpc
     /// services NOT_SERVING until it answers or is replaced (`sim.worker_stuck_after_s`).
     pub worker_stuck_after: Duration,
@@ -134,6 +136,7 @@ impl Default for ServeOptions {
             keepalive_timeout: Duration::from_secs(20),
             security: Security::default(),
             shared_memory_uids: Vec::new(),
+            health_address: None,
             worker_stuck_after: Duration::from_secs(20),
         }
     }
@@ -185,6 +188,29 @@ async fn watch_stuck_workers(manager: Arc<SessionManager>, reporter: tonic_healt
     }
 }
 
+/// The health-only listener (`server.health_address`): grpc.health.v1 and nothing else, in plaintext
+/// and without the auth layer, answering from the same reporter as the main port (so NOT_SERVING while
+/// the catalog builds, a worker is stuck, or the server drains). Kept to a few connections: probes
+/// need one at a time. Runs until the returned task is aborted, after the main port has stopped.
+async fn serve_health_only(
+    address: &str,
+    reporter: tonic_health::server::HealthReporter,
+    options: &ServeOptions,
+) -> anyhow::Result<tokio::task::JoinHandle<()>> {
+    use anyhow::Context;
+    let health = tonic_health::pb::health_server::HealthServer::new(tonic_health::server::HealthService::from_health_reporter(reporter));
+    let listener = TcpListener::bind(address).await.with_context(|| format!("binding server.health_address {address}"))?;
+    info!(address = %listener.local_addr()?, "grpc.health.v1 only, plaintext (server.health_address)");
+    let connections =
+        incoming::incoming(listener, incoming::ConnectionLimits { max_connections: 16, idle_timeout: options.idle_connection_timeout });
+    let server = tonic::transport::Server::builder().add_service(health).serve_with_incoming(connections);
+    Ok(tokio::spawn(async move {
+        if let Err(error) = server.await {
+            warn!(%error, "the health-only listener stopped");
+        }
+    }))
+}
+
 /// Serves on `listener` until `shutdown` resolves, then drains within `options.drain_timeout`:
 /// health turns NOT_SERVING at once and new sessions are refused (UNAVAILABLE); open streams end with
 /// an UNAVAILABLE status; after `shutdown_notice` the listener closes and calls in flight finish;
@@ -210,6 +236,10 @@ pub async fn serve(
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
     health_reporter.set_serving::<RadServeServer<RadServeService>>().await;
     health_reporter.set_serving::<EnvironmentServer<EnvironmentService>>().await;
+    let health_only = match &options.health_address {
+        Some(address) => Some(serve_health_only(address, health_reporter.clone(), &options).await?),
+        None => None,
+    };
     // Both reflection versions: grpcurl and grpcui speak v1, grpc_cli, grpcio-reflection's Python
     // client and Postman still v1alpha.
     let reflection = || {
@@ -321,6 +351,9 @@ pub async fn serve(
     }
     reaper.abort();
     snapshots.abort();
+    if let Some(health_only) = health_only {
+        health_only.abort();
+    }
     let closing = manager.shutdown();
     match deadline {
         Some(deadline) => {

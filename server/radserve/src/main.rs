@@ -67,6 +67,13 @@ enum Command {
         /// With --ca: the name the server's certificate must carry.
         #[arg(long, default_value = "localhost")]
         server_name: String,
+        /// With --ca, for a server that admits only clients with a certificate its client CA signed
+        /// (tls.client_ca_file, mutual TLS): this client's certificate (PEM).
+        #[arg(long, requires_all = ["key", "ca"])]
+        cert: Option<PathBuf>,
+        /// The private key (PEM) of --cert.
+        #[arg(long, requires = "cert")]
+        key: Option<PathBuf>,
     },
     /// Print the configuration: the one `serve` would run with (defaults, then --config, then
     /// RADSERVE__SECTION__KEY variables), every default, or the reference table of the docs.
@@ -216,18 +223,29 @@ fn local_address(bound: &str) -> String {
 
 /// `radserve healthcheck`: the serving status the server reports for `service` (SERVING,
 /// NOT_SERVING, ...), or an error if it could not be asked.
-async fn health(address: &str, service: String, timeout: std::time::Duration, tls: Option<(PathBuf, String)>) -> anyhow::Result<String> {
+/// How `radserve healthcheck` reaches a server with TLS: the CA that signed its certificate, the name
+/// that certificate carries, and for mutual TLS this client's certificate and key.
+struct HealthTls {
+    ca: PathBuf,
+    server_name: String,
+    identity: Option<(PathBuf, PathBuf)>,
+}
+
+async fn health(address: &str, service: String, timeout: std::time::Duration, tls: Option<HealthTls>) -> anyhow::Result<String> {
     use tonic_health::pb::{health_check_response::ServingStatus, health_client::HealthClient, HealthCheckRequest};
     let scheme = if tls.is_some() { "https" } else { "http" };
     let mut endpoint = tonic::transport::Endpoint::from_shared(format!("{scheme}://{address}"))
         .with_context(|| format!("{address} is not a host:port address"))?
         .connect_timeout(timeout)
         .timeout(timeout);
-    if let Some((ca, server_name)) = tls {
-        let pem = std::fs::read(&ca).with_context(|| format!("reading --ca {}", ca.display()))?;
-        let config = tonic::transport::ClientTlsConfig::new()
-            .ca_certificate(tonic::transport::Certificate::from_pem(pem))
+    if let Some(HealthTls { ca, server_name, identity }) = tls {
+        let read = |path: &PathBuf, flag: &str| std::fs::read(path).with_context(|| format!("reading --{flag} {}", path.display()));
+        let mut config = tonic::transport::ClientTlsConfig::new()
+            .ca_certificate(tonic::transport::Certificate::from_pem(read(&ca, "ca")?))
             .domain_name(server_name);
+        if let Some((cert, key)) = identity {
+            config = config.identity(tonic::transport::Identity::from_pem(read(&cert, "cert")?, read(&key, "key")?));
+        }
         endpoint = endpoint.tls_config(config)?;
     }
     let channel = endpoint.connect().await.with_context(|| format!("connecting to {address}"))?;
@@ -257,13 +275,15 @@ async fn run(command: Command) -> anyhow::Result<()> {
             print!("{text}");
             Ok(())
         }
-        Command::Healthcheck { address, config, service, timeout_s, ca, server_name } => {
+        Command::Healthcheck { address, config, service, timeout_s, ca, server_name, cert, key } => {
             let address = match address {
                 Some(address) => address,
                 None => local_address(&Config::load(config.as_deref())?.server.address),
             };
             let timeout = std::time::Duration::try_from_secs_f64(timeout_s).context("--timeout-s must be a positive number of seconds")?;
-            let status = health(&address, service, timeout, ca.map(|ca| (ca, server_name))).await?;
+            let identity = cert.zip(key);
+            let tls = ca.map(|ca| HealthTls { ca, server_name, identity });
+            let status = health(&address, service, timeout, tls).await?;
             println!("{status}");
             anyhow::ensure!(status == "SERVING", "{address} reports {status}");
             Ok(())
