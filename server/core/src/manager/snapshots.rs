@@ -91,6 +91,10 @@ pub(crate) struct SnapshotSlot {
     covered_frames: AtomicU64,
     /// Transitions the session's buffer got back from its snapshot at creation.
     pub(crate) restored_transitions: u64,
+    /// Set (under the writer's lock) once the session closed and its last snapshot is written: a
+    /// pass that took the session before it closed writes nothing after that, since a session
+    /// created again under the name may already be restoring from the same directory.
+    closed: AtomicBool,
 }
 
 impl SnapshotSlot {
@@ -201,6 +205,7 @@ impl SessionManager {
             writer: StdMutex::new(writer),
             last_success_unix_ms: AtomicU64::new(last_success_unix_ms),
             restored_transitions,
+            closed: AtomicBool::new(false),
         })))
     }
 
@@ -242,11 +247,13 @@ impl SessionManager {
         let done = tokio::task::spawn_blocking(move || {
             if !discard {
                 entry.write(&metrics, &mut Throttle::new(0, None));
-                return;
             }
             let writer = entry.slot.writer.lock().expect("snapshot writer lock");
-            if let Err(error) = writer.discard() {
-                warn!(session = log_id(&entry.session_id), %error, dir = %writer.dir().display(), "could not remove the session's snapshot");
+            entry.slot.closed.store(true, Ordering::Relaxed);
+            if discard {
+                if let Err(error) = writer.discard() {
+                    warn!(session = log_id(&entry.session_id), %error, dir = %writer.dir().display(), "could not remove the session's snapshot");
+                }
             }
         })
         .await;
@@ -285,6 +292,9 @@ impl Snapshotted {
     /// counted, and the next snapshot writes the same frames again.
     fn write(&self, metrics: &CoreMetrics, throttle: &mut Throttle) {
         let mut writer = self.slot.writer.lock().expect("snapshot writer lock");
+        if self.slot.closed.load(Ordering::Relaxed) {
+            return;
+        }
         let (pending, steps) = {
             let buffer = self.replay.read().expect("replay lock");
             (writer.pending_frames(&buffer), buffer.steps_recorded())
@@ -341,5 +351,42 @@ fn restore_or_start(
             Ok((fresh()?, None))
         }
         Err(error) => Err(error),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fake::{self, FakeSimulators, FAKE_ENV};
+    use crate::manager::{BufferRequest, Limits, SessionExtras};
+    use crate::principal::Principal;
+
+    /// A pass that took a session before it closed finds it closed and writes nothing: a session
+    /// created again under the name may be restoring from that directory by then.
+    #[tokio::test]
+    async fn a_pass_that_took_a_closed_session_writes_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let limits = Limits { memory_bytes: 64 << 20, session_idle_timeout_s: 0, ..Limits::default() };
+        let config = ReplayConfig { snapshot_dir: Some(dir.path().to_path_buf()), ..ReplayConfig::default() };
+        let manager = SessionManager::new(FakeSimulators::new(1), limits).with_snapshots(config);
+        let extras = SessionExtras { buffer: Some(BufferRequest::Replay { capacity: 100 }), observation_view: None, name: Some("late".into()) };
+        let local = Principal::local();
+        let info = manager.create_session(&local, FAKE_ENV, 2, 0, &fake::fake_options(1), &extras).await.unwrap();
+        manager.get(&local, &info.session_id).unwrap().lock().await.reset(None).await.unwrap();
+        let stale = {
+            let registry = manager.sessions.lock().unwrap();
+            Snapshotted::of(&info.session_id, &registry.sessions[&info.session_id]).unwrap()
+        };
+        manager.close_session(&local, &info.session_id).await.unwrap();
+        let manifest = dir.path().join(hex_dir("local")).join("late").join("MANIFEST");
+        let written = std::fs::read(&manifest).expect("the last snapshot at close");
+        // Something recorded after the last snapshot (as if the pass had been slower than the close).
+        stale.replay.write().unwrap().record_first_frame(0, &[7; fake::FRAME_BYTES], 99);
+        stale.write(&manager.metrics, &mut Throttle::new(0, None));
+        assert_eq!(std::fs::read(&manifest).unwrap(), written, "nothing written after the session closed");
+    }
+
+    fn hex_dir(owner: &str) -> String {
+        owner.bytes().map(|byte| format!("{byte:02x}")).collect()
     }
 }
