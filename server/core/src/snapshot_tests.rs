@@ -7,6 +7,7 @@ use std::path::Path;
 
 use crate::error::CoreError;
 use crate::fake::{self, FakeSimulators, FAKE_ENV};
+use crate::manager::snapshots::owner_dir;
 use crate::manager::{BufferRequest, Limits, OnBadSnapshot, ReplayConfig, SessionExtras, SessionInfo, SessionManager};
 use crate::principal::{Principal, PrincipalLimits, Role};
 use crate::space::DType;
@@ -120,7 +121,7 @@ async fn a_snapshot_of_another_session_is_set_aside_or_refused() {
     let info = create(&first, &local, 3, &named("sac", 1000)).await.unwrap();
     run(&first, &info.session_id, 10).await;
     first.close_session(&local, &info.session_id).await.unwrap();
-    let owner_dir = dir.path().join(hex("local"));
+    let owner_dir = dir.path().join(owner_dir("local"));
     let listing = || -> Vec<String> {
         let mut names: Vec<String> =
             std::fs::read_dir(&owner_dir).unwrap().map(|entry| entry.unwrap().file_name().to_string_lossy().into_owned()).collect();
@@ -143,9 +144,5 @@ async fn a_snapshot_of_another_session_is_set_aside_or_refused() {
     assert_eq!(lenient.metrics().snapshots().failures.load(std::sync::atomic::Ordering::Relaxed), 1, "set aside, and counted");
     let names = listing();
     assert!(names.len() == 1 && names[0].starts_with("sac.rejected-"), "{names:?}");
-}
-
-fn hex(text: &str) -> String {
-    text.bytes().map(|byte| format!("{byte:02x}")).collect()
 }
 

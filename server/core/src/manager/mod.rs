@@ -21,7 +21,7 @@ use crate::simulators::Simulators;
 mod admission;
 mod lease;
 mod replay;
-mod snapshots;
+pub(crate) mod snapshots;
 mod types;
 
 pub use admission::MAX_STEP_OBSERVATION_BYTES;

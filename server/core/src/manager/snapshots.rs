@@ -133,9 +133,14 @@ impl Snapshots {
     }
 
     fn dir(&self, owner: &str, name: &str) -> PathBuf {
-        let owner: String = owner.bytes().map(|byte| format!("{byte:02x}")).collect();
-        self.config.snapshot_dir.as_ref().expect("snapshots have a directory").join(owner).join(name)
+        self.config.snapshot_dir.as_ref().expect("snapshots have a directory").join(owner_dir(owner)).join(name)
     }
+}
+
+/// The directory of an owner's snapshots under `snapshot_dir`: its name in hex (a principal's name may
+/// hold any character).
+pub(crate) fn owner_dir(owner: &str) -> String {
+    owner.bytes().map(|byte| format!("{byte:02x}")).collect()
 }
 
 /// What a session was created as: a snapshot is restored only into the same.
@@ -168,14 +173,13 @@ impl SessionManager {
         let (dir, identity) = (snapshots.dir(owner, name), identity(session));
         let policy = snapshots.config.on_bad_snapshot;
         let metrics = self.metrics.clone();
-        let failures = metrics.clone();
-        let opened = tokio::task::spawn_blocking(move || restore_or_start(&replay, &dir, &identity, policy, &failures))
+        let counted = metrics.clone();
+        let opened = tokio::task::spawn_blocking(move || restore_or_start(&replay, &dir, &identity, policy, &counted))
             .await
             .map_err(|error| CoreError::Host(format!("the snapshot restore did not finish: {error}")))?;
         let (writer, restored) = match opened {
             Ok(opened) => opened,
             Err(error) => {
-                metrics.record_snapshot_failure();
                 return Err(CoreError::BadSnapshot(format!(
                     "session '{name}' has a snapshot this server cannot restore (replay.on_bad_snapshot = \"refuse\"): \
                      {error}; fix or remove it, or create the session under another name"
@@ -327,8 +331,8 @@ impl Snapshotted {
 }
 
 /// Reads the snapshot in `dir` into `replay` (or starts a new one): the writer, and what was restored.
-/// A snapshot that cannot be used is set aside (policy "empty": a warning and a failure counted) or
-/// returned as the error ("refuse": the caller counts it).
+/// A snapshot that cannot be used is counted as a failure, then set aside with a warning (policy
+/// "empty") or returned as the error ("refuse").
 fn restore_or_start(
     replay: &RwLock<ReplayBuffer>,
     dir: &Path,
@@ -339,19 +343,20 @@ fn restore_or_start(
     let mut buffer = replay.write().expect("replay lock");
     let layout = *buffer.layout();
     let fresh = || SnapshotWriter::new(dir, identity, layout);
-    match snapshot::restore(dir, identity, &mut buffer) {
-        Ok(Some((report, writer))) => Ok((writer, Some(report))),
-        Ok(None) => Ok((fresh()?, None)),
-        Err(error) if policy == OnBadSnapshot::Empty => {
-            metrics.record_snapshot_failure();
-            match snapshot::set_aside(dir) {
-                Ok(aside) => warn!(%error, moved_to = %aside.display(), "a snapshot that cannot be restored was set aside; the session starts empty"),
-                Err(move_error) => warn!(%error, %move_error, "a snapshot that cannot be restored could not be set aside either"),
-            }
-            Ok((fresh()?, None))
-        }
-        Err(error) => Err(error),
+    let error = match snapshot::restore(dir, identity, &mut buffer) {
+        Ok(Some((report, writer))) => return Ok((writer, Some(report))),
+        Ok(None) => return Ok((fresh()?, None)),
+        Err(error) => error,
+    };
+    metrics.record_snapshot_failure();
+    if policy == OnBadSnapshot::Refuse {
+        return Err(error);
     }
+    match snapshot::set_aside(dir) {
+        Ok(aside) => warn!(%error, moved_to = %aside.display(), "a snapshot that cannot be restored was set aside; the session starts empty"),
+        Err(move_error) => warn!(%error, %move_error, "a snapshot that cannot be restored could not be set aside either"),
+    }
+    Ok((fresh()?, None))
 }
 
 #[cfg(test)]
@@ -378,15 +383,11 @@ mod tests {
             Snapshotted::of(&info.session_id, &registry.sessions[&info.session_id]).unwrap()
         };
         manager.close_session(&local, &info.session_id).await.unwrap();
-        let manifest = dir.path().join(hex_dir("local")).join("late").join("MANIFEST");
+        let manifest = dir.path().join(owner_dir("local")).join("late").join("MANIFEST");
         let written = std::fs::read(&manifest).expect("the last snapshot at close");
         // Something recorded after the last snapshot (as if the pass had been slower than the close).
         stale.replay.write().unwrap().record_first_frame(0, &[7; fake::FRAME_BYTES], 99);
         stale.write(&manager.metrics, &mut Throttle::new(0, None));
         assert_eq!(std::fs::read(&manifest).unwrap(), written, "nothing written after the session closed");
-    }
-
-    fn hex_dir(owner: &str) -> String {
-        owner.bytes().map(|byte| format!("{byte:02x}")).collect()
     }
 }
