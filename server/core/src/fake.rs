@@ -65,6 +65,10 @@ struct Faults {
     /// Processes reported as stuck in a call (`overdue`).
     overdue: Vec<usize>,
     groups_alive: usize,
+    /// env_names waits on this until it is closed (a server still listing its envs).
+    catalog_gate: Option<Arc<tokio::sync::Semaphore>>,
+    /// env_names fails this many more times.
+    fail_env_names: usize,
     /// create_groups calls that reached the simulators (refused ones included).
     creates: usize,
     steps: u64,
@@ -111,6 +115,23 @@ impl FakeSimulators {
         self.faults().fail_next_step = Some(message.to_string());
     }
 
+    /// Listing the env names (the start of the catalog) waits until `release_catalog`.
+    pub fn hold_catalog(&self) {
+        self.faults().catalog_gate = Some(Arc::new(tokio::sync::Semaphore::new(0)));
+    }
+
+    /// Lets a held env listing go on.
+    pub fn release_catalog(&self) {
+        if let Some(gate) = self.faults().catalog_gate.take() {
+            gate.close();
+        }
+    }
+
+    /// The next `times` env listings fail (the workers could not import their simulators).
+    pub fn fail_env_names(&self, times: usize) {
+        self.faults().fail_env_names = times;
+    }
+
     /// Groups built and not closed.
     pub fn groups_alive(&self) -> usize {
         self.faults().groups_alive
@@ -138,6 +159,17 @@ impl Simulators for FakeSimulators {
     }
 
     async fn env_names(&self) -> Result<EnvNames, SimulatorError> {
+        let gate = self.faults().catalog_gate.clone();
+        if let Some(gate) = gate {
+            let _closed = gate.acquire().await;
+        }
+        {
+            let mut faults = self.faults();
+            if faults.fail_env_names > 0 {
+                faults.fail_env_names -= 1;
+                return Err(SimulatorError::Unavailable("fake: the workers could not list their envs".into()));
+            }
+        }
         let mut names = EnvNames::default();
         for family in Family::ALL {
             names.by_family.insert(family, Vec::new());

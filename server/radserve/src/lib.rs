@@ -4,6 +4,7 @@
 pub mod augment_cli;
 pub mod config;
 pub mod config_reference;
+mod health;
 pub mod metrics;
 pub mod incoming;
 
@@ -163,31 +164,6 @@ fn lower_thread_priority(nice: i32, idle: bool) {
     }
 }
 
-/// Reports the RadServe and dm_env_rpc services NOT_SERVING while a simulator worker has been in one
-/// call for longer than `after` (stuck: its sessions' calls wait for it until its deadline kills it),
-/// and SERVING again once none is. Checked a few times per `after`, at most once per 100 ms.
-async fn watch_stuck_workers(manager: Arc<SessionManager>, reporter: tonic_health::server::HealthReporter, after: Duration) {
-    let period = (after / 4).clamp(Duration::from_millis(100), Duration::from_secs(2));
-    let mut stuck = false;
-    loop {
-        tokio::time::sleep(period).await;
-        let overdue = manager.overdue_simulators(after);
-        if overdue.is_empty() != stuck {
-            continue; // unchanged
-        }
-        stuck = !overdue.is_empty();
-        let status = if stuck {
-            warn!(workers = ?overdue, after_s = after.as_secs_f64(), "a simulator worker is stuck in a call: RadServe and dm_env_rpc NOT_SERVING");
-            tonic_health::ServingStatus::NotServing
-        } else {
-            info!("no simulator worker is stuck any more: RadServe and dm_env_rpc SERVING");
-            tonic_health::ServingStatus::Serving
-        };
-        reporter.set_service_status(<RadServeServer<RadServeService> as tonic::server::NamedService>::NAME, status).await;
-        reporter.set_service_status(<EnvironmentServer<EnvironmentService> as tonic::server::NamedService>::NAME, status).await;
-    }
-}
-
 /// The health-only listener (`server.health_address`): grpc.health.v1 and nothing else, in plaintext
 /// and without the auth layer, answering from the same reporter as the main port (so NOT_SERVING while
 /// the catalog builds, a worker is stuck, or the server drains). Kept to a few connections: probes
@@ -234,8 +210,8 @@ pub async fn serve(
             .build()?,
     );
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
-    health_reporter.set_serving::<RadServeServer<RadServeService>>().await;
-    health_reporter.set_serving::<EnvironmentServer<EnvironmentService>>().await;
+    // NOT_SERVING until the catalog is built (below), while a worker is stuck, and from shutdown on.
+    let health = health::Health::new(health_reporter.clone()).await;
     let health_only = match &options.health_address {
         Some(address) => Some(serve_health_only(address, health_reporter.clone(), &options).await?),
         None => None,
@@ -258,14 +234,9 @@ pub async fn serve(
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
 
-    // Learn the env names in the background so the first CreateSession does not wait for them, and the
-    // catalog after them.
-    let warm = manager.clone();
-    tokio::spawn(async move {
-        if let Err(error) = warm.catalog().await {
-            tracing::warn!(%error, "could not build the environment catalog");
-        }
-    });
+    // Learn the env names in the background (a first CreateSession waits for them), and the catalog
+    // after them; SERVING once it is built.
+    let catalog = tokio::spawn(health.clone().build_catalog(manager.clone()));
 
     // Sessions whose lease expired (a learner that died without closing them) are closed here.
     let reaper = tokio::spawn(manager.clone().run_reaper());
@@ -274,21 +245,18 @@ pub async fn serve(
 
     let (stop_accepting, accepting_stopped) = tokio::sync::oneshot::channel::<()>();
     let (signalled, signal_seen) = tokio::sync::oneshot::channel::<tokio::time::Instant>();
-    let stuck_watch = tokio::spawn(watch_stuck_workers(manager.clone(), health_reporter.clone(), options.worker_stuck_after));
-    let reporter = health_reporter.clone();
+    let stuck_watch = tokio::spawn(health.clone().watch_stuck_workers(manager.clone(), options.worker_stuck_after));
     let draining = manager.clone();
     let notice = options.shutdown_notice.min(options.drain_timeout);
     tokio::spawn(async move {
         shutdown.await;
-        // Ended first (and waited for), so that it cannot turn a service SERVING again below.
+        // Ended first; the draining state keeps every status NOT_SERVING whatever they would publish.
         stuck_watch.abort();
-        let _ = stuck_watch.await;
+        catalog.abort();
         let started = tokio::time::Instant::now();
         let _ = signalled.send(started);
         info!(notice_s = notice.as_secs_f64(), "shutting down: not serving, new sessions refused, streams ending");
-        reporter.set_not_serving::<RadServeServer<RadServeService>>().await;
-        reporter.set_not_serving::<EnvironmentServer<EnvironmentService>>().await;
-        reporter.set_service_status("", tonic_health::ServingStatus::NotServing).await;
+        health.drain().await;
         draining.refuse_new_sessions();
         streams.stop();
         tokio::time::sleep_until(started + notice).await;

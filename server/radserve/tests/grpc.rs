@@ -13,14 +13,10 @@ async fn serves_health_reflection_and_answers_bad_input() {
     let server = start_server(Limits { max_sessions: 2, ..Limits::default() }).await;
     let channel = connect(&server.address).await;
 
-    let mut health = tonic_health::pb::health_client::HealthClient::new(channel.clone());
-    let status = health
-        .check(tonic_health::pb::HealthCheckRequest { service: "radserve.v1.RadServe".into() })
-        .await
-        .unwrap()
-        .into_inner()
-        .status;
-    assert_eq!(status, tonic_health::pb::health_check_response::ServingStatus::Serving as i32);
+    // SERVING once the workers have listed their envs and the catalog is built (tens of seconds).
+    let serving = tonic_health::pb::health_check_response::ServingStatus::Serving;
+    let ready = common::wait_health(&channel, "radserve.v1.RadServe", serving, std::time::Duration::from_secs(300)).await;
+    assert!(ready, "the server never reported SERVING");
 
     // Reflection answers in both versions, with the same services.
     macro_rules! list_services {

@@ -189,6 +189,36 @@ async fn an_unread_stream_stops_keeping_its_session_and_a_read_one_keeps_it() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_says_not_serving_until_the_catalog_is_built() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    let simulators = radserve_core::fake::FakeSimulators::new(2);
+    simulators.hold_catalog();
+    // The first listing after the hold fails: SERVING comes only from the retry.
+    simulators.fail_env_names(1);
+    let server = common::start_fake_server_on(simulators.clone(), Limits::default(), Default::default()).await;
+    let channel = connect(&server.address).await;
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel.clone());
+    for _ in 0..10 {
+        for service in ["", "radserve.v1.RadServe", "dm_env_rpc.v1.Environment"] {
+            let request = tonic_health::pb::HealthCheckRequest { service: service.into() };
+            let status = health.check(request).await.unwrap().into_inner().status;
+            assert_eq!(status, ServingStatus::NotServing as i32, "{service:?} while the envs are being listed");
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(30)).await;
+    }
+    // ServerInfo answers meanwhile.
+    let mut client = RadServeClient::new(channel.clone());
+    client.server_info(proto::ServerInfoRequest {}).await.unwrap();
+    simulators.release_catalog();
+    let timeout = std::time::Duration::from_secs(20);
+    for service in ["", "radserve.v1.RadServe", "dm_env_rpc.v1.Environment"] {
+        assert!(common::wait_health(&channel, service, ServingStatus::Serving, timeout).await, "{service:?} once the catalog is built");
+    }
+    let _ = server.stop.send(());
+    server.task.await.unwrap().unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_says_not_serving_while_a_simulator_is_stuck() {
     use tonic_health::pb::{health_check_response::ServingStatus, health_client::HealthClient, HealthCheckRequest};
     let options = radserve::ServeOptions { worker_stuck_after: std::time::Duration::from_millis(200), ..Default::default() };

@@ -66,16 +66,40 @@ pub async fn start_fake_server_with(
     processes: usize,
     options: radserve::ServeOptions,
 ) -> (TestServer, Arc<radserve_core::fake::FakeSimulators>) {
+    let simulators = radserve_core::fake::FakeSimulators::new(processes);
+    (start_fake_server_on(simulators.clone(), limits, options).await, simulators)
+}
+
+/// The fake server over simulators the test prepared (faults injected before it starts).
+pub async fn start_fake_server_on(
+    simulators: Arc<radserve_core::fake::FakeSimulators>,
+    limits: Limits,
+    options: radserve::ServeOptions,
+) -> TestServer {
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = format!("http://{}", listener.local_addr().unwrap());
-    let simulators = radserve_core::fake::FakeSimulators::new(processes);
     let manager = Arc::new(SessionManager::new(simulators.clone(), limits));
     let options = radserve::ServeOptions { augment_threads: 1, ..options };
     let (stop, stopped) = oneshot::channel::<()>();
     let task = tokio::spawn(radserve::serve(listener, manager.clone(), options, async {
         let _ = stopped.await;
     }));
-    (TestServer { address, manager, stop, task }, simulators)
+    TestServer { address, manager, stop, task }
+}
+
+/// Asks grpc.health.v1 about `service` until it answers `wanted` (true) or `timeout` passes (false).
+pub async fn wait_health(channel: &Channel, service: &str, wanted: tonic_health::pb::health_check_response::ServingStatus,
+                         timeout: std::time::Duration) -> bool {
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel.clone());
+    let deadline = std::time::Instant::now() + timeout;
+    while std::time::Instant::now() < deadline {
+        let request = tonic_health::pb::HealthCheckRequest { service: service.into() };
+        if health.check(request).await.is_ok_and(|answer| answer.into_inner().status == wanted as i32) {
+            return true;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    false
 }
 
 pub async fn connect(address: &str) -> Channel {
