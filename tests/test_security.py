@@ -94,6 +94,27 @@ def test_tls_is_required_and_checked(secured):
         radserve.Client(secured["address"], token=secured["tokens"]["bob"], tls=radserve.TlsConfig(ca=other), wait_ready=2)
 
 
+def test_tls_files_from_the_environment(secured, monkeypatch):
+    """A grpcs:// address with no TlsConfig takes its CA from RADSERVE_TLS_CA (as a Kubernetes Job
+    gets it, a mounted Secret); without it, the system's CAs do not know the test CA."""
+    monkeypatch.setenv("RADSERVE_TOKEN", secured["tokens"]["bob"])
+    monkeypatch.delenv("RADSERVE_TLS_CA", raising=False)
+    with pytest.raises(radserve.UnavailableError):
+        radserve.Client(secured["address"], wait_ready=2)
+    monkeypatch.setenv("RADSERVE_TLS_CA", str(secured["ca"]))
+    assert radserve.TlsConfig.from_environment() == radserve.TlsConfig(ca=str(secured["ca"]))
+    with radserve.Client(secured["address"], wait_ready_s=30) as client:
+        assert client.list_sessions() == []
+    # A name to check the certificate against, other than the address's host.
+    port = secured["address"].rsplit(":", 1)[1]
+    monkeypatch.setenv("RADSERVE_TLS_SERVER_NAME", "localhost")
+    with radserve.Client(f"grpcs://127.0.0.1:{port}", wait_ready=10) as by_ip:
+        assert by_ip.list_sessions() == []
+    monkeypatch.setenv("RADSERVE_TLS_SERVER_NAME", "radserve-9.elsewhere")
+    with pytest.raises(radserve.UnavailableError):
+        radserve.Client(f"grpcs://127.0.0.1:{port}", wait_ready=2)
+
+
 def test_sessions_belong_to_their_creator(secured):
     with connect(secured, "alice") as alice, connect(secured, "bob") as bob, \
             connect(secured, "ops") as ops, connect(secured, "grafana") as grafana:

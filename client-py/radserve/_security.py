@@ -1,7 +1,7 @@
 """How the client reaches a server that wants TLS and a bearer token (docs/security.md).
 
 Addresses: `host:port` is plain gRPC (h2c), as a server on loopback serves it; `grpcs://host:port`
-is TLS (the system's CA certificates unless `tls` names a CA); `grpc://host:port` is plain gRPC
+is TLS (the system's CA certificates unless `tls` or RADSERVE_TLS_CA names a CA); `grpc://host:port` is plain gRPC
 spelled out. Other gRPC target forms (`dns:///name:port`) pass through as they are.
 """
 
@@ -16,6 +16,10 @@ from .errors import InvalidArgumentError
 
 #: The environment variable a token is read from when `Client(token=...)` is not given.
 TOKEN_VARIABLE = "RADSERVE_TOKEN"
+#: The environment variables a TLS channel takes its files from when `Client(tls=...)` is not a
+#: TlsConfig (a `grpcs://` address, or tls=True): TlsConfig's fields, each a path.
+TLS_VARIABLES = {"ca": "RADSERVE_TLS_CA", "cert": "RADSERVE_TLS_CERT", "key": "RADSERVE_TLS_KEY",
+                 "server_name": "RADSERVE_TLS_SERVER_NAME"}
 
 
 @dataclass(frozen=True)
@@ -32,6 +36,13 @@ class TlsConfig:
     cert: "str | os.PathLike | bytes | None" = None
     key: "str | os.PathLike | bytes | None" = None
     server_name: "str | None" = None
+
+    @classmethod
+    def from_environment(cls) -> "TlsConfig":
+        """The TlsConfig that RADSERVE_TLS_CA, RADSERVE_TLS_CERT, RADSERVE_TLS_KEY and
+        RADSERVE_TLS_SERVER_NAME describe (each unset or empty: that field's default), as a container
+        is given its CA and client certificate (a Kubernetes Secret mounted as files)."""
+        return cls(**{field: os.environ.get(variable) or None for field, variable in TLS_VARIABLES.items()})
 
     def credentials(self) -> grpc.ChannelCredentials:
         if (self.cert is None) != (self.key is None):
@@ -51,7 +62,7 @@ def open_channel(address: str, tls: "TlsConfig | bool | None", token: "str | Non
     token added to every call's metadata."""
     target, scheme_tls = _target(address)
     if tls is True or (tls is None and scheme_tls):
-        tls = TlsConfig()
+        tls = TlsConfig.from_environment()
     if tls:
         if tls.server_name:
             options = [*options, ("grpc.ssl_target_name_override", tls.server_name)]

@@ -34,8 +34,9 @@ class Client:
     >>> client = radserve.Client("grpcs://radserve-0.radserve:50051", token=os.environ["RADSERVE_TOKEN"],
     ...                          tls=radserve.TlsConfig(ca="ca.pem"))
 
-    `token` defaults to the RADSERVE_TOKEN environment variable; `tls` to TLS with the system's CA
-    certificates for a `grpcs://` address and to none otherwise (`True`: TLS with the system's CAs).
+    `token` defaults to the RADSERVE_TOKEN environment variable; `tls` to TLS for a `grpcs://`
+    address and to none otherwise (`True`: TLS), with the files RADSERVE_TLS_CA, RADSERVE_TLS_CERT
+    and RADSERVE_TLS_KEY name (`TlsConfig.from_environment()`; the system's CAs when unset).
     `on_server_loss` is what a sharded session does when one of its servers stops answering:
     "raise" (the default: `UnavailableError` naming the server) or "continue" (act and sample on the
     others; see `ShardedVectorEnv`). `reconnect_backoff` is the first wait (s) before trying a lost
