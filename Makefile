@@ -22,8 +22,8 @@ $(PYTHON):
 
 # pip runs only when a lock file or the client's metadata changed. EnvPool (the engine="envpool" option)
 # goes in after the rest without its declared dependencies (requirements-envpool.lock says why).
-$(STAMP): requirements.lock requirements-envpool.lock client-py/pyproject.toml | $(PYTHON)
-	$(PYTHON) -m pip install -q -r requirements.lock
+$(STAMP): requirements.lock requirements-envpool.lock requirements-k8s.lock client-py/pyproject.toml | $(PYTHON)
+	$(PYTHON) -m pip install -q -r requirements.lock -r requirements-k8s.lock
 	$(PYTHON) -m pip install -q --no-deps -r requirements-envpool.lock
 	$(PYTHON) -m pip install -q --no-deps -e client-py
 	touch $(STAMP)
@@ -74,16 +74,19 @@ $(DIST_STAMP): requirements-dist.lock | $(PYTHON)
 	touch $(DIST_STAMP)
 
 ## images: the server and learner images (radserve:dev, radserve-learner:dev) on public base images;
-## images-local: the same on base images made here from Debian packages (no registry needed)
+## images-local: the same on base images made here from Debian packages (no registry needed), the
+## learner with PyTorch (the Kubernetes overlays' learner Job trains RAD-SAC in it)
 images:
-	bash docker/build.sh
+	bash docker/build.sh --with-torch
 
 images-local:
-	bash docker/build.sh --local-bases
+	bash docker/build.sh --local-bases --with-torch
 
 ## test-cluster: the container tests (tests/cluster): three server containers and a learner container on
 ## a private Docker network, one sharded session over them, a server killed, restarted and stopped;
-## Compose; the wheels installed where there is no repository and no Rust. Builds the images and the
+## Compose; the Kubernetes overlays run as written (tests/cluster/test_k8s.py: the dev, tls and
+## tls-secret overlays, probes and the learner Job's short run); the wheels installed where there is no
+## repository and no Rust. Builds the images and the
 ## wheels first (on local bases: nothing is pulled). Needs a Docker engine.
 test-cluster: setup images-local dist
 	$(PYTHON) -m pytest -q -s tests/cluster
@@ -159,7 +162,7 @@ preview: setup
 ## lock: re-pin requirements.lock from requirements.in
 lock: | $(PYTHON)
 	$(PYTHON) -m pip install -q -r requirements.in
-	$(PYTHON) -m pip freeze --exclude-editable | grep -vxF -f <(grep -v '^#' requirements-envpool.lock) > requirements.lock
+	$(PYTHON) -m pip freeze --exclude-editable | grep -vxF -f <(grep -hv '^#' requirements-envpool.lock requirements-k8s.lock) > requirements.lock
 
 ## api-snapshot: record new elements of the served gRPC API in proto/api-snapshot.txt (refused while
 ## an element was removed or changed: radserve.v1 only grows; server/radserve/tests/api_compat.rs)
