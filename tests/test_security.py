@@ -3,6 +3,7 @@ made here (trustme), the Python client as users use it. The per-RPC table (every
 token, with another principal's session) is server/radserve/tests/security.rs."""
 
 import subprocess
+import time
 
 import grpc
 import numpy as np
@@ -71,11 +72,14 @@ def test_calls_without_a_known_token_are_refused_and_health_stays_open(secured, 
     with radserve.Client(secured["address"], token="radserve_" + "0" * 64, tls=radserve.TlsConfig(ca=secured["ca"])) as wrong:
         with pytest.raises(radserve.UnauthenticatedError, match="not one this server accepts"):
             wrong.list_sessions()
-    # Probes carry no token.
+    # Probes carry no token (SERVING once the catalog is built).
     credentials = grpc.ssl_channel_credentials(root_certificates=secured["ca"].read_bytes())
     with grpc.secure_channel(secured["address"].removeprefix("grpcs://"), credentials) as channel:
-        status = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=10).status
-        assert status == health_pb2.HealthCheckResponse.SERVING
+        deadline = time.monotonic() + 300
+        while health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=10).status \
+                != health_pb2.HealthCheckResponse.SERVING:
+            assert time.monotonic() < deadline, "not SERVING within 300 s"
+            time.sleep(0.2)
     # The token from the environment, as a job gets it from a Secret.
     monkeypatch.setenv("RADSERVE_TOKEN", secured["tokens"]["bob"])
     with connect(secured, None) as from_environment:

@@ -34,6 +34,14 @@ def _health(address):
         return reply.status
 
 
+def _wait_serving(address, timeout=300):
+    """Health turns SERVING once the server's catalog is built (tens of seconds after the start)."""
+    deadline = time.monotonic() + timeout
+    while _health(address) != health_pb2.HealthCheckResponse.SERVING:
+        assert time.monotonic() < deadline, f"not SERVING within {timeout} s"
+        time.sleep(0.2)
+
+
 def _healthcheck(address, *args):
     """`radserve healthcheck`, as a container HEALTHCHECK runs it."""
     return subprocess.run([find_binary(), "healthcheck", "--address", address, *args], capture_output=True, text=True,
@@ -49,6 +57,10 @@ def _busy_server(notice, drain):
     envs.reset(seed=0)
     for _ in range(20):
         envs.step(np.zeros(2, dtype=np.int64))
+    # SERVING (the catalog built) before the stream opens: a stream left unread for the tens of
+    # seconds that takes would fill the client's buffers, and a client that does not read within a
+    # second of the shutdown misses the stream's status (docs/operations.md, Shutdown).
+    _wait_serving(server.address)
     stream = client.sample_batches(envs.session_id, batch_size=4)
     next(iter(stream))
     return server, client, envs, stream
@@ -66,7 +78,6 @@ def test_sigterm_drains_with_statuses_and_exits_within_the_deadline():
     server, client, envs, stream = _busy_server(notice=2.0, drain=10.0)
     try:
         workers = _wait_forworker_pids(server.process.pid)
-        assert _health(server.address) == health_pb2.HealthCheckResponse.SERVING
         for service in ("", "radserve.v1.RadServe", "dm_env_rpc.v1.Environment"):
             checked = _healthcheck(server.address, "--service", service)
             assert (checked.returncode, checked.stdout) == (0, "SERVING\n"), checked.stderr

@@ -66,6 +66,9 @@ def _wait_for_health(server, service, status, until):
 
 
 def test_a_stuck_worker_is_killed_its_episodes_end_and_idle_sessions_learn_of_it(strict_server):
+    # SERVING first (the catalog built), so that NOT_SERVING below is the stuck worker's doing.
+    assert _wait_for_health(strict_server, "radserve.v1.RadServe", health_pb2.HealthCheckResponse.SERVING,
+                            time.monotonic() + 300)
     client = radserve.Client(strict_server.address)
     victim = client.make_vec("gym/HalfCheetah-v5", num_envs=2, seed=0)  # one env per worker
     idle = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0)
