@@ -666,8 +666,11 @@ class NetworkPolicy:
             peers = []
             for peer in entry.get("from") or []:
                 source = Fields(peer, f"{entry.where}.from")
-                peers.append((source.get("podSelector"), source.get("namespaceSelector")))
+                pods, namespaces = source.get("podSelector"), source.get("namespaceSelector")
                 source.done()
+                if namespaces not in (None, {}):
+                    raise Unsupported(f"{source.where}: a namespaceSelector other than {{}} (every namespace)")
+                peers.append((pods, namespaces))
             ports = []
             for port in entry.get("ports") or []:
                 target = Fields(port, f"{entry.where}.ports")

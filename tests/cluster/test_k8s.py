@@ -16,6 +16,7 @@ import time
 import uuid
 from pathlib import Path
 
+import kubernetes_validate
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -43,6 +44,9 @@ def test_an_overlay_runs_as_written(overlay, tmp_path):
     tree = harness.prepare(tmp_path, ["docker", "run", "--rm", f"radserve:{TAG}", "token"])
     # dev has the short run already; the others get it as the runbook's first run does.
     documents = harness.overlay_documents(tree, overlay, short_run=overlay != "dev")
+    for document in documents:
+        if document["kind"] not in ("Certificate", "Issuer"):  # cert-manager's: read field by field below
+            kubernetes_validate.validate(document, kubernetes_validate.latest_version(), strict=True)
     cluster = harness.Cluster(documents, tmp_path / "cluster", f"radserve-k8s-{uuid.uuid4().hex[:8]}",
                               harness.namespace_labels())
     images_for(cluster)
