@@ -204,6 +204,9 @@ impl SessionManager {
     /// Every open session `caller` may see (an admin or a monitor: all of them), oldest first.
     pub fn list_sessions(&self, caller: &Principal) -> Vec<SessionSummary> {
         let registry = self.sessions.lock().expect("registry lock");
+        // One clock reading for every age: read per entry, a later entry's reading could make a younger
+        // session look older than one created microseconds before it (and flip the order below).
+        let now = Instant::now();
         let mut sessions: Vec<SessionSummary> = registry
             .sessions
             .iter()
@@ -217,7 +220,7 @@ impl SessionManager {
                 memory_bytes: entry.memory.iter().map(Reservation::bytes).sum(),
                 idle: self.idle(entry),
                 open_streams: entry.lease.holds.load(Ordering::Acquire),
-                age: entry.created.elapsed(),
+                age: now.saturating_duration_since(entry.created),
                 replay_transitions: entry.replay.as_ref().map_or(0, |replay| replay.read().expect("replay lock").len() as u64),
                 replay_bytes: entry.replay.as_ref().map_or(0, |replay| replay.read().expect("replay lock").layout().memory_bytes() as u64),
                 snapshot: entry.snapshot.as_ref().zip(entry.replay.as_ref()).map(|(snapshot, replay)| snapshot.info(replay)),
