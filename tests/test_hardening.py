@@ -160,8 +160,13 @@ def test_augmentation_threads_run_at_the_configured_priority(settings, expected)
     # Acting ahead of augmentation: augment.nice lowers the threads' niceness, augment.idle puts them
     # in SCHED_IDLE (policy 5); the rayon pool starts its threads when the server starts.
     with radserve.LocalServer(workers=1, env={"RADSERVE__AUGMENT__THREADS": "2", **settings}) as server:
-        deadline = time.monotonic() + 30  # the pool is built as the server starts serving, after its address is out
-        while len(threads := _augment_threads(server.process.pid)) < 2 and time.monotonic() < deadline:
+        # The pool is built as the server starts serving, after its address is out; each thread shows in
+        # /proc before its start handler has lowered its priority, so wait for the settled state.
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            threads = _augment_threads(server.process.pid)
+            if len(threads) == 2 and set(threads.values()) == {expected}:
+                break
             time.sleep(0.05)
     assert len(threads) == 2, threads
     assert set(threads.values()) == {expected}, threads
