@@ -1,9 +1,12 @@
-"""Process helpers for the tests that signal a server's workers."""
+"""Process helpers for the tests that signal a server's workers, and waiting for a server's health."""
 
 import os
 import signal
+import time
 from contextlib import contextmanager
 from pathlib import Path
+
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 
 def _read(path: Path) -> bytes:
@@ -34,3 +37,14 @@ def stopped(pid):
             os.kill(pid, signal.SIGCONT)
         except ProcessLookupError:
             pass
+
+
+def wait_serving(channel, service: str = "", timeout: float = 300) -> None:
+    """Asks grpc.health.v1 about `service` over `channel` until it answers SERVING: a server is
+    NOT_SERVING until its catalog is built, tens of seconds after it starts."""
+    stub = health_pb2_grpc.HealthStub(channel)
+    deadline = time.monotonic() + timeout
+    while stub.Check(health_pb2.HealthCheckRequest(service=service), timeout=10).status \
+            != health_pb2.HealthCheckResponse.SERVING:
+        assert time.monotonic() < deadline, f"{service or 'the server'} not SERVING within {timeout} s"
+        time.sleep(0.2)

@@ -279,7 +279,6 @@ class Pod:
     host_dirs: "list[tuple[Path, int, int]]"  # (directory, mode, group) to make before it starts
     files: "dict[Path, bytes]"
     gpus: int = 0
-    restart_policy: str = "Always"
 
 
 @dataclass
@@ -397,7 +396,7 @@ class Cluster:
             aliases = [f"{pod_name}.{service}", f"{pod_name}.{service}.{self.namespace}.svc",
                        f"{pod_name}.{service}.{self.namespace}.svc.cluster.local", service,
                        f"{service}.{self.namespace}.svc.cluster.local"]
-            pods.append(self._pod(pod_name, template, f"StatefulSet {name}.spec.template", claims, aliases, "Always"))
+            pods.append(self._pod(pod_name, template, f"StatefulSet {name}.spec.template", claims, aliases))
         return pods
 
     def _job(self, job: dict) -> dict:
@@ -412,7 +411,7 @@ class Cluster:
         restart = template["spec"].get("restartPolicy")
         if restart != "Never":
             raise Unsupported(f"Job {name}: restartPolicy {restart} (only Never: each try a new pod)")
-        pod = self._pod(f"{name}-0", template, f"Job {name}.spec.template", {}, [], "Never")
+        pod = self._pod(f"{name}-0", template, f"Job {name}.spec.template", {}, [])
         return {"pod": pod, "backoff_limit": backoff, "deadline_s": deadline}
 
     def _budget(self, budget: dict) -> None:
@@ -428,8 +427,7 @@ class Cluster:
             raise Unsupported(f"{spec.where}: selects {len(covered)} pods; maxUnavailable or minAvailable, one")
         self.budget = {"pods": [pod.name for pod in covered], "max_unavailable": unavailable}
 
-    def _pod(self, pod_name: str, template: dict, where: str, claims: "dict[str, Path]", aliases: "list[str]",
-             restart: str) -> Pod:
+    def _pod(self, pod_name: str, template: dict, where: str, claims: "dict[str, Path]", aliases: "list[str]") -> Pod:
         top = Fields(template, where)
         metadata = top.sub("metadata")
         labels = metadata.get("labels") or {}
@@ -598,7 +596,7 @@ class Cluster:
         if command:
             run += ["--entrypoint", command[0]]
             args = command[1:] + args
-        return Pod(pod_name, labels, image, run, args, probes, grace, host_dirs, files, gpus, restart)
+        return Pod(pod_name, labels, image, run, args, probes, grace, host_dirs, files, gpus)
 
     def _volume(self, volume: dict, directory: Path, fs_group, host_dirs, files, claims, where: str) -> Path:
         fields = Fields(volume, where)

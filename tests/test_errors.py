@@ -7,10 +7,9 @@ import time
 import grpc
 import numpy as np
 import pytest
-from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import radserve
-from _procs import worker_pids
+from _procs import wait_serving, worker_pids
 
 
 def test_unknown_env_names_close_matches(client):
@@ -112,12 +111,7 @@ def test_step_async_then_wait_gives_what_step_gives(client, stream):
 def test_health_reports_serving(server):
     """SERVING once the catalog is built (tens of seconds after the start)."""
     with grpc.insecure_channel(server.address) as channel:
-        stub = health_pb2_grpc.HealthStub(channel)
-        deadline = time.monotonic() + 300
-        while stub.Check(health_pb2.HealthCheckRequest(service="radserve.v1.RadServe")).status \
-                != health_pb2.HealthCheckResponse.SERVING:
-            assert time.monotonic() < deadline, "not SERVING within 300 s"
-            time.sleep(0.2)
+        wait_serving(channel, "radserve.v1.RadServe")
 
 
 def test_a_dead_worker_ends_its_episodes_and_is_replaced(server, client, catalog):

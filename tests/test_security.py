@@ -3,7 +3,6 @@ made here (trustme), the Python client as users use it. The per-RPC table (every
 token, with another principal's session) is server/radserve/tests/security.rs."""
 
 import subprocess
-import time
 
 import grpc
 import numpy as np
@@ -12,6 +11,7 @@ import trustme
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import radserve
+from _procs import wait_serving
 from radserve.server import find_binary
 
 
@@ -75,11 +75,7 @@ def test_calls_without_a_known_token_are_refused_and_health_stays_open(secured, 
     # Probes carry no token (SERVING once the catalog is built).
     credentials = grpc.ssl_channel_credentials(root_certificates=secured["ca"].read_bytes())
     with grpc.secure_channel(secured["address"].removeprefix("grpcs://"), credentials) as channel:
-        deadline = time.monotonic() + 300
-        while health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=10).status \
-                != health_pb2.HealthCheckResponse.SERVING:
-            assert time.monotonic() < deadline, "not SERVING within 300 s"
-            time.sleep(0.2)
+        wait_serving(channel)
     # The token from the environment, as a job gets it from a Secret.
     monkeypatch.setenv("RADSERVE_TOKEN", secured["tokens"]["bob"])
     with connect(secured, None) as from_environment:

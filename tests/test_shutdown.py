@@ -15,7 +15,7 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import radserve
-from _procs import worker_pids
+from _procs import wait_serving, worker_pids
 from radserve.server import find_binary
 
 
@@ -32,14 +32,6 @@ def _health(address):
         reply = health_pb2_grpc.HealthStub(channel).Check(
             health_pb2.HealthCheckRequest(service="radserve.v1.RadServe"), timeout=5)
         return reply.status
-
-
-def _wait_serving(address, timeout=300):
-    """Health turns SERVING once the server's catalog is built (tens of seconds after the start)."""
-    deadline = time.monotonic() + timeout
-    while _health(address) != health_pb2.HealthCheckResponse.SERVING:
-        assert time.monotonic() < deadline, f"not SERVING within {timeout} s"
-        time.sleep(0.2)
 
 
 def _healthcheck(address, *args):
@@ -60,7 +52,8 @@ def _busy_server(notice, drain):
     # SERVING (the catalog built) before the stream opens: a stream left unread for the tens of
     # seconds that takes would fill the client's buffers, and a client that does not read within a
     # second of the shutdown misses the stream's status (docs/operations.md, Shutdown).
-    _wait_serving(server.address)
+    with grpc.insecure_channel(server.address) as channel:
+        wait_serving(channel, "radserve.v1.RadServe")
     stream = client.sample_batches(envs.session_id, batch_size=4)
     next(iter(stream))
     return server, client, envs, stream

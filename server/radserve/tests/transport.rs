@@ -220,22 +220,12 @@ async fn health_says_not_serving_until_the_catalog_is_built() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_says_not_serving_while_a_simulator_is_stuck() {
-    use tonic_health::pb::{health_check_response::ServingStatus, health_client::HealthClient, HealthCheckRequest};
+    use tonic_health::pb::health_check_response::ServingStatus;
     let options = radserve::ServeOptions { worker_stuck_after: std::time::Duration::from_millis(200), ..Default::default() };
     let (server, simulators) = common::start_fake_server_with(Limits::default(), 2, options).await;
-    let mut health = HealthClient::new(connect(&server.address).await);
-    let mut status_of = async |service: &str| {
-        health.check(HealthCheckRequest { service: service.into() }).await.unwrap().into_inner().status
-    };
-    let mut wait_for = async |service: &str, wanted: ServingStatus| {
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
-        while std::time::Instant::now() < deadline {
-            if status_of(service).await == wanted as i32 {
-                return true;
-            }
-            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
-        }
-        false
+    let channel = connect(&server.address).await;
+    let wait_for = async |service: &str, wanted: ServingStatus| {
+        common::wait_health(&channel, service, wanted, std::time::Duration::from_secs(10)).await
     };
     assert!(wait_for("radserve.v1.RadServe", ServingStatus::Serving).await);
     simulators.set_overdue(vec![1]);
