@@ -1,0 +1,200 @@
+"""ONNX policies for the tests and benches, built with onnx.helper (no torch needed): the RAD actor
+(4 convs x 32, fc 50, LayerNorm, tanh, MLP 1024 x 2, mean and log_std; Laskin et al. 2020, appendix),
+small models for the fake simulators, and broken ones (NaN outputs, an unsupported operator,
+external data, a wrong input shape) for the refusal tests.
+
+`python tests/policies.py` rewrites the small models the Rust tests read
+(server/policy/tests/models/); the weights are seeded, so the files come out the same each time.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+OPSET = 17
+RUST_MODELS = Path(__file__).resolve().parents[1] / "server" / "policy" / "tests" / "models"
+
+
+class Graph:
+    """A graph under construction: seeded weights, nodes, and a name for every tensor."""
+
+    def __init__(self, seed: int = 0):
+        self.rng = np.random.default_rng(seed)
+        self.nodes: list = []
+        self.weights: list = []
+        self.count = 0
+
+    def name(self, prefix: str) -> str:
+        self.count += 1
+        return f"{prefix}{self.count}"
+
+    def weight(self, shape, scale: float) -> str:
+        name = self.name("w")
+        self.weights.append(numpy_helper.from_array((self.rng.standard_normal(shape) * scale).astype(np.float32), name))
+        return name
+
+    def constant(self, value) -> str:
+        name = self.name("k")
+        self.weights.append(numpy_helper.from_array(np.asarray(value, dtype=np.float32), name))
+        return name
+
+    def op(self, op_type: str, inputs: list, output: "str | None" = None, **attributes) -> str:
+        output = output or self.name(op_type.lower())
+        self.nodes.append(helper.make_node(op_type, inputs, [output], name=output, **attributes))
+        return output
+
+    def linear(self, x: str, fan_in: int, fan_out: int, output: "str | None" = None, scale: "float | None" = None) -> str:
+        scale = np.sqrt(1.0 / fan_in) if scale is None else scale
+        return self.op("Gemm", [x, self.weight((fan_out, fan_in), scale), self.weight((fan_out,), 0.01)], output, transB=1)
+
+    def model(self, inputs: list, outputs: list) -> bytes:
+        graph = helper.make_graph(self.nodes, "policy", inputs, outputs, self.weights)
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="radserve-tests")
+        model.ir_version = 8
+        onnx.checker.check_model(model)
+        return model.SerializeToString()
+
+
+def obs_input(shape, uint8: bool = False, batch="batch"):
+    return helper.make_tensor_value_info("obs", TensorProto.UINT8 if uint8 else TensorProto.FLOAT, [batch, *shape])
+
+
+def output(name: str, dims: list):
+    return helper.make_tensor_value_info(name, TensorProto.FLOAT, dims)
+
+
+def rad_actor(frames: int = 9, size: int = 84, action_dim: int = 1, hidden: int = 1024, feature: int = 50,
+              seed: int = 0) -> bytes:
+    """RAD's SAC actor (the encoder of Laskin et al. 2020 / SAC-AE: 3x3 convs of 32, the first of stride
+    2, then fc, LayerNorm, tanh; the actor's MLP) with gaussian_tanh outputs, on uint8 observations
+    divided by 255 in the model."""
+    g = Graph(seed)
+    x = g.op("Cast", ["obs"], to=TensorProto.FLOAT)
+    x = g.op("Div", [x, g.constant(255.0)])
+    channels, side = frames, size
+    for stride in (2, 1, 1, 1):
+        x = g.op("Conv", [x, g.weight((32, channels, 3, 3), np.sqrt(2.0 / (channels * 9))), g.weight((32,), 0.01)],
+                 kernel_shape=[3, 3], strides=[stride, stride])
+        x = g.op("Relu", [x])
+        channels, side = 32, (side - 3) // stride + 1
+    x = g.op("Flatten", [x], axis=1)
+    x = g.linear(x, 32 * side * side, feature)
+    x = g.op("LayerNormalization", [x, g.constant(np.ones(feature)), g.constant(np.zeros(feature))], axis=-1)
+    x = g.op("Tanh", [x])
+    width = feature
+    for _ in range(2):
+        x = g.op("Relu", [g.linear(x, width, hidden)])
+        width = hidden
+    g.linear(x, width, action_dim, "mean")
+    g.linear(x, width, action_dim, "log_std")
+    return g.model([obs_input((frames, size, size), uint8=True)],
+                   [output("mean", ["batch", action_dim]), output("log_std", ["batch", action_dim])])
+
+
+def mlp_gaussian(obs_dim: int, action_dim: int, hidden: int = 64, seed: int = 0) -> bytes:
+    """A state-based SAC actor: MLP, mean and log_std."""
+    g = Graph(seed)
+    x = g.op("Relu", [g.linear("obs", obs_dim, hidden)])
+    g.linear(x, hidden, action_dim, "mean")
+    g.linear(x, hidden, action_dim, "log_std")
+    return g.model([obs_input((obs_dim,))], [output("mean", ["batch", action_dim]), output("log_std", ["batch", action_dim])])
+
+
+def conv_categorical(shape, n: int, value: bool = True, uint8: bool = False, seed: int = 0) -> bytes:
+    """A categorical policy for image observations [C, H, W] (or any shape: flattened), with a
+    value output."""
+    g = Graph(seed)
+    x = g.op("Cast", ["obs"], to=TensorProto.FLOAT) if uint8 else "obs"
+    x = g.op("Flatten", [g.op("Div", [x, g.constant(255.0)])], axis=1)
+    features = int(np.prod(shape))
+    x = g.op("Tanh", [g.linear(x, features, 16)])
+    g.linear(x, 16, n, "logits", scale=1.0)
+    outputs = [output("logits", ["batch", n])]
+    if value:
+        g.linear(x, 16, 1, "value")
+        outputs.append(output("value", ["batch", 1]))
+    return g.model([obs_input(shape, uint8=uint8)], outputs)
+
+
+def pick_first_byte(shape, n: int) -> bytes:
+    """Categorical logits that make action = (first byte of the observation) mod n certain: a test
+    can tell from the recorded actions which observations the policy saw."""
+    g = Graph(0)
+    flat = g.op("Flatten", ["obs"], axis=1)
+    first = g.op("Slice", [flat, g.constant_int([0]), g.constant_int([1]), g.constant_int([1])])
+    # logits[i] = -1000 * |first mod n - i|
+    remainder = g.op("Sub", [first, g.op("Mul", [g.op("Floor", [g.op("Div", [first, g.constant(float(n))])]), g.constant(float(n))])])
+    distance = g.op("Abs", [g.op("Sub", [remainder, g.constant(np.arange(n, dtype=np.float32))])])
+    g.op("Mul", [distance, g.constant(-1000.0)], "logits")
+    return g.model([obs_input(shape)], [output("logits", ["batch", n])])
+
+
+def nan_policy(shape, n: int) -> bytes:
+    """Logits that turn NaN when the first observation byte reaches 1 (log of a negative number):
+    finite on the zero observations of the load check, NaN once a real frame arrives."""
+    g = Graph(0)
+    flat = g.op("Flatten", ["obs"], axis=1)
+    first = g.op("Slice", [flat, g.constant_int([0]), g.constant_int([1]), g.constant_int([1])])
+    bad = g.op("Log", [g.op("Sub", [g.constant(0.5), first])])
+    g.op("Add", [g.op("Mul", [bad, g.constant(np.zeros(n))]), g.constant(np.zeros(n))], "logits")
+    return g.model([obs_input(shape)], [output("logits", ["batch", n])])
+
+
+def with_op(shape, n: int, op_type: str = "RandomNormalLike") -> bytes:
+    """A categorical policy whose logits pass through `op_type` (one the server refuses)."""
+    g = Graph(0)
+    flat = g.op("Flatten", ["obs"], axis=1)
+    x = g.linear(flat, int(np.prod(shape)), n)
+    g.op("Add", [x, g.op(op_type, [x])], "logits")
+    graph = helper.make_graph(g.nodes, "policy", [obs_input(shape)], [output("logits", ["batch", n])], g.weights)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+def external_data(shape, n: int) -> bytes:
+    """A categorical policy whose weight says it lives in a file beside the model (/etc/passwd)."""
+    model = onnx.load_from_string(conv_categorical(shape, n, value=False))
+    weight = model.graph.initializer[0]
+    weight.ClearField("raw_data")
+    weight.data_location = TensorProto.EXTERNAL
+    entry = weight.external_data.add()
+    entry.key, entry.value = "location", "/etc/passwd"
+    return model.SerializeToString()
+
+
+def _constant_int(self: Graph, value) -> str:
+    name = self.name("i")
+    self.weights.append(numpy_helper.from_array(np.asarray(value, dtype=np.int64), name))
+    return name
+
+
+Graph.constant_int = _constant_int
+
+
+def write_rust_models() -> None:
+    """The fixtures of server/policy's tests and the core's: the fake simulators' observations are
+    uint8 [1, 2, 2], their actions Discrete(3)."""
+    RUST_MODELS.mkdir(parents=True, exist_ok=True)
+    fake = (1, 2, 2)
+    models = {
+        "categorical_fake.onnx": conv_categorical(fake, 3),
+        "categorical_fake_u8.onnx": conv_categorical(fake, 3, value=False, uint8=True),
+        "pick_first_byte.onnx": pick_first_byte(fake, 3),
+        "nan_fake.onnx": nan_policy(fake, 3),
+        "random_op_fake.onnx": with_op(fake, 3),
+        "external_fake.onnx": external_data(fake, 3),
+        "gaussian_3x2.onnx": mlp_gaussian(3, 2, hidden=8),
+    }
+    for name, data in models.items():
+        (RUST_MODELS / name).write_bytes(data)
+        print(f"{RUST_MODELS / name}: {len(data)} bytes")
+
+
+if __name__ == "__main__":
+    write_rust_models() if len(sys.argv) == 1 else sys.exit(f"usage: {sys.argv[0]}")
