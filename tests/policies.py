@@ -135,12 +135,12 @@ def pick_first_byte(shape, n: int) -> bytes:
 
 
 def nan_policy(shape, n: int) -> bytes:
-    """Logits that turn NaN when the first observation byte reaches 1 (log of a negative number):
-    finite on the zero observations of the load check, NaN once a real frame arrives."""
+    """Logits that turn NaN once the observation has any non-zero byte (log of a negative number):
+    finite on the zero observations of the load check, NaN on the first real frame."""
     g = Graph(0)
     flat = g.op("Flatten", ["obs"], axis=1)
-    first = g.op("Slice", [flat, g.constant_int([0]), g.constant_int([1]), g.constant_int([1])])
-    bad = g.op("Log", [g.op("Sub", [g.constant(0.5), first])])
+    total = g.op("MatMul", [flat, g.constant(np.ones((int(np.prod(shape)), 1)))])
+    bad = g.op("Log", [g.op("Sub", [g.constant(0.5), total])])
     g.op("Add", [g.op("Mul", [bad, g.constant(np.zeros(n))]), g.constant(np.zeros(n))], "logits")
     return g.model([obs_input(shape)], [output("logits", ["batch", n])])
 
@@ -178,7 +178,7 @@ Graph.constant_int = _constant_int
 
 
 def write_rust_models() -> None:
-    """The fixtures of server/policy's tests and the core's: the fake simulators' observations are
+    """The fixtures of server/policy's tests and the server's: the fake simulators' observations are
     uint8 [1, 2, 2], their actions Discrete(3)."""
     RUST_MODELS.mkdir(parents=True, exist_ok=True)
     fake = (1, 2, 2)
@@ -190,6 +190,10 @@ def write_rust_models() -> None:
         "random_op_fake.onnx": with_op(fake, 3),
         "external_fake.onnx": external_data(fake, 3),
         "gaussian_3x2.onnx": mlp_gaussian(3, 2, hidden=8),
+        # gym/CartPole-v1 (float32 [4], Discrete(2)) and gym/Pendulum-v1 (float32 [3], Box(1)):
+        # the fuzzer's base sessions.
+        "categorical_cartpole.onnx": conv_categorical((4,), 2),
+        "gaussian_pendulum.onnx": mlp_gaussian(3, 1, hidden=8),
     }
     for name, data in models.items():
         (RUST_MODELS / name).write_bytes(data)

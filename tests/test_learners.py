@@ -62,6 +62,19 @@ def test_rad_sac_from_pixels(tmp_path):
     assert " at 0 -> " in summary and " at 240 environment steps" in summary and str(run_dir / "curve.png") in summary
 
 
+def test_rad_sac_with_the_servers_acting(tmp_path):
+    """--actor server: the policy is exported to ONNX and the server acts and evaluates with it; the
+    learner only streams batches and sends new versions."""
+    run_dir = run_learner("sac_pixels.py", tmp_path, "--actor", "server", "--env", "dmc/cartpole-balance",
+                          "--aug", "translate(108)", "--total-env-steps", "240", "--init-steps", "10", "--batch-size", "8",
+                          "--hidden-dim", "64", "--eval-every", "240", "--eval-episodes", "2", "--render-profile", "fast",
+                          "--log-every", "1", "--policy-every", "5")
+    metrics = check_run(run_dir, {"losses/critic_loss", "losses/actor_loss", "losses/alpha"})
+    steps, staleness = metrics["charts/policy_staleness"]
+    assert all(value >= 0 for value in staleness)
+    assert metrics["charts/eval_return"][0][-1] >= 240
+
+
 def test_rad_sac_crop_with_bfloat16_convs(tmp_path):
     run_dir = run_learner("sac_pixels.py", tmp_path, "--env", "dmc/cartpole-balance", "--aug", "crop(84)|grayscale(p=0.5)",
                           "--amp", "--total-env-steps", "160", "--init-steps", "10", "--batch-size", "8",

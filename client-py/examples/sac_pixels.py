@@ -11,6 +11,7 @@ separate EMA rates for the Q heads and the encoder); the code is our own.
     python client-py/examples/sac_pixels.py --env dmc/walker-walk                  # crop(84)
     python client-py/examples/sac_pixels.py --env dmc/cheetah-run --aug "crop(84)|grayscale(p=0.3)"
     python client-py/examples/sac_pixels.py --env dmc/cartpole-balance --aug none  # pixel SAC
+    python client-py/examples/sac_pixels.py --actor server                         # the servers act
 
 Results go to runs/<env>__sac_pixels__<seed>__<time>/: metrics.csv, TensorBoard events
 (`tensorboard --logdir runs`), curve.png and checkpoint.pt.
@@ -120,6 +121,10 @@ class Args:
     """an existing radserve server, or several separated by commas (one sharded session over them); empty starts one on a free localhost port"""
     workers: int = 0
     """worker processes of a started server (0: one per core)"""
+    actor: str = "learner"
+    """who acts: "learner" (this process runs the policy and steps the envs over gRPC) or "server" (the policy is exported to ONNX and sent; the servers step the envs with it and evaluate, this process only streams batches and sends new weights; docs/actors.md)"""
+    policy_every: int = 50
+    """with --actor server: updates between two policy versions sent to the servers"""
 
 
 def paper_lr(env_id: str) -> float:
@@ -202,6 +207,32 @@ class Actor(nn.Module):
         # Change of variables through tanh (SAC, appendix C).
         log_prob = log_prob - torch.log(F.relu(1 - squashed.pow(2)) + 1e-6).sum(-1, keepdim=True)
         return torch.tanh(mean), squashed, log_prob, log_std
+
+
+class ServerPolicy(nn.Module):
+    """The actor as the servers run it (head gaussian_tanh): observations as float32 0..255 -> the
+    Gaussian's mean and squashed log std; the server draws tanh(mean + exp(log_std) * N(0, 1)) and
+    scales it onto the action bounds, as `RadSac.act` and `scaled` do here. fp32 convs (no autocast):
+    ONNX Runtime's CPU convolutions are fp32."""
+
+    def __init__(self, actor: Actor):
+        super().__init__()
+        self.actor = actor
+
+    def forward(self, obs: torch.Tensor):
+        x = obs * (1.0 / 255.0)
+        for conv in self.actor.encoder.convs:
+            x = F.relu(conv(x))
+        features = torch.tanh(self.actor.encoder.head(x.flatten(1)))
+        mean, log_std = self.actor.trunk(features).chunk(2, dim=-1)
+        log_std = self.actor.log_std_min + 0.5 * (self.actor.log_std_max - self.actor.log_std_min) * (torch.tanh(log_std) + 1)
+        return mean, log_std
+
+
+def policy_model(agent: "RadSac", obs_shape) -> bytes:
+    """The agent's actor now, as ONNX bytes (an fp32 copy on the CPU, exported)."""
+    module = ServerPolicy(copy.deepcopy(agent.actor).cpu().float())
+    return radserve.actors.export_onnx(module, np.zeros((1, *obs_shape), dtype=np.float32))
 
 
 def soft_update(net: nn.Module, target: nn.Module, tau: float) -> None:
@@ -310,6 +341,7 @@ def train(args: Args, address: str) -> RunLog:
     action_dim = low.shape[0]
 
     log = RunLog(args.runs_dir, run_name(args.env, "sac_pixels", args.seed), args)
+    log.started = time.perf_counter()
     agent = RadSac(obs_shape, action_dim, args, lr, device)
     env_steps_per_step = action_repeat * args.num_envs
     agent_steps = max(1, args.total_env_steps // env_steps_per_step)
@@ -330,6 +362,16 @@ def train(args: Args, address: str) -> RunLog:
         if args.checkpoint:
             torch.save(agent.state_dict() | {"env_steps": env_steps, "args": vars(args)}, log.dir / "checkpoint.pt")
         return float(np.mean(returns))
+
+    if args.actor == "server":
+        try:
+            train_server_side(args, client, envs, eval_envs, agent, log, aug, action_repeat, obs_shape, device, evaluations)
+        finally:
+            envs.close()
+            eval_envs.close()
+            client.close()
+            log.close()
+        return finish(args, log, aug, evaluations, start=log.started)
 
     # The server samples uniformly from its replay buffer once it holds the initial steps' transitions,
     # augments obs and next_obs, and keeps `prefetch` minibatches ready.
@@ -377,6 +419,10 @@ def train(args: Args, address: str) -> RunLog:
         eval_envs.close()
         client.close()
         log.close()
+    return finish(args, log, aug, evaluations, start)
+
+
+def finish(args: Args, log: RunLog, aug: str, evaluations: "list[tuple[int, float]]", start: float) -> RunLog:
     curve = plot_curves({f"RAD-SAC ({aug})": log.dir}, log.dir / "curve.png", title=f"{args.env}, aug {aug}")
     (first_steps, first), (last_steps, last) = evaluations[0], evaluations[-1]
     summary = (f"{args.env}: evaluation return {first:.1f} at {first_steps} -> {last:.1f} at {last_steps} environment "
@@ -387,8 +433,87 @@ def train(args: Args, address: str) -> RunLog:
     return log
 
 
+def as_list(value) -> list:
+    return value if isinstance(value, list) else [value]
+
+
+def train_server_side(args: Args, client, envs, eval_envs, agent: RadSac, log: RunLog, aug: str, action_repeat: int,
+                      obs_shape, device, evaluations: "list[tuple[int, float]]") -> None:
+    """--actor server: the servers act with the exported actor (random actions for the first init_steps
+    agent steps) and record into the replay; this process streams batches, updates, and sends the
+    actor every `policy_every` updates. Reverb's rate limiter on both sides keeps one update of
+    `batch_size` transitions per transition acted, as the learner-side loop does; `error_buffer`
+    lets either run ahead by a few updates. No Step call is made: evaluation acts on the servers too."""
+    min_size = min(args.init_steps * args.num_envs, args.replay_capacity)
+    ratio, slack = float(args.batch_size), float(args.batch_size * max(args.num_envs, 4) * 4)
+    envs.set_policy(policy_model(agent, obs_shape), head="gaussian_tanh")
+    envs.start_acting(random_steps=args.init_steps * args.num_envs, samples_per_insert=ratio, error_buffer=slack,
+                      min_size=min_size, seed=args.seed)
+
+    def run_evaluation(env_steps: int) -> float:
+        eval_envs.set_policy(policy_model(agent, obs_shape), head="gaussian_tanh")
+        eval_envs.reset(seed=args.seed + 10_000)
+        eval_envs.start_acting(eval=True, seed=args.seed)
+        while sum(info.episodes for info in as_list(eval_envs.acting())) < args.eval_episodes:
+            time.sleep(0.2)
+        returns = [r for info in as_list(eval_envs.stop_acting()) for r in info.recent_returns][:args.eval_episodes]
+        evaluations.append((env_steps, float(np.mean(returns))))
+        log.scalars(env_steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
+        log.flush()
+        if args.checkpoint:
+            torch.save(agent.state_dict() | {"env_steps": env_steps, "args": vars(args)}, log.dir / "checkpoint.pt")
+        return float(np.mean(returns))
+
+    last_eval, last_return = run_evaluation(0), float("nan")
+    next_eval = args.eval_every
+    seen: "dict[int, int]" = {}
+    stream = client.sample_batches(envs.session_id, args.batch_size, augment=aug, seed=args.seed, prefetch=args.prefetch,
+                                   min_size=min_size, samples_per_insert=ratio, error_buffer=slack, delivery=args.delivery)
+    start, env_steps, metrics = time.perf_counter(), 0, {}
+    bar = tqdm(total=args.total_env_steps, unit="env step", dynamic_ncols=True)
+    try:
+        for update, batch in enumerate(stream):
+            metrics = agent.update(to_tensors(batch, device))
+            if (update + 1) % args.policy_every == 0:
+                envs.set_policy(policy_model(agent, obs_shape), head="gaussian_tanh")
+            if update % args.log_every == 0 or update % 10 == 0:
+                infos = as_list(envs.acting())
+                acted = sum(info.env_steps for info in infos) * action_repeat
+                for server, info in enumerate(infos):
+                    new = info.episodes - seen.get(server, 0)
+                    seen[server] = info.episodes
+                    for episode_return in info.recent_returns[len(info.recent_returns) - min(new, len(info.recent_returns)):]:
+                        last_return = episode_return
+                        log.scalars(acted, **{"charts/episodic_return": episode_return})
+                failed = [info.error for info in infos if info.state == "failed"]
+                if failed:
+                    raise RuntimeError(f"a server's actor failed: {failed[0]}")
+                bar.update(max(0, acted - env_steps))
+                env_steps = acted
+                if update % args.log_every == 0:
+                    versions = batch.policy_version[batch.policy_version >= 0] if batch.policy_version is not None else []
+                    # Versions between the policy that acted and the newest sent (random steps left out).
+                    staleness = float(np.mean(envs.policy_version - versions)) if len(versions) else 0.0
+                    log.scalars(env_steps, **metrics, **{"charts/SPS": env_steps / (time.perf_counter() - start),
+                                                         "charts/policy_staleness": staleness})
+                bar.set_postfix(ret=f"{last_return:.0f}", eval=f"{last_eval:.0f}", sps=f"{env_steps / (time.perf_counter() - start):.0f}")
+                if env_steps >= next_eval:
+                    next_eval += args.eval_every
+                    last_eval = run_evaluation(env_steps)
+                if env_steps >= args.total_env_steps:
+                    break
+        envs.stop_acting()
+        if not evaluations or evaluations[-1][0] != env_steps:
+            run_evaluation(env_steps)
+    finally:
+        stream.close()
+        bar.close()
+
+
 def main() -> None:
     args = parse_args(Args, __doc__)
+    if args.actor not in ("learner", "server"):
+        raise SystemExit(f"--actor must be learner or server, got {args.actor!r}")
     if args.address:
         train(args, args.address)
         return

@@ -25,8 +25,9 @@ from ._proto import radserve_pb2 as pb
 from ._shm import receive_server_memory
 from .errors import SharedMemoryError, from_rpc_error
 
-FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index", "t")
-OPTIONAL_FIELDS = ("next_obs", "t")
+FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index", "t",
+          "policy_version", "log_prob", "value")
+OPTIONAL_FIELDS = ("next_obs", "t", "policy_version", "log_prob", "value")
 
 SHARING = {
     "reference": pb.DRAW_SHARING_REFERENCE,
@@ -43,7 +44,10 @@ class Batch:
     `truncated` are bools (bootstrap through truncations: `not_done = ~terminated`); `env_index` and
     `step_index` say which environment and which Step call of the session produced each transition.
     Rollout batches carry `t`, each transition's step within the rollout (0 the oldest), and no
-    `next_obs` unless asked for.
+    `next_obs` unless asked for. `policy_version` is the version of the server-side policy that
+    acted (`Client.set_policy`; -1 where none did), so a learner can see how stale a batch is;
+    rollouts acted on the server also carry the head's `log_prob` of each action and the model's
+    `value` (PPO's old log-probabilities and values).
     """
 
     index: int
@@ -56,6 +60,9 @@ class Batch:
     step_index: np.ndarray
     next_obs: "np.ndarray | None" = None
     t: "np.ndarray | None" = None
+    policy_version: "np.ndarray | None" = None
+    log_prob: "np.ndarray | None" = None
+    value: "np.ndarray | None" = None
     # Sharded sessions: the index (in `Client.addresses`) of the server each transition came from.
     server: "np.ndarray | None" = None
 

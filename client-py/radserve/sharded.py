@@ -35,6 +35,7 @@ from gymnasium.vector.utils import batch_space
 
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport
+from .actors import ActingMixin
 from .batches import FIELDS, Batch, open_batch_stream
 from .infos import merge_infos
 from .errors import InvalidArgumentError, NotFoundError, RadServeError, UnavailableError
@@ -82,7 +83,7 @@ class Shard:
         return slice(self.start, self.start + self.size)
 
 
-class ShardedVectorEnv(VectorEnv):
+class ShardedVectorEnv(ActingMixin, VectorEnv):
     """`num_envs` environments spread over several radserve servers, stepped concurrently (one
     outstanding step per server) and returned as one gymnasium VectorEnv in env order.
 
@@ -157,6 +158,11 @@ class ShardedVectorEnv(VectorEnv):
     def servers(self) -> "list[str]":
         """The address of each shard's server, in shard (env) order."""
         return [shard.transport.address for shard in self.shards]
+
+    def _acting_sessions(self):
+        """Each served shard's (transport, session id): a policy goes to every server."""
+        self._check_open()
+        return [(shard.transport, shard.env.session_id) for shard in self.shards if not shard.lost and shard.env is not None]
 
     @property
     def session_ids(self) -> "list[str | None]":

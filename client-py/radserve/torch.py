@@ -29,6 +29,9 @@ class TensorBatch:
     step_index: torch.Tensor
     next_obs: "torch.Tensor | None" = None
     t: "torch.Tensor | None" = None
+    policy_version: "torch.Tensor | None" = None
+    log_prob: "torch.Tensor | None" = None
+    value: "torch.Tensor | None" = None
     server: "torch.Tensor | None" = None
 
     def __len__(self) -> int:

@@ -5,6 +5,7 @@ sessions all import them from here (none of those imports another to get them).
 """
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from gymnasium import spaces
 
@@ -50,9 +51,12 @@ class SessionInfo:
     replay: "dict | None" = None
     # The name it was created with ("": none).
     name: str = ""
+    # Its server-side actor (radserve.actors.ActingInfo), once a policy was set.
+    acting: "Any" = None
 
     @staticmethod
     def from_proto(message: "pb.SessionInfo") -> "SessionInfo":
+        from .actors import ActingInfo
         return SessionInfo(
             session_id=message.session_id,
             env_id=message.env_id,
@@ -90,6 +94,7 @@ class SessionInfo:
             if message.HasField("replay")
             else None,
             name=message.name,
+            acting=ActingInfo.from_proto(message.acting) if message.HasField("acting") else None,
         )
 
 

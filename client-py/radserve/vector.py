@@ -11,6 +11,7 @@ from gymnasium.vector.utils import batch_space
 
 from . import _convert
 from ._acting import Answer, SharedActing
+from .actors import ActingMixin
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport, check_delivery
 from .errors import FailedPreconditionError, InvalidArgumentError, RadServeError
@@ -108,7 +109,7 @@ def _ended_episodes(step: "pb.StepResponse"):
             {episode.env_index: episode.error for episode in episodes if episode.error})
 
 
-class RemoteVectorEnv(VectorEnv):
+class RemoteVectorEnv(ActingMixin, VectorEnv):
     """`num_envs` environments living in a radserve server, stepped together.
 
     Autoreset follows gymnasium's `AutoresetMode` (`metadata["autoreset_mode"]`), chosen at
@@ -577,6 +578,9 @@ class RemoteVectorEnv(VectorEnv):
         if run:
             infos = add_flat(infos, run, self.num_envs, self._add_info)
         return infos
+
+    def _acting_sessions(self):
+        return [(self._transport, self.session_id)]
 
     def describe(self):
         """The session as the server sees it (steps taken, episodes completed, options)."""

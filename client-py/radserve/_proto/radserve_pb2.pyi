@@ -17,6 +17,13 @@ class DType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     DTYPE_FLOAT64: _ClassVar[DType]
     DTYPE_BOOL: _ClassVar[DType]
 
+class PolicyHead(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    POLICY_HEAD_UNSPECIFIED: _ClassVar[PolicyHead]
+    POLICY_HEAD_GAUSSIAN_TANH: _ClassVar[PolicyHead]
+    POLICY_HEAD_CATEGORICAL: _ClassVar[PolicyHead]
+    POLICY_HEAD_DETERMINISTIC_NOISE: _ClassVar[PolicyHead]
+
 class InfoKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     INFO_KIND_UNSPECIFIED: _ClassVar[InfoKind]
@@ -43,6 +50,10 @@ DTYPE_INT64: DType
 DTYPE_FLOAT32: DType
 DTYPE_FLOAT64: DType
 DTYPE_BOOL: DType
+POLICY_HEAD_UNSPECIFIED: PolicyHead
+POLICY_HEAD_GAUSSIAN_TANH: PolicyHead
+POLICY_HEAD_CATEGORICAL: PolicyHead
+POLICY_HEAD_DETERMINISTIC_NOISE: PolicyHead
 INFO_KIND_UNSPECIFIED: InfoKind
 INFO_KIND_PYTHON: InfoKind
 INFO_KIND_SCALAR: InfoKind
@@ -220,7 +231,7 @@ class ReplaySnapshot(_message.Message):
     def __init__(self, restored_transitions: _Optional[int] = ..., disk_bytes: _Optional[int] = ..., age_seconds: _Optional[float] = ..., pending_frames: _Optional[int] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay", "name")
+    __slots__ = ("session_id", "env_id", "num_envs", "seed", "options", "observation_space", "action_space", "frame_stack", "autoreset_mode", "total_env_steps", "episodes_completed", "replay", "name", "acting")
     class OptionsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -241,6 +252,7 @@ class SessionInfo(_message.Message):
     EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
     REPLAY_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
+    ACTING_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     env_id: str
     num_envs: int
@@ -254,7 +266,106 @@ class SessionInfo(_message.Message):
     episodes_completed: int
     replay: ReplayInfo
     name: str
-    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., frame_stack: _Optional[int] = ..., autoreset_mode: _Optional[str] = ..., total_env_steps: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., replay: _Optional[_Union[ReplayInfo, _Mapping]] = ..., name: _Optional[str] = ...) -> None: ...
+    acting: ActingInfo
+    def __init__(self, session_id: _Optional[str] = ..., env_id: _Optional[str] = ..., num_envs: _Optional[int] = ..., seed: _Optional[int] = ..., options: _Optional[_Mapping[str, OptionValue]] = ..., observation_space: _Optional[_Union[Space, _Mapping]] = ..., action_space: _Optional[_Union[Space, _Mapping]] = ..., frame_stack: _Optional[int] = ..., autoreset_mode: _Optional[str] = ..., total_env_steps: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., replay: _Optional[_Union[ReplayInfo, _Mapping]] = ..., name: _Optional[str] = ..., acting: _Optional[_Union[ActingInfo, _Mapping]] = ...) -> None: ...
+
+class NoiseSchedule(_message.Message):
+    __slots__ = ("std_start", "std_end", "std_steps", "clip")
+    STD_START_FIELD_NUMBER: _ClassVar[int]
+    STD_END_FIELD_NUMBER: _ClassVar[int]
+    STD_STEPS_FIELD_NUMBER: _ClassVar[int]
+    CLIP_FIELD_NUMBER: _ClassVar[int]
+    std_start: float
+    std_end: float
+    std_steps: int
+    clip: float
+    def __init__(self, std_start: _Optional[float] = ..., std_end: _Optional[float] = ..., std_steps: _Optional[int] = ..., clip: _Optional[float] = ...) -> None: ...
+
+class SetPolicyRequest(_message.Message):
+    __slots__ = ("session_id", "model", "head", "version", "noise")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
+    HEAD_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    NOISE_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    model: bytes
+    head: PolicyHead
+    version: int
+    noise: NoiseSchedule
+    def __init__(self, session_id: _Optional[str] = ..., model: _Optional[bytes] = ..., head: _Optional[_Union[PolicyHead, str]] = ..., version: _Optional[int] = ..., noise: _Optional[_Union[NoiseSchedule, _Mapping]] = ...) -> None: ...
+
+class SetPolicyResponse(_message.Message):
+    __slots__ = ("version", "ops", "opset", "input", "outputs", "has_value")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    OPS_FIELD_NUMBER: _ClassVar[int]
+    OPSET_FIELD_NUMBER: _ClassVar[int]
+    INPUT_FIELD_NUMBER: _ClassVar[int]
+    OUTPUTS_FIELD_NUMBER: _ClassVar[int]
+    HAS_VALUE_FIELD_NUMBER: _ClassVar[int]
+    version: int
+    ops: _containers.RepeatedScalarFieldContainer[str]
+    opset: int
+    input: str
+    outputs: _containers.RepeatedScalarFieldContainer[str]
+    has_value: bool
+    def __init__(self, version: _Optional[int] = ..., ops: _Optional[_Iterable[str]] = ..., opset: _Optional[int] = ..., input: _Optional[str] = ..., outputs: _Optional[_Iterable[str]] = ..., has_value: _Optional[bool] = ...) -> None: ...
+
+class StartActingRequest(_message.Message):
+    __slots__ = ("session_id", "steps_per_second", "random_steps", "eval", "samples_per_insert", "error_buffer", "min_size", "seed", "max_episodes", "max_env_steps")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    STEPS_PER_SECOND_FIELD_NUMBER: _ClassVar[int]
+    RANDOM_STEPS_FIELD_NUMBER: _ClassVar[int]
+    EVAL_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_PER_INSERT_FIELD_NUMBER: _ClassVar[int]
+    ERROR_BUFFER_FIELD_NUMBER: _ClassVar[int]
+    MIN_SIZE_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    MAX_EPISODES_FIELD_NUMBER: _ClassVar[int]
+    MAX_ENV_STEPS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    steps_per_second: float
+    random_steps: int
+    eval: bool
+    samples_per_insert: float
+    error_buffer: float
+    min_size: int
+    seed: int
+    max_episodes: int
+    max_env_steps: int
+    def __init__(self, session_id: _Optional[str] = ..., steps_per_second: _Optional[float] = ..., random_steps: _Optional[int] = ..., eval: _Optional[bool] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., min_size: _Optional[int] = ..., seed: _Optional[int] = ..., max_episodes: _Optional[int] = ..., max_env_steps: _Optional[int] = ...) -> None: ...
+
+class StopActingRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class ActingInfo(_message.Message):
+    __slots__ = ("state", "policy_version", "acting_version", "head", "env_steps", "episodes", "recent_returns", "inference_seconds", "step_seconds", "limited_seconds", "error")
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
+    ACTING_VERSION_FIELD_NUMBER: _ClassVar[int]
+    HEAD_FIELD_NUMBER: _ClassVar[int]
+    ENV_STEPS_FIELD_NUMBER: _ClassVar[int]
+    EPISODES_FIELD_NUMBER: _ClassVar[int]
+    RECENT_RETURNS_FIELD_NUMBER: _ClassVar[int]
+    INFERENCE_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    STEP_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    LIMITED_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    state: str
+    policy_version: int
+    acting_version: int
+    head: str
+    env_steps: int
+    episodes: int
+    recent_returns: _containers.RepeatedScalarFieldContainer[float]
+    inference_seconds: float
+    step_seconds: float
+    limited_seconds: float
+    error: str
+    def __init__(self, state: _Optional[str] = ..., policy_version: _Optional[int] = ..., acting_version: _Optional[int] = ..., head: _Optional[str] = ..., env_steps: _Optional[int] = ..., episodes: _Optional[int] = ..., recent_returns: _Optional[_Iterable[float]] = ..., inference_seconds: _Optional[float] = ..., step_seconds: _Optional[float] = ..., limited_seconds: _Optional[float] = ..., error: _Optional[str] = ...) -> None: ...
 
 class DescribeSessionRequest(_message.Message):
     __slots__ = ("session_id",)

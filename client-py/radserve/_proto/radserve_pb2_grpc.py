@@ -109,6 +109,21 @@ class RadServeStub:
                 request_serializer=radserve__pb2.SharedSampleRequest.SerializeToString,
                 response_deserializer=radserve__pb2.SharedSampleResponse.FromString,
                 _registered_method=True)
+        self.SetPolicy = channel.unary_unary(
+                '/radserve.v1.RadServe/SetPolicy',
+                request_serializer=radserve__pb2.SetPolicyRequest.SerializeToString,
+                response_deserializer=radserve__pb2.SetPolicyResponse.FromString,
+                _registered_method=True)
+        self.StartActing = channel.unary_unary(
+                '/radserve.v1.RadServe/StartActing',
+                request_serializer=radserve__pb2.StartActingRequest.SerializeToString,
+                response_deserializer=radserve__pb2.ActingInfo.FromString,
+                _registered_method=True)
+        self.StopActing = channel.unary_unary(
+                '/radserve.v1.RadServe/StopActing',
+                request_serializer=radserve__pb2.StopActingRequest.SerializeToString,
+                response_deserializer=radserve__pb2.ActingInfo.FromString,
+                _registered_method=True)
 
 
 class RadServeServicer:
@@ -236,6 +251,35 @@ class RadServeServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def SetPolicy(self, request, context):
+        """Server-side actors: the learner sends its policy and the server steps the session's envs with
+        it, recording into the session's buffer, so the learner only streams batches.
+        SetPolicy loads an ONNX model (torch.onnx.export of the actor) for the session and checks it
+        at once: a model with an operator outside the supported list, external data, an input that does
+        not take the session's observations, outputs that do not fit the head and the action space, or
+        outputs that are not finite on zero observations is refused with INVALID_ARGUMENT naming the
+        problem; never later. The newest version is taken by a running actor between two steps.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def StartActing(self, request, context):
+        """Starts the session's actor with its newest policy: it resets the envs if they need it, then
+        steps every env continuously. While it acts, Reset, Step and the other acting calls on the
+        session are refused with FAILED_PRECONDITION.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def StopActing(self, request, context):
+        """Stops the actor after its current step and answers its final state.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_RadServeServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -313,6 +357,21 @@ def add_RadServeServicer_to_server(servicer, server):
                     servicer.SampleBatchesShared,
                     request_deserializer=radserve__pb2.SharedSampleRequest.FromString,
                     response_serializer=radserve__pb2.SharedSampleResponse.SerializeToString,
+            ),
+            'SetPolicy': grpc.unary_unary_rpc_method_handler(
+                    servicer.SetPolicy,
+                    request_deserializer=radserve__pb2.SetPolicyRequest.FromString,
+                    response_serializer=radserve__pb2.SetPolicyResponse.SerializeToString,
+            ),
+            'StartActing': grpc.unary_unary_rpc_method_handler(
+                    servicer.StartActing,
+                    request_deserializer=radserve__pb2.StartActingRequest.FromString,
+                    response_serializer=radserve__pb2.ActingInfo.SerializeToString,
+            ),
+            'StopActing': grpc.unary_unary_rpc_method_handler(
+                    servicer.StopActing,
+                    request_deserializer=radserve__pb2.StopActingRequest.FromString,
+                    response_serializer=radserve__pb2.ActingInfo.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -720,6 +779,87 @@ class RadServe:
             '/radserve.v1.RadServe/SampleBatchesShared',
             radserve__pb2.SharedSampleRequest.SerializeToString,
             radserve__pb2.SharedSampleResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def SetPolicy(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/SetPolicy',
+            radserve__pb2.SetPolicyRequest.SerializeToString,
+            radserve__pb2.SetPolicyResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def StartActing(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/StartActing',
+            radserve__pb2.StartActingRequest.SerializeToString,
+            radserve__pb2.ActingInfo.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def StopActing(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/StopActing',
+            radserve__pb2.StopActingRequest.SerializeToString,
+            radserve__pb2.ActingInfo.FromString,
             options,
             channel_credentials,
             insecure,

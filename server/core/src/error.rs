@@ -95,6 +95,16 @@ pub enum CoreError {
     /// A named session's snapshot that cannot be restored, on a server configured to refuse it.
     #[error("{0}")]
     BadSnapshot(String),
+
+    /// A call that steps or resets a session whose envs the server's actor is stepping
+    /// (StartActing), or an acting call that does not fit the session's state.
+    #[error("{0}")]
+    Acting(String),
+
+    /// A policy (SetPolicy) the server refuses: not ONNX, an unsupported operator, a model that does
+    /// not fit the session or its head.
+    #[error(transparent)]
+    Policy(#[from] radserve_policy::PolicyError),
 }
 
 impl From<SimulatorError> for CoreError {

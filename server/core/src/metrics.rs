@@ -25,6 +25,25 @@ pub struct CoreMetrics {
     batches: AtomicU64,
     step_seconds: Histogram,
     snapshots: SnapshotCounters,
+    pub acting: ActingCounters,
+}
+
+/// Server-side actors since the server started.
+#[derive(Debug, Default)]
+pub struct ActingCounters {
+    /// Env steps the actors took (each env of a step counts one; random warm-up steps included).
+    pub env_steps: AtomicU64,
+    /// Policies loaded (SetPolicy calls that succeeded).
+    pub policies: AtomicU64,
+    /// Actors stopped by an error (a policy output that is not finite, envs failing in a row).
+    pub failures: AtomicU64,
+    pub inference_nanos: AtomicU64,
+}
+
+impl ActingCounters {
+    pub fn add_inference(&self, seconds: f64) {
+        self.inference_nanos.fetch_add((seconds * 1e9) as u64, Ordering::Relaxed);
+    }
 }
 
 /// Named sessions' replay snapshots since the server started.

@@ -23,6 +23,8 @@ pub mod head;
 pub mod model;
 
 pub use head::Head;
+/// ONNX Runtime's process-wide environment (see [`runtime`]).
+pub use ort::environment::Environment as Runtime;
 pub use model::{inspect, ModelSummary, SUPPORTED_OPS};
 
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]
@@ -41,12 +43,50 @@ pub enum PolicyError {
     Unavailable(String),
 }
 
-/// The observations a session's policy acts on: `[num_envs, *shape]` of uint8 (stacked frames,
-/// through the session's view).
+/// The observations a session's policy acts on: `[num_envs, *shape]` of `dtype` (stacked frames
+/// through the session's view, or state vectors).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ObservationSpec {
     pub num_envs: usize,
     pub shape: Vec<usize>,
+    pub dtype: ObservationType,
+}
+
+/// The element type of a session's observations.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ObservationType {
+    Uint8,
+    Float32,
+    Float64,
+}
+
+impl ObservationType {
+    fn size(self) -> usize {
+        match self {
+            ObservationType::Uint8 => 1,
+            ObservationType::Float32 => 4,
+            ObservationType::Float64 => 8,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            ObservationType::Uint8 => "uint8",
+            ObservationType::Float32 => "float32",
+            ObservationType::Float64 => "float64",
+        }
+    }
+
+    /// Little-endian observation bytes as the float32 a model takes.
+    fn to_f32(self, bytes: &[u8]) -> Vec<f32> {
+        match self {
+            ObservationType::Uint8 => bytes.iter().map(|&byte| f32::from(byte)).collect(),
+            ObservationType::Float32 => bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
+            ObservationType::Float64 => {
+                bytes.chunks_exact(8).map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as f32).collect()
+            }
+        }
+    }
 }
 
 /// The actions it must produce.
@@ -188,10 +228,13 @@ impl std::fmt::Debug for Policy {
 /// Checks the model's declared input and outputs against the session and the head.
 fn check_ports(summary: &ModelSummary, spec: &PolicySpec, observations: &ObservationSpec, actions: &ActionSpec) -> Result<bool, PolicyError> {
     let input = &summary.input;
-    if input.elem != model::ELEM_FLOAT && input.elem != model::ELEM_UINT8 {
+    let uint8_allowed = observations.dtype == ObservationType::Uint8;
+    if input.elem != model::ELEM_FLOAT && !(input.elem == model::ELEM_UINT8 && uint8_allowed) {
         return Err(PolicyError::Mismatch(format!(
-            "the input {} must be float32 (raw 0..255 values; the model divides by 255 itself, as RAD's encoder does) or uint8",
-            input.describe()
+            "the input {} must be float32 ({}){}",
+            input.describe(),
+            if uint8_allowed { "raw 0..255 values; the model divides by 255 itself, as RAD's encoder does" } else { "the session's observations converted" },
+            if uint8_allowed { " or uint8" } else { "" },
         )));
     }
     if let Some(dims) = &input.dims {
@@ -284,7 +327,7 @@ impl Policy {
         }
         let input_uint8 = summary.input.elem == model::ELEM_UINT8;
         let mut policy = Policy { session, summary, spec, observations, actions, input_uint8, has_value };
-        let zeros = vec![0u8; policy.observations.num_envs * policy.observations.shape.iter().product::<usize>()];
+        let zeros = vec![0u8; policy.observation_bytes()];
         let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
         policy.act(&zeros, &mut rng, 0, true).map_err(|error| match error {
             PolicyError::NonFinite(message) => PolicyError::NonFinite(format!("on zero observations: {message}")),
@@ -295,6 +338,11 @@ impl Policy {
             | PolicyError::Unavailable(_)) => other,
         })?;
         Ok(policy)
+    }
+
+    /// Bytes of one step's observations of every env.
+    pub fn observation_bytes(&self) -> usize {
+        self.observations.num_envs * self.observations.shape.iter().product::<usize>() * self.observations.dtype.size()
     }
 
     pub fn head(&self) -> &Head {
@@ -310,6 +358,15 @@ impl Policy {
     /// the batch, then the head per env. `env_steps` (the session's so far) sets the deterministic
     /// head's noise; `eval` acts without exploration.
     pub fn act(&mut self, obs: &[u8], rng: &mut impl Rng, env_steps: u64, eval: bool) -> Result<Acted, PolicyError> {
+        if obs.len() != self.observation_bytes() {
+            return Err(PolicyError::Mismatch(format!(
+                "{} bytes of observations; this policy takes {} ({} {:?} per env)",
+                obs.len(),
+                self.observation_bytes(),
+                self.observations.dtype.name(),
+                self.observations.shape
+            )));
+        }
         let num_envs = self.observations.num_envs;
         let shape: Vec<i64> = std::iter::once(num_envs).chain(self.observations.shape.iter().copied()).map(|d| d as i64).collect();
         let runtime = |error: ort::Error| PolicyError::Runtime(error.to_string());
@@ -317,7 +374,7 @@ impl Policy {
             let tensor = Tensor::from_array((shape, obs.to_vec())).map_err(runtime)?;
             self.session.run(ort::inputs![tensor]).map_err(runtime)?
         } else {
-            let values: Vec<f32> = obs.iter().map(|&byte| f32::from(byte)).collect();
+            let values = self.observations.dtype.to_f32(obs);
             let tensor = Tensor::from_array((shape, values)).map_err(runtime)?;
             self.session.run(ort::inputs![tensor]).map_err(runtime)?
         };

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use radserve_policy::{library_of_python, runtime, ActionSpec, Head, ObservationSpec, Policy, PolicyError, PolicySpec};
+use radserve_policy::{library_of_python, runtime, ActionSpec, Head, ObservationSpec, ObservationType, Policy, PolicyError, PolicySpec};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -21,7 +21,7 @@ fn model(name: &str) -> Vec<u8> {
 }
 
 fn fake_obs(num_envs: usize) -> ObservationSpec {
-    ObservationSpec { num_envs, shape: vec![1, 2, 2] }
+    ObservationSpec { num_envs, shape: vec![1, 2, 2], dtype: ObservationType::Uint8 }
 }
 
 fn categorical() -> PolicySpec {
@@ -73,10 +73,12 @@ fn the_same_seed_gives_the_same_actions() {
 fn a_gaussian_policy_scales_its_actions_onto_the_bounds() {
     let actions = ActionSpec::Box { dims: 2, low: vec![-2.0, 0.0], high: vec![2.0, 10.0], float64: false };
     let spec = PolicySpec { head: Head::GaussianTanh, threads: 1 };
-    let mut policy = load("gaussian_3x2.onnx", spec, ObservationSpec { num_envs: 5, shape: vec![3] }, actions).unwrap();
+    let observations = ObservationSpec { num_envs: 5, shape: vec![3], dtype: ObservationType::Float64 };
+    let mut policy = load("gaussian_3x2.onnx", spec, observations, actions).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let obs: Vec<u8> = (0..15).flat_map(|i| (f64::from(i) * 0.1).to_le_bytes()).collect();
     for _ in 0..50 {
-        let acted = policy.act(&[1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15], &mut rng, 0, false).unwrap();
+        let acted = policy.act(&obs, &mut rng, 0, false).unwrap();
         let values: Vec<f32> = acted.actions.chunks(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
         assert_eq!(values.len(), 10);
         for pair in values.chunks(2) {
@@ -94,7 +96,7 @@ fn refusals_name_what_is_wrong() {
     assert!(text.contains("RandomNormalLike"), "{text}");
     let text = message(load("external_fake.onnx", categorical(), fake_obs(2), discrete.clone()));
     assert!(text.contains("external data"), "{text}");
-    let text = message(load("categorical_fake.onnx", categorical(), ObservationSpec { num_envs: 2, shape: vec![3, 2, 2] }, discrete.clone()));
+    let text = message(load("categorical_fake.onnx", categorical(), ObservationSpec { num_envs: 2, shape: vec![3, 2, 2], dtype: ObservationType::Uint8 }, discrete.clone()));
     assert!(text.contains("does not take this session's observations") && text.contains("3, 2, 2"), "{text}");
     let text = message(load("categorical_fake.onnx", categorical(), fake_obs(2), ActionSpec::Discrete { n: 4 }));
     assert!(text.contains("output 'logits' has shape [2, 3]"), "{text}");

@@ -27,6 +27,38 @@ pub struct Config {
     pub auth: AuthConfig,
     pub tls: TlsConfig,
     pub metrics: MetricsConfig,
+    pub acting: ActingSection,
+}
+
+/// Server-side actors (SetPolicy, StartActing): where ONNX Runtime comes from and what a policy may
+/// cost.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct ActingSection {
+    /// The ONNX Runtime library (libonnxruntime.so). Unset: the one of the onnxruntime wheel
+    /// installed in the workers' virtualenv (sim.venv), which the server's requirements include.
+    pub onnxruntime_library: Option<PathBuf>,
+    /// ONNX Runtime threads per policy's inference (1: on the acting task's own thread).
+    pub threads: usize,
+    /// The largest model SetPolicy takes, in bytes (the RAD actor is 12 MB).
+    pub max_model_bytes: u64,
+}
+
+impl Default for ActingSection {
+    fn default() -> Self {
+        ActingSection { onnxruntime_library: None, threads: 1, max_model_bytes: 64 << 20 }
+    }
+}
+
+impl ActingSection {
+    pub fn to_core(&self) -> radserve_core::ActingConfig {
+        radserve_core::ActingConfig {
+            library: self.onnxruntime_library.clone(),
+            python: None,
+            threads: self.threads.max(1),
+            max_model_bytes: usize::try_from(self.max_model_bytes).unwrap_or(usize::MAX),
+        }
+    }
 }
 
 /// The Prometheus endpoint (`GET /metrics`, OpenMetrics text; the README's "The server").

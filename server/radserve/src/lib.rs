@@ -35,6 +35,9 @@ pub struct ServerSettings {
     pub worker_call_timeout: Duration,
     /// The same for building environments.
     pub worker_create_timeout: Duration,
+    /// Server-side policies (the `[acting]` section); ONNX Runtime is looked for beside the
+    /// workers' Python unless a library is named.
+    pub acting: radserve_core::ActingConfig,
 }
 
 /// The worker pool and the sessions hosted in it. The pool is returned too, for an exit that
@@ -43,10 +46,12 @@ pub fn session_manager(settings: ServerSettings) -> (Arc<SessionManager>, Arc<Wo
     let launcher = WorkerLauncher {
         call_timeout: settings.worker_call_timeout,
         create_timeout: settings.worker_create_timeout,
-        ..WorkerLauncher::new(settings.worker_program, settings.venv, settings.gl)
+        ..WorkerLauncher::new(settings.worker_program, settings.venv.clone(), settings.gl)
     };
+    let mut acting = settings.acting;
+    acting.python.get_or_insert_with(|| settings.venv.join("bin/python"));
     let pool = Arc::new(WorkerPool::start(launcher, settings.workers));
-    (Arc::new(SessionManager::new(pool.clone(), settings.limits).with_snapshots(settings.replay)), pool)
+    (Arc::new(SessionManager::new(pool.clone(), settings.limits).with_snapshots(settings.replay).with_acting(acting)), pool)
 }
 
 /// How the server serves and stops (the `[server]` and `[augment]` sections of the configuration).

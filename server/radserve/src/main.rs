@@ -205,6 +205,7 @@ fn settings(config: &Config) -> anyhow::Result<ServerSettings> {
         replay: config.replay.clone(),
         worker_call_timeout: std::time::Duration::from_secs_f64(config.sim.worker_call_timeout_s),
         worker_create_timeout: std::time::Duration::from_secs_f64(config.sim.worker_create_timeout_s),
+        acting: config.acting.to_core(),
     })
 }
 

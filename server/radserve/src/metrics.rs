@@ -89,6 +89,9 @@ impl Collector for Sources {
             ("radserve_snapshot_failures", "Replay snapshots that could not be written, or read when a named session was created", load(&snapshots.failures)),
             ("radserve_snapshot_restores", "Named sessions whose replay was restored from a snapshot", load(&snapshots.restores)),
             ("radserve_snapshot_restored_transitions", "Transitions restored from snapshots", load(&snapshots.restored_transitions)),
+            ("radserve_actor_env_steps", "Environment steps taken by server-side actors (random warm-up steps included)", load(&core.acting.env_steps)),
+            ("radserve_actor_policies", "Policies loaded by SetPolicy", load(&core.acting.policies)),
+            ("radserve_actor_failures", "Server-side actors stopped by an error (a policy output that is not finite, envs failing step after step)", load(&core.acting.failures)),
         ];
         for (name, help, value) in snapshot_counters {
             ConstCounter::new(value).encode(encoder.encode_descriptor(name, help, None, MetricType::Counter)?)?;
@@ -96,6 +99,7 @@ impl Collector for Sources {
         for (name, help, nanos) in [
             ("radserve_snapshot_duration_seconds", "Time spent writing replay snapshots (paced by replay.snapshot_bytes_per_second)", &snapshots.nanos),
             ("radserve_snapshot_restore_duration_seconds", "Time spent restoring replay from snapshots", &snapshots.restore_nanos),
+            ("radserve_actor_inference_seconds", "Time server-side actors spent in policy inference", &core.acting.inference_nanos),
         ] {
             ConstCounter::new(load(nanos) as f64 / 1e9).encode(encoder.encode_descriptor(name, help, None, MetricType::Counter)?)?;
         }

@@ -23,6 +23,7 @@ fn settings() -> ServerSettings {
         limits: Limits::default(),
         worker_call_timeout: Duration::from_secs(60),
         worker_create_timeout: Duration::from_secs(300),
+        acting: radserve_core::ActingConfig::default(),
         replay: radserve_core::ReplayConfig::default(),
     }
 }

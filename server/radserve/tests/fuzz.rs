@@ -11,7 +11,7 @@ mod common;
 #[path = "fuzz/strategies.rs"]
 mod strategies;
 
-use strategies::{op, ChannelUse, Op, Target};
+use strategies::{op, ChannelUse, Op, PolicyModel, Target, POLICY_FIXTURES};
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -333,6 +333,34 @@ impl Case {
                     Err(status) => Err(status),
                 }
             }
+            Op::SetPolicy(target, model, head, version) => {
+                let fixture = |index: usize| {
+                    let name = POLICY_FIXTURES[index % POLICY_FIXTURES.len()];
+                    std::fs::read(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../policy/tests/models").join(name)).unwrap()
+                };
+                let model = match model {
+                    PolicyModel::Fixture(index) => fixture(index),
+                    PolicyModel::Damaged(index, flips) => {
+                        let mut bytes = fixture(index);
+                        for (at, value) in flips {
+                            let at = at % bytes.len();
+                            bytes[at] = value;
+                        }
+                        bytes
+                    }
+                    PolicyModel::Bytes(bytes) => bytes,
+                };
+                let request = proto::SetPolicyRequest { session_id: self.session(&target), model, head, version, noise: None };
+                within(limit, self.client.set_policy(request)).await.expect("a set_policy answers").map(drop)
+            }
+            Op::StartActing(target, mut request) => {
+                request.session_id = self.session(&target);
+                within(limit, self.client.start_acting(request)).await.expect("a start_acting answers").map(drop)
+            }
+            Op::StopActing(target) => {
+                let request = proto::StopActingRequest { session_id: self.session(&target) };
+                within(limit, self.client.stop_acting(request)).await.expect("a stop_acting answers").map(drop)
+            }
             Op::Sample(target, mut request) => {
                 request.session_id = self.session(&target);
                 // A few chunks, then the client leaves.
@@ -378,6 +406,9 @@ impl Case {
             }
         }
         for session_id in &self.base {
+            // The base sessions outlive the case: an actor the case started on one stops here.
+            let stopped = self.client.stop_acting(proto::StopActingRequest { session_id: session_id.clone() }).await;
+            prop_assert!(stopped.is_ok(), "stopping a base session's actor: {stopped:?}");
             let info = self.client.describe_session(proto::DescribeSessionRequest { session_id: session_id.clone() }).await;
             prop_assert!(info.is_ok(), "a base session is gone: {info:?}");
         }
@@ -472,6 +503,9 @@ const METHODS: &[(&str, bool, bool)] = &[
     ("ShareActing", false, false),
     ("SampleBatches", false, true),
     ("SampleBatchesShared", true, true),
+    ("SetPolicy", false, false),
+    ("StartActing", false, false),
+    ("StopActing", false, false),
     // dm_env_rpc on the same port (a full path: another service).
     ("/dm_env_rpc.v1.Environment/Process", true, true),
 ];

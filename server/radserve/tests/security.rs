@@ -97,6 +97,17 @@ const TABLE: &[Row] = &[
     Row { method: "SampleBatchesShared", client_streams: true, server_streams: true, scope: Scope::Session, request: |id| {
         proto::SharedSampleRequest { request: Some(proto::shared_sample_request::Request::Start(sample(id))) }.encode_to_vec()
     } },
+    Row { method: "SetPolicy", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
+        let model = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../policy/tests/models/categorical_fake.onnx")).unwrap();
+        proto::SetPolicyRequest { session_id: id.into(), model, head: proto::PolicyHead::Categorical as i32, version: 1, noise: None }
+            .encode_to_vec()
+    } },
+    Row { method: "StartActing", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
+        proto::StartActingRequest { session_id: id.into(), ..Default::default() }.encode_to_vec()
+    } },
+    Row { method: "StopActing", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
+        proto::StopActingRequest { session_id: id.into() }.encode_to_vec()
+    } },
 ];
 
 /// Calls `method` with `body` and `token`; a stream that opens and sends nothing wrong within a

@@ -67,6 +67,12 @@ impl ReplayLayout {
         self.frame_bytes.saturating_add(self.action_bytes).saturating_add(SLOT_METADATA_BYTES)
     }
 
+    /// Bytes of one slot's record in a snapshot: the frame, the action and the metadata a snapshot
+    /// keeps (the actor's columns are not kept: restored transitions have `NO_POLICY`).
+    pub(crate) fn snapshot_record_bytes(&self) -> usize {
+        self.frame_bytes.saturating_add(self.action_bytes).saturating_add(SNAPSHOT_METADATA_BYTES)
+    }
+
     /// Slots over all environments.
     fn total_slots(&self) -> usize {
         self.num_envs.saturating_mul(self.slots_per_env())
@@ -132,8 +138,16 @@ pub fn check_capacity(capacity: usize) -> Result<()> {
     Ok(())
 }
 
-/// reward (f32), flags (u8), episode start (u64), step index (u64).
-pub(crate) const SLOT_METADATA_BYTES: usize = 4 + 1 + 8 + 8;
+/// reward (f32), flags (u8), episode start (u64), step index (u64), and what a server-side actor
+/// recorded: policy version (i32), log-probability and value (f32).
+pub(crate) const SLOT_METADATA_BYTES: usize = 4 + 1 + 8 + 8 + 4 + 4 + 4;
+
+/// The part of a slot's metadata a snapshot keeps: reward, flags, episode start, step index.
+pub(crate) const SNAPSHOT_METADATA_BYTES: usize = 4 + 1 + 8 + 8;
+
+/// The policy version of a transition no server-side policy acted in (a client's Step, the
+/// actor's random warm-up steps, a transition restored from a snapshot).
+pub const NO_POLICY: i32 = -1;
 
 pub(crate) const FIRST_OF_EPISODE: u8 = 1;
 pub(crate) const TERMINATED: u8 = 2;
@@ -200,6 +214,11 @@ pub struct ReplayBuffer {
     pub(crate) flags: Vec<u8>,
     pub(crate) episode_starts: Vec<u64>,
     pub(crate) step_indices: Vec<u64>,
+    /// Per slot: the version of the server-side policy that acted (`NO_POLICY`: none), the head's
+    /// log-probability of the action and the model's value (0 where none).
+    pub(crate) policy_versions: Vec<i32>,
+    pub(crate) log_probs: Vec<f32>,
+    pub(crate) values: Vec<f32>,
     /// Per env: frames written so far (the absolute index of the next one).
     pub(crate) written: Vec<u64>,
     /// Per env: the first frame its slots hold for certain. 0, except after a restore whose snapshot
@@ -238,6 +257,17 @@ pub struct RecordedStep<'a> {
     pub next_frame: &'a [u8],
     /// The session's step counter for this step (the index of the Step call).
     pub step_index: u64,
+    /// What a server-side actor acted with: the policy's version, the action's log-probability and
+    /// the model's value (None: no policy acted).
+    pub acted: Option<ActedBy>,
+}
+
+/// The policy behind a recorded action.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ActedBy {
+    pub version: i32,
+    pub log_prob: f32,
+    pub value: f32,
 }
 
 impl ReplayBuffer {
@@ -255,6 +285,9 @@ impl ReplayBuffer {
             flags: vec![0; total],
             episode_starts: vec![0; total],
             step_indices: vec![0; total],
+            policy_versions: vec![NO_POLICY; total],
+            log_probs: vec![0.0; total],
+            values: vec![0.0; total],
             written: vec![0; layout.num_envs],
             floors: vec![0; layout.num_envs],
             in_episode: vec![false; layout.num_envs],
@@ -348,6 +381,7 @@ impl ReplayBuffer {
         self.rewards[slot] = 0.0;
         self.episode_starts[slot] = index;
         self.step_indices[slot] = step_index;
+        self.stamp(slot, None);
         self.in_episode[env] = true;
     }
 
@@ -367,11 +401,19 @@ impl ReplayBuffer {
         self.flags[slot] = (u8::from(step.terminated) * TERMINATED) | (u8::from(step.truncated) * TRUNCATED);
         self.episode_starts[slot] = episode_start;
         self.step_indices[slot] = step.step_index;
+        self.stamp(slot, step.acted);
         self.counters.inserts += 1;
         self.steps_recorded = self.steps_recorded.max(step.step_index + 1);
         if step.terminated || step.truncated {
             self.in_episode[env] = false;
         }
+    }
+
+    pub(crate) fn stamp(&mut self, slot: usize, acted: Option<ActedBy>) {
+        let acted = acted.unwrap_or(ActedBy { version: NO_POLICY, log_prob: 0.0, value: 0.0 });
+        self.policy_versions[slot] = acted.version;
+        self.log_probs[slot] = acted.log_prob;
+        self.values[slot] = acted.value;
     }
 
     /// The episode in progress in `env` ends without a frame to show for it (its worker died): the
@@ -546,6 +588,9 @@ impl ReplayBuffer {
             batch.truncated[index] = u8::from(self.flags[slot] & TRUNCATED != 0);
             batch.env_indices[index] = transition.env as u32;
             batch.step_indices[index] = self.step_indices[slot];
+            batch.policy_versions[index] = self.policy_versions[slot];
+            batch.log_probs[index] = self.log_probs[slot];
+            batch.values[index] = self.values[slot];
         }
     }
 }
@@ -563,6 +608,11 @@ pub struct TransitionMetadata {
     pub env_indices: Vec<u32>,
     /// The session step (Step call index) that produced each transition.
     pub step_indices: Vec<u64>,
+    /// The server-side policy version that acted (`NO_POLICY`: none), the action's log-probability
+    /// and the model's value.
+    pub policy_versions: Vec<i32>,
+    pub log_probs: Vec<f32>,
+    pub values: Vec<f32>,
 }
 
 impl TransitionMetadata {
@@ -574,6 +624,9 @@ impl TransitionMetadata {
         self.truncated.resize(len, 0);
         self.env_indices.resize(len, 0);
         self.step_indices.resize(len, 0);
+        self.policy_versions.resize(len, NO_POLICY);
+        self.log_probs.resize(len, 0.0);
+        self.values.resize(len, 0.0);
     }
 }
 
@@ -591,9 +644,9 @@ mod tests {
             frame_bytes: 16,
             action_bytes: 8,
         };
-        // (capacity + 1) * 45 wrapped to 29 bytes: the budget passed and the allocation aborted.
+        // (capacity + 1) * 45 once wrapped to 29 bytes (before the actor columns): the budget passed and the allocation aborted.
         for capacity in [409_927_646_082_434_480, usize::MAX, MAX_CAPACITY + 1] {
-            assert_eq!(layout(capacity).memory_bytes(), if capacity > MAX_CAPACITY * 2 { usize::MAX } else { (capacity + 1) * 45 });
+            assert_eq!(layout(capacity).memory_bytes(), if capacity > MAX_CAPACITY * 2 { usize::MAX } else { (capacity + 1) * 57 });
             let error = layout(capacity).validate().unwrap_err().to_string();
             assert!(error.contains("above the most a buffer can hold"), "{error}");
             assert!(ReplayBuffer::new(layout(capacity)).is_err());

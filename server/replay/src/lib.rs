@@ -12,8 +12,8 @@ mod shared;
 pub mod snapshot;
 
 pub use buffer::{
-    check_capacity, BufferKind, ProducerPermit, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata,
-    TransitionRef, MAX_CAPACITY, MIN_BYTES_PER_TRANSITION,
+    check_capacity, ActedBy, BufferKind, ProducerPermit, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata,
+    TransitionRef, MAX_CAPACITY, MIN_BYTES_PER_TRANSITION, NO_POLICY,
 };
 pub use delivery::{HeldSlots, InFlight};
 pub use error::{ReplayError, Result};

@@ -64,7 +64,7 @@ fn simulate(num_envs: usize, capacity: usize, steps: u64, seed: u64) -> (ReplayB
             stacks[env].remove(0);
             stacks[env].push(next.clone());
             let next_obs = stacks[env].concat();
-            buffer.record_step(env, &RecordedStep { action: &action, reward, terminated, truncated, next_frame: &next, step_index: step });
+            buffer.record_step(env, &RecordedStep { action: &action, reward, terminated, truncated, next_frame: &next, step_index: step, acted: None });
             expected.insert(
                 (env as u32, step),
                 Expected { obs, next_obs, action: action.to_vec(), reward: reward as f32, terminated, truncated },
@@ -134,7 +134,7 @@ fn sampling_is_uniform_over_stored_transitions() {
 fn memory_is_computed_up_front_and_frames_are_stored_about_once() {
     let layout = ReplayLayout { kind: BufferKind::Replay, capacity: 100_000, num_envs: 1, frame_stack: 3, frame_bytes: 3 * 100 * 100, action_bytes: 24 };
     assert!(layout.frames_per_transition() < 1.001);
-    assert_eq!(layout.memory_bytes(), 100_003 * (30_000 + 24 + 21));
+    assert_eq!(layout.memory_bytes(), 100_003 * (30_000 + 24 + 33));
     let many = ReplayLayout { num_envs: 16, ..layout };
     assert!(many.frames_per_transition() < 1.001);
     // With episodes of 250 steps (cheetah at action repeat 4) one more frame per episode: 1.004.
@@ -152,7 +152,7 @@ fn an_empty_buffer_refuses_to_sample() {
     assert!(buffer.sample(1, &mut rng, &mut refs).is_err());
     buffer.record_first_frame(0, &[1; 4], 0);
     assert!(buffer.sample(1, &mut rng, &mut refs).is_err(), "a first frame is not a transition");
-    buffer.record_step(0, &RecordedStep { action: &[3], reward: 1.0, terminated: false, truncated: false, next_frame: &[2; 4], step_index: 0 });
+    buffer.record_step(0, &RecordedStep { action: &[3], reward: 1.0, terminated: false, truncated: false, next_frame: &[2; 4], step_index: 0, acted: None });
     buffer.sample(5, &mut rng, &mut refs).unwrap();
     assert_eq!(refs.len(), 5);
 }
@@ -339,7 +339,7 @@ fn rollout_buffer(steps: u64, num_envs: usize, extra_steps: u64) -> ReplayBuffer
             t[env] += 1;
             let next = frame(env, episode[env], t[env]);
             let action = [step as u8, env as u8];
-            buffer.record_step(env, &RecordedStep { action: &action, reward: 0.0, terminated: ends, truncated: false, next_frame: &next, step_index: step });
+            buffer.record_step(env, &RecordedStep { action: &action, reward: 0.0, terminated: ends, truncated: false, next_frame: &next, step_index: step, acted: None });
             if ends {
                 episode[env] += 1;
                 t[env] = 0;
@@ -476,7 +476,7 @@ fn samples_stay_consistent_while_the_buffer_is_written() {
     buffer.record_first_frame(0, &frame(0, 0, 0), 0);
     for step in 0..600u64 {
         let next = frame(0, 0, step as u32 + 1);
-        buffer.record_step(0, &RecordedStep { action: &[step as u8, 0], reward: step as f64, terminated: false, truncated: false, next_frame: &next, step_index: step });
+        buffer.record_step(0, &RecordedStep { action: &[step as u8, 0], reward: step as f64, terminated: false, truncated: false, next_frame: &next, step_index: step, acted: None });
     }
     let shared = Arc::new(RwLock::new(buffer));
     let spec = replay_spec(512, "none", Some(60));
@@ -488,7 +488,7 @@ fn samples_stay_consistent_while_the_buffer_is_written() {
         std::thread::spawn(move || {
             for step in 600..60_000u64 {
                 let next = frame(0, 0, step as u32 + 1);
-                let recorded = RecordedStep { action: &[step as u8, 0], reward: step as f64, terminated: false, truncated: false, next_frame: &next, step_index: step };
+                let recorded = RecordedStep { action: &[step as u8, 0], reward: step as f64, terminated: false, truncated: false, next_frame: &next, step_index: step, acted: None };
                 shared.write().unwrap().record_step(0, &recorded);
             }
         })

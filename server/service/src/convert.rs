@@ -129,6 +129,46 @@ pub fn session_info_to_proto(info: &SessionInfo) -> proto::SessionInfo {
             }),
         }),
         name: info.name.clone().unwrap_or_default(),
+        acting: info.acting.as_ref().map(acting_to_proto),
+    }
+}
+
+pub fn acting_to_proto(status: &radserve_core::ActingStatus) -> proto::ActingInfo {
+    proto::ActingInfo {
+        state: status.state.name().to_string(),
+        policy_version: status.policy_version,
+        acting_version: status.acting_version,
+        head: status.head.clone().unwrap_or_default(),
+        env_steps: status.env_steps,
+        episodes: status.episodes,
+        recent_returns: status.recent_returns.clone(),
+        inference_seconds: status.inference_seconds,
+        step_seconds: status.step_seconds,
+        limited_seconds: status.limited_seconds,
+        error: status.error.clone().unwrap_or_default(),
+    }
+}
+
+/// The head a SetPolicy names, with its noise schedule (DrQ-v2's defaults when unset).
+pub fn policy_head(head: i32, noise: Option<&proto::NoiseSchedule>) -> Result<radserve_policy::Head> {
+    use radserve_policy::Head;
+    match proto::PolicyHead::try_from(head) {
+        Ok(proto::PolicyHead::GaussianTanh) => Ok(Head::GaussianTanh),
+        Ok(proto::PolicyHead::Categorical) => Ok(Head::Categorical),
+        Ok(proto::PolicyHead::DeterministicNoise) => {
+            let noise = noise.copied().unwrap_or(proto::NoiseSchedule { std_start: 1.0, std_end: 0.1, std_steps: 500_000, clip: 0.3 });
+            let finite = [noise.std_start, noise.std_end, noise.clip].iter().all(|value| value.is_finite() && *value >= 0.0);
+            if !finite {
+                return Err(ServiceError::BadRequest(format!(
+                    "noise std_start, std_end and clip must be finite and at least 0; got {}, {}, {}",
+                    noise.std_start, noise.std_end, noise.clip
+                )));
+            }
+            Ok(Head::DeterministicNoise { std_start: noise.std_start, std_end: noise.std_end, std_steps: noise.std_steps, clip: noise.clip })
+        }
+        Ok(proto::PolicyHead::Unspecified) | Err(_) => Err(ServiceError::BadRequest(format!(
+            "head must be POLICY_HEAD_GAUSSIAN_TANH, POLICY_HEAD_CATEGORICAL or POLICY_HEAD_DETERMINISTIC_NOISE; got {head}"
+        ))),
     }
 }
 
@@ -291,9 +331,12 @@ fn small_fields(batch: &mut Batch, action: &Space) -> Vec<(&'static str, proto::
         ("truncated", proto::DType::DtypeUint8, vec![len as i64], metadata.truncated),
         ("env_index", proto::DType::DtypeInt32, vec![len as i64], int32_bytes),
         ("step_index", proto::DType::DtypeInt64, vec![len as i64], int64_bytes),
+        ("policy_version", proto::DType::DtypeInt32, vec![len as i64], metadata.policy_versions.iter().flat_map(|v| v.to_le_bytes()).collect()),
     ];
     if let Some(rollout_t) = &batch.rollout_t {
         fields.push(("t", proto::DType::DtypeInt32, vec![len as i64], rollout_t.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect()));
+        fields.push(("log_prob", proto::DType::DtypeFloat32, vec![len as i64], metadata.log_probs.iter().flat_map(|v| v.to_le_bytes()).collect()));
+        fields.push(("value", proto::DType::DtypeFloat32, vec![len as i64], metadata.values.iter().flat_map(|v| v.to_le_bytes()).collect()));
     }
     fields
 }

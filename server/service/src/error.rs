@@ -69,7 +69,8 @@ impl From<ServiceError> for Status {
                 CoreError::TooLarge(_) => Code::InvalidArgument,
                 CoreError::WorkersUnavailable(_) | CoreError::ShuttingDown => Code::Unavailable,
                 CoreError::NameTaken(_) => Code::AlreadyExists,
-                CoreError::BadSnapshot(_) => Code::FailedPrecondition,
+                CoreError::BadSnapshot(_) | CoreError::Acting(_) => Code::FailedPrecondition,
+                CoreError::Policy(policy) => policy_code(policy),
                 CoreError::Simulator(_) | CoreError::Host(_) => Code::Internal,
             },
             ServiceError::Replay(replay) => replay_code(replay),
@@ -84,6 +85,17 @@ impl From<ServiceError> for Status {
             ServiceError::Transport(status) => status.code(),
         };
         Status::new(code, error.to_string())
+    }
+}
+
+/// A refused model is the request's fault; a server without ONNX Runtime cannot act at all.
+fn policy_code(error: &radserve_policy::PolicyError) -> Code {
+    use radserve_policy::PolicyError;
+    match error {
+        PolicyError::NotOnnx(_) | PolicyError::Unsupported(_) | PolicyError::Mismatch(_) | PolicyError::Runtime(_) | PolicyError::NonFinite(_) => {
+            Code::InvalidArgument
+        }
+        PolicyError::Unavailable(_) => Code::Unimplemented,
     }
 }
 
@@ -114,6 +126,9 @@ mod tests {
         let capacity = radserve_replay::check_capacity(usize::MAX).unwrap_err();
         assert_eq!(status(CoreError::Replay(capacity)).code(), Code::InvalidArgument);
         assert_eq!(status(CoreError::ShuttingDown).code(), Code::Unavailable);
+        assert_eq!(status(CoreError::Acting("acting".into())).code(), Code::FailedPrecondition);
+        let policy = CoreError::Policy(radserve_policy::PolicyError::Unsupported("operator Loop".into()));
+        assert_eq!(status(policy).code(), Code::InvalidArgument);
         let augment = radserve_augment::Pipeline::parse("crpo").unwrap_err();
         let status = status(ReplayError::Augment(augment));
         assert_eq!(status.code(), Code::InvalidArgument);

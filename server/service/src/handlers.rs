@@ -280,6 +280,51 @@ impl RadServe for RadServeService {
         Ok(Response::new(description))
     }
 
+    async fn set_policy(&self, request: Request<proto::SetPolicyRequest>) -> Result<Response<proto::SetPolicyResponse>, Status> {
+        let caller = caller(&request)?;
+        let request = request.into_inner();
+        radserve_core::bounds::check_len("session_id", &request.session_id, radserve_core::bounds::MAX_ID_BYTES)
+            .map_err(ServiceError::from)?;
+        let head = convert::policy_head(request.head, request.noise.as_ref())?;
+        let summary = self
+            .manager
+            .set_policy(&caller, &request.session_id, request.model, head, request.version)
+            .await
+            .map_err(ServiceError::from)?;
+        Ok(Response::new(proto::SetPolicyResponse {
+            version: request.version,
+            ops: summary.ops.keys().cloned().collect(),
+            opset: summary.opset,
+            input: summary.input.describe(),
+            outputs: summary.outputs.iter().map(|output| output.describe()).collect(),
+            has_value: summary.has_value,
+        }))
+    }
+
+    async fn start_acting(&self, request: Request<proto::StartActingRequest>) -> Result<Response<proto::ActingInfo>, Status> {
+        let caller = caller(&request)?;
+        let request = request.into_inner();
+        let acting = radserve_core::ActingRequest {
+            steps_per_second: request.steps_per_second,
+            random_steps: request.random_steps,
+            eval: request.eval,
+            samples_per_insert: request.samples_per_insert,
+            error_buffer: request.error_buffer,
+            min_size: request.min_size,
+            seed: request.seed,
+            max_episodes: request.max_episodes,
+            max_env_steps: request.max_env_steps,
+        };
+        let status = self.manager.start_acting(&caller, &request.session_id, acting).await.map_err(ServiceError::from)?;
+        Ok(Response::new(convert::acting_to_proto(&status)))
+    }
+
+    async fn stop_acting(&self, request: Request<proto::StopActingRequest>) -> Result<Response<proto::ActingInfo>, Status> {
+        let caller = caller(&request)?;
+        let status = self.manager.stop_acting(&caller, &request.into_inner().session_id).await.map_err(ServiceError::from)?;
+        Ok(Response::new(convert::acting_to_proto(&status)))
+    }
+
     type SampleBatchesStream = SampleStream;
 
     async fn sample_batches(

@@ -126,6 +126,7 @@ impl SessionManager {
                     created: Instant::now(),
                     name: extras.name.clone(),
                     snapshot,
+                    actor: Arc::default(),
                 };
                 registry.sessions.insert(session_id.clone(), entry);
                 true

@@ -18,12 +18,14 @@ use crate::principal::{log_id, Principal};
 use crate::session::{AutoresetMode, Session, SessionStats};
 use crate::simulators::Simulators;
 
+mod acting;
 mod admission;
 mod lease;
 mod replay;
 pub(crate) mod snapshots;
 mod types;
 
+pub use acting::{ActingConfig, ActingRequest, ActingState, ActingStatus, LoadedPolicy, RECENT_EPISODES};
 pub use admission::MAX_STEP_OBSERVATION_BYTES;
 pub use lease::{LeaseHold, Progress};
 pub use snapshots::{OnBadSnapshot, ReplayConfig, MAX_NAME_BYTES};
@@ -53,6 +55,8 @@ struct Entry {
     name: Option<String>,
     /// Its replay's snapshot, for a named session with a replay buffer on a server that snapshots.
     snapshot: Option<Arc<SnapshotSlot>>,
+    /// Its server-side policies and actor.
+    actor: Arc<acting::ActorSlot>,
 }
 
 pub struct SessionManager {
@@ -70,6 +74,8 @@ pub struct SessionManager {
     metrics: Arc<CoreMetrics>,
     /// Where and how named sessions' replay is snapshotted (None: it is not).
     snapshots: Option<Snapshots>,
+    /// How server-side policies are loaded and run.
+    acting: ActingConfig,
 }
 
 #[derive(Default)]
@@ -116,6 +122,7 @@ impl SessionManager {
             clock: Instant::now(),
             metrics: Arc::default(),
             snapshots: None,
+            acting: ActingConfig::default(),
         }
     }
 
@@ -232,11 +239,13 @@ impl SessionManager {
 
     /// Never waits for the session's lock: a step in progress (or a stuck worker) does not delay it.
     pub async fn describe(&self, caller: &Principal, session_id: &str) -> Result<SessionInfo, CoreError> {
-        let (mut info, stats, replay, snapshot) = {
+        let (mut info, stats, replay, snapshot, actor) = {
             let registry = self.sessions.lock().expect("registry lock");
             let entry = self.touch_if(&registry, session_id, |owner| caller.may_see(owner))?;
-            (entry.info.clone(), entry.stats.clone(), entry.replay.clone(), entry.snapshot.clone())
+            (entry.info.clone(), entry.stats.clone(), entry.replay.clone(), entry.snapshot.clone(), entry.actor.clone())
         };
+        let acting = actor.status();
+        info.acting = (acting.state != ActingState::Idle || acting.policy_version.is_some()).then_some(acting);
         info.seed = stats.seed.load(Ordering::Relaxed);
         info.total_env_steps = stats.total_env_steps.load(Ordering::Relaxed);
         info.episodes_completed = stats.episodes_completed.load(Ordering::Relaxed);
@@ -274,6 +283,7 @@ impl SessionManager {
     /// Closes a session already taken out of the registry; its memory returns with the entry.
     async fn close_entry(&self, session_id: &str, entry: Entry, reason: &str, discard_snapshot: bool) {
         entry.lease.closed.send_replace(true);
+        entry.actor.stop().await;
         let mut session = entry.session.lock().await;
         session.close().await;
         // Nothing records any more: the last snapshot holds everything. The name is free only after
@@ -322,5 +332,6 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
         total_env_steps: session.total_env_steps,
         episodes_completed: session.episodes_completed,
         replay: session.replay().map(|replay| replay_info(&replay.read().expect("replay lock"))),
+        acting: None,
     }
 }

@@ -147,6 +147,8 @@ pub struct SessionInfo {
     pub total_env_steps: u64,
     pub episodes_completed: u64,
     pub replay: Option<ReplayInfo>,
+    /// Its server-side actor, once a policy was set.
+    pub acting: Option<super::ActingStatus>,
 }
 
 pub type SharedSession = Arc<Mutex<Session>>;

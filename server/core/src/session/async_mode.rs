@@ -22,6 +22,7 @@ impl Session {
     }
 
     pub(super) fn require_async(&self, what: &str) -> Result<usize, CoreError> {
+        self.refuse_while_acting(what)?;
         self.async_batch().ok_or_else(|| {
             CoreError::InvalidSession(format!(
                 "{what} is for sessions whose batch_size is below num_envs (EnvPool's asynchronous mode); this one \
@@ -31,6 +32,7 @@ impl Session {
     }
 
     pub(super) fn require_sync(&self, what: &str) -> Result<(), CoreError> {
+        self.refuse_while_acting(what)?;
         match self.async_batch() {
             Some(batch) => Err(CoreError::InvalidSession(format!(
                 "this session returns {batch} of its {} envs at a time (batch_size): it is reset with async_reset and \

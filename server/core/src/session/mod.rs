@@ -158,6 +158,32 @@ pub struct Session {
     /// The same: groups whose async reset is done and not yet returned by `recv`, with their reset
     /// infos, in order.
     group_resets: VecDeque<(usize, Infos)>,
+    /// The server's actor steps this session (StartActing): calls from clients that step or reset
+    /// it are refused until StopActing.
+    pub(crate) acting: bool,
+    /// Set by the actor around its own reset or step, the only ones allowed while `acting`.
+    pub(crate) actor_turn: bool,
+    /// What the actor acted with in the step it is taking (recorded with each transition).
+    pub(crate) acted: Option<ActedStamp>,
+}
+
+/// A server-side policy's step: its version and, per env, the action's log-probability and the
+/// model's value.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ActedStamp {
+    pub version: i32,
+    pub log_prob: Vec<f32>,
+    pub value: Option<Vec<f32>>,
+}
+
+impl ActedStamp {
+    pub fn by(&self, env: usize) -> radserve_replay::ActedBy {
+        radserve_replay::ActedBy {
+            version: self.version,
+            log_prob: self.log_prob.get(env).copied().unwrap_or(0.0),
+            value: self.value.as_ref().and_then(|values| values.get(env).copied()).unwrap_or(0.0),
+        }
+    }
 }
 
 impl Session {
@@ -228,6 +254,9 @@ impl Session {
             resetting: vec![false; config_num_envs],
             group_steps: (0..group_count).map(|_| None).collect(),
             group_resets: VecDeque::new(),
+            acting: false,
+            actor_turn: false,
+            acted: None,
         })
     }
 
@@ -249,6 +278,28 @@ impl Session {
         self.episodes_completed = counters.episodes_completed;
         self.stats.total_env_steps.store(self.total_env_steps, std::sync::atomic::Ordering::Relaxed);
         self.stats.episodes_completed.store(self.episodes_completed, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Refuses a client's reset or step while the server's actor steps the session.
+    pub(crate) fn refuse_while_acting(&self, what: &str) -> Result<(), CoreError> {
+        if self.acting && !self.actor_turn {
+            return Err(CoreError::Acting(format!(
+                "this session is stepped by the server's actor (StartActing): {what} is refused until StopActing; \
+                 its transitions arrive through SampleBatches"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Every env's current stacked observation, through the view (what the last reset or step
+    /// returned).
+    pub fn current_observations(&self) -> Vec<u8> {
+        self.viewed(&self.stacks)
+    }
+
+    /// Whether the server's actor is stepping this session.
+    pub fn is_acting(&self) -> bool {
+        self.acting
     }
 
     /// Whether the session must be reset (every env) before it steps: new, or after a failed step.

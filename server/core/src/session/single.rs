@@ -44,6 +44,7 @@ impl Session {
     /// start and stays there (so a session's first episodes are its seed's, whether or not a new
     /// one is asked for before the first step); otherwise its random stream continues.
     pub async fn reset_env(&mut self, env: usize, seed: Option<u64>) -> Result<Vec<u8>, CoreError> {
+        self.refuse_while_acting("reset")?;
         self.check_env(env)?;
         let fresh = self.needs_reset || self.episode_lengths[env] == 0;
         if seed.is_none() && fresh {
@@ -62,6 +63,7 @@ impl Session {
 
     /// Steps env `env` alone with `action` (one env's action); every other env is skipped.
     pub async fn step_env(&mut self, env: usize, action: &[u8]) -> Result<EnvStep, CoreError> {
+        self.refuse_while_acting("step")?;
         self.check_env(env)?;
         let num_envs = self.num_envs();
         // Every env gets the same (checked) action; all but `env` are skipped.

@@ -42,6 +42,7 @@ pub async fn start_server_with(limits: Limits, adjust: impl FnOnce(&mut ServerSe
         limits,
         worker_call_timeout: Duration::from_secs(60),
         worker_create_timeout: Duration::from_secs(300),
+        acting: radserve_core::ActingConfig::default(),
         replay: radserve_core::ReplayConfig::default(),
     };
     let mut options = radserve::ServeOptions { augment_threads: 1, ..radserve::ServeOptions::default() };
@@ -78,13 +79,19 @@ pub async fn start_fake_server_on(
 ) -> TestServer {
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = format!("http://{}", listener.local_addr().unwrap());
-    let manager = Arc::new(SessionManager::new(simulators.clone(), limits));
+    let acting = radserve_core::ActingConfig { python: Some(repo_python()), ..Default::default() };
+    let manager = Arc::new(SessionManager::new(simulators.clone(), limits).with_acting(acting));
     let options = radserve::ServeOptions { augment_threads: 1, ..options };
     let (stop, stopped) = oneshot::channel::<()>();
     let task = tokio::spawn(radserve::serve(listener, manager.clone(), options, async {
         let _ = stopped.await;
     }));
     TestServer { address, manager, stop, task }
+}
+
+/// The repository's .venv Python (make setup), where the onnxruntime wheel is.
+pub fn repo_python() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.venv/bin/python")
 }
 
 /// Asks grpc.health.v1 about `service` until it answers `wanted` (true) or `timeout` passes (false).

@@ -168,6 +168,63 @@ pub enum Op {
     AsyncReset(Target, Option<u64>),
     Send(Target, proto::Tensor, Vec<u32>),
     Recv(Target, Option<(proto::Tensor, Vec<u32>)>),
+    SetPolicy(Target, PolicyModel, i32, u32),
+    StartActing(Target, proto::StartActingRequest),
+    StopActing(Target),
+}
+
+/// A SetPolicy's model: a fixture (server/policy/tests/models), one with bytes changed, or anything.
+#[derive(Clone, Debug)]
+pub enum PolicyModel {
+    Fixture(usize),
+    Damaged(usize, Vec<(usize, u8)>),
+    Bytes(Vec<u8>),
+}
+
+pub const POLICY_FIXTURES: &[&str] = &[
+    "categorical_cartpole.onnx",
+    "gaussian_pendulum.onnx",
+    "categorical_fake.onnx",
+    "nan_fake.onnx",
+    "random_op_fake.onnx",
+    "external_fake.onnx",
+    "gaussian_3x2.onnx",
+];
+
+pub fn policy_model() -> impl Strategy<Value = PolicyModel> {
+    prop_oneof![
+        4 => (0..POLICY_FIXTURES.len()).prop_map(PolicyModel::Fixture),
+        2 => (0..POLICY_FIXTURES.len(), prop::collection::vec((any::<usize>(), any::<u8>()), 1..6))
+            .prop_map(|(index, flips)| PolicyModel::Damaged(index, flips)),
+        1 => prop::collection::vec(any::<u8>(), 0..256).prop_map(PolicyModel::Bytes),
+    ]
+}
+
+pub fn start_acting() -> impl Strategy<Value = proto::StartActingRequest> {
+    (
+        prop::option::of(edge_f64()),
+        edge_u64(),
+        any::<bool>(),
+        prop::option::of(edge_f64()),
+        edge_f64(),
+        edge_u64(),
+        prop::option::of(any::<u64>()),
+        (prop::option::of(edge_u64()), prop::option::of(edge_u64())),
+    )
+        .prop_map(|(steps_per_second, random_steps, eval, samples_per_insert, error_buffer, min_size, seed, (max_episodes, max_env_steps))| {
+            proto::StartActingRequest {
+                session_id: String::new(),
+                steps_per_second,
+                random_steps,
+                eval,
+                samples_per_insert,
+                error_buffer,
+                min_size,
+                seed,
+                max_episodes,
+                max_env_steps,
+            }
+        })
 }
 
 pub fn channel_use() -> impl Strategy<Value = ChannelUse> {
@@ -236,6 +293,10 @@ pub fn op() -> impl Strategy<Value = Op> {
         1 => (target(), prop::option::of(edge_u64())).prop_map(|(t, seed)| Op::AsyncReset(t, seed)),
         2 => (target(), tensor(), env_ids()).prop_map(|(t, actions, ids)| Op::Send(t, actions, ids)),
         2 => (target(), prop::option::of((tensor(), env_ids()))).prop_map(|(t, send)| Op::Recv(t, send)),
+        2 => (target(), policy_model(), prop_oneof![4 => 1i32..4, 1 => any::<i32>()], edge_u32())
+            .prop_map(|(t, model, head, version)| Op::SetPolicy(t, model, head, version)),
+        2 => (target(), start_acting()).prop_map(|(t, request)| Op::StartActing(t, request)),
+        1 => target().prop_map(Op::StopActing),
     ]
 }
 

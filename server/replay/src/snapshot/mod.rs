@@ -145,7 +145,7 @@ fn segment_name(sequence: u64) -> String {
 
 /// Records of one block: as many as fit in [`BLOCK_BYTES`], at least one.
 fn block_records(layout: &ReplayLayout) -> usize {
-    (BLOCK_BYTES / layout.slot_bytes().max(1)).max(1)
+    (BLOCK_BYTES / layout.snapshot_record_bytes().max(1)).max(1)
 }
 
 /// Moves a snapshot that could not be used out of the way (`<dir>.rejected-<unix time>`), so a new one

@@ -144,7 +144,7 @@ fn le_u64(bytes: &[u8], at: usize) -> u64 {
 fn read_segments(dir: &Path, manifest: &Manifest, buffer: &mut ReplayBuffer) -> Result<(u64, usize)> {
     let layout = buffer.layout;
     let (num_envs, slots) = (layout.num_envs, buffer.slots as u64);
-    let record_bytes = layout.slot_bytes();
+    let record_bytes = layout.snapshot_record_bytes();
     let per_block = block_records(&layout);
     // Per env: the first frame of the last run of consecutive frames, and one past its end.
     let (mut lo, mut hi) = (vec![0u64; num_envs], vec![0u64; num_envs]);
@@ -280,6 +280,7 @@ impl ReplayBuffer {
         self.flags[slot] = flags;
         self.episode_starts[slot] = episode_start;
         self.step_indices[slot] = step_index;
+        self.stamp(slot, None);
         self.steps_recorded = self.steps_recorded.max(step_index + 1);
         Ok(())
     }

@@ -46,6 +46,7 @@ fn record(buffer: &RwLock<ReplayBuffer>, rng: &mut ChaCha8Rng, steps: usize, ste
                 truncated: end == 1,
                 next_frame: &frame,
                 step_index: *step_calls,
+                acted: None,
             };
             replay.record_step(env, &step);
         }

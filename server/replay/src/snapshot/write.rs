@@ -170,7 +170,7 @@ impl SnapshotWriter {
         let mut bytes = header.len() as u64;
         let (mut frames, per_block) = (0u64, block_records(layout) as u64);
         let mut hi = if full { vec![0; layout.num_envs] } else { self.manifest.written.clone() };
-        let mut block = Vec::with_capacity(BLOCK_HEADER_BYTES + per_block as usize * layout.slot_bytes() + 4);
+        let mut block = Vec::with_capacity(BLOCK_HEADER_BYTES + per_block as usize * layout.snapshot_record_bytes() + 4);
         for (env, hi) in hi.iter_mut().enumerate() {
             let (mut first, target) = {
                 let replay = buffer.read().expect("replay lock");

@@ -1,0 +1,203 @@
+"""Server-side actors: send the server a policy (an ONNX model, or a torch module exported to one) and
+let it step the session's envs, so the learner only streams batches.
+
+    envs = client.make_vec("dmc/cartpole-swingup", num_envs=8, replay_capacity=100_000,
+                           observation_view="center_crop(84)")
+    envs.set_policy(actor, example_obs, head="gaussian_tanh")      # torch module: exported here
+    envs.start_acting(random_steps=1000, samples_per_insert=..., min_size=1000)
+    for batch in client.sample_batches(envs.session_id, ...):      # batch.policy_version: staleness
+        ...update...
+        if update % 10 == 0:
+            envs.set_policy(actor, example_obs)                   # next version, taken between steps
+    envs.stop_acting()
+
+Heads (see the proto's PolicyHead): "gaussian_tanh" (outputs mean, log_std), "categorical" (logits,
+optionally value), "deterministic_noise" (action in [-1, 1]; `noise=(std_start, std_end, std_steps,
+clip)`, DrQ-v2's schedule).
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+from typing import Any
+
+from ._proto import radserve_pb2 as pb
+from .errors import InvalidArgumentError
+
+HEADS = {
+    "gaussian_tanh": pb.POLICY_HEAD_GAUSSIAN_TANH,
+    "categorical": pb.POLICY_HEAD_CATEGORICAL,
+    "deterministic_noise": pb.POLICY_HEAD_DETERMINISTIC_NOISE,
+}
+
+
+@dataclass(frozen=True)
+class ActingInfo:
+    """A session's server-side actor, as DescribeSession, StartActing and StopActing report it."""
+
+    state: str
+    """"idle", "acting", "stopped" (StopActing, or max_episodes/max_env_steps reached), "failed" """
+    policy_version: "int | None"
+    acting_version: "int | None"
+    head: str
+    env_steps: int
+    episodes: int
+    recent_returns: "list[float]" = field(default_factory=list)
+    inference_seconds: float = 0.0
+    step_seconds: float = 0.0
+    limited_seconds: float = 0.0
+    error: str = ""
+
+    @staticmethod
+    def from_proto(message: "pb.ActingInfo") -> "ActingInfo":
+        return ActingInfo(
+            state=message.state,
+            policy_version=message.policy_version if message.HasField("policy_version") else None,
+            acting_version=message.acting_version if message.HasField("acting_version") else None,
+            head=message.head,
+            env_steps=message.env_steps,
+            episodes=message.episodes,
+            recent_returns=list(message.recent_returns),
+            inference_seconds=message.inference_seconds,
+            step_seconds=message.step_seconds,
+            limited_seconds=message.limited_seconds,
+            error=message.error,
+        )
+
+
+@dataclass(frozen=True)
+class LoadedPolicy:
+    """What the server read of a model it accepted (SetPolicy's answer)."""
+
+    version: int
+    ops: "list[str]"
+    opset: int
+    input: str
+    outputs: "list[str]"
+    has_value: bool
+
+
+def export_onnx(module: Any, example_obs: Any, *, opset: int = 17) -> bytes:
+    """A torch module (obs -> the head's outputs) as ONNX bytes with a dynamic batch axis. The module
+    takes observations as the session returns them, converted to float32 (raw 0..255 pixels: divide
+    by 255 inside, as RAD's encoder does); `example_obs` is one batch of them (any batch size)."""
+    import torch  # the learners' extra; only this function needs it
+
+    example = torch.as_tensor(example_obs, dtype=torch.float32)
+    if example.dim() < 2:
+        raise InvalidArgumentError(f"example_obs must be a batch [batch, *observation]; got shape {tuple(example.shape)}")
+    was_training = module.training
+    module.eval()
+    buffer = io.BytesIO()
+    try:
+        with torch.no_grad():
+            outputs = module(example)
+        count = len(outputs) if isinstance(outputs, (tuple, list)) else 1
+        names = [f"output{i}" for i in range(count)]
+        torch.onnx.export(module, (example,), buffer, input_names=["obs"], output_names=names,
+                          dynamic_axes={"obs": {0: "batch"}, **{name: {0: "batch"} for name in names}},
+                          opset_version=opset, dynamo=False)
+    finally:
+        module.train(was_training)
+    return buffer.getvalue()
+
+
+def set_policy_request(session_id: str, model: bytes, head: str, version: int,
+                       noise: "tuple[float, float, int, float] | None") -> "pb.SetPolicyRequest":
+    if head not in HEADS:
+        raise InvalidArgumentError(f"head must be one of {sorted(HEADS)}, got {head!r}")
+    if not isinstance(version, int) or not 0 <= version < 1 << 31:
+        raise InvalidArgumentError(f"version must be an int in [0, 2**31), got {version!r}")
+    request = pb.SetPolicyRequest(session_id=session_id, model=bytes(model), head=HEADS[head], version=version)
+    if noise is not None:
+        if head != "deterministic_noise":
+            raise InvalidArgumentError("noise is the deterministic_noise head's schedule")
+        std_start, std_end, std_steps, clip = noise
+        request.noise.CopyFrom(pb.NoiseSchedule(std_start=std_start, std_end=std_end, std_steps=int(std_steps), clip=clip))
+    return request
+
+
+def loaded(response: "pb.SetPolicyResponse") -> LoadedPolicy:
+    return LoadedPolicy(version=response.version, ops=list(response.ops), opset=response.opset, input=response.input,
+                        outputs=list(response.outputs), has_value=response.has_value)
+
+
+def start_request(session_id: str, *, random_steps: int = 0, steps_per_second: "float | None" = None,
+                  eval: bool = False, samples_per_insert: "float | None" = None, error_buffer: float = 0.0,
+                  min_size: int = 0, seed: "int | None" = None, max_episodes: "int | None" = None,
+                  max_env_steps: "int | None" = None) -> "pb.StartActingRequest":
+    request = pb.StartActingRequest(session_id=session_id, random_steps=int(random_steps), eval=bool(eval),
+                                    error_buffer=float(error_buffer), min_size=int(min_size))
+    if steps_per_second is not None:
+        request.steps_per_second = float(steps_per_second)
+    if samples_per_insert is not None:
+        request.samples_per_insert = float(samples_per_insert)
+    if seed is not None:
+        request.seed = int(seed)
+    if max_episodes is not None:
+        request.max_episodes = int(max_episodes)
+    if max_env_steps is not None:
+        request.max_env_steps = int(max_env_steps)
+    return request
+
+
+class ActingMixin:
+    """set_policy / start_acting / stop_acting / acting for a vector env whose sessions are
+    `self._acting_sessions()`: (transport, session_id) pairs, one per server (a sharded env acts on
+    every server it spans, with the same policy and version)."""
+
+    _policy_version = 0
+
+    @property
+    def policy_version(self) -> int:
+        """The last version this env sent with set_policy (0: none)."""
+        return self._policy_version
+
+    def _acting_sessions(self):  # pragma: no cover - provided by the env
+        raise NotImplementedError
+
+    def set_policy(self, policy: Any, example_obs: Any = None, *, head: str = "gaussian_tanh",
+                   version: "int | None" = None, noise: "tuple[float, float, int, float] | None" = None) -> LoadedPolicy:
+        """Sends a policy: ONNX bytes, or a torch module exported with `example_obs` (a batch of
+        observations). `version` defaults to one more than the last this env sent; a running actor
+        takes the new version between two steps. Refused models raise InvalidArgumentError with the
+        server's reason (the operator it does not support, the shape it expected)."""
+        if isinstance(policy, (bytes, bytearray, memoryview)):
+            model = bytes(policy)
+        else:
+            if example_obs is None:
+                raise InvalidArgumentError("set_policy(module, example_obs): a torch module needs a batch of observations to export")
+            model = export_onnx(policy, example_obs)
+        version = self._policy_version + 1 if version is None else version
+        answer = None
+        for transport, session_id in self._acting_sessions():
+            answer = transport.call("SetPolicy", set_policy_request(session_id, model, head, version, noise))
+        self._policy_version = version
+        return loaded(answer)
+
+    def start_acting(self, **settings) -> "ActingInfo":
+        """Starts the server's actor on this env's session(s): see `radserve.actors.start_request` for
+        the settings (random_steps, steps_per_second, eval, samples_per_insert, error_buffer,
+        min_size, seed, max_episodes, max_env_steps). Step and reset are refused while it acts."""
+        answer = None
+        for index, (transport, session_id) in enumerate(self._acting_sessions()):
+            shard_settings = dict(settings)
+            if shard_settings.get("seed") is not None:
+                shard_settings["seed"] = int(shard_settings["seed"]) + index
+            answer = transport.call("StartActing", start_request(session_id, **shard_settings))
+        return ActingInfo.from_proto(answer)
+
+    def stop_acting(self) -> "list[ActingInfo] | ActingInfo":
+        """Stops the actor after its current step; the env is the learner's to step again."""
+        answers = [ActingInfo.from_proto(transport.call("StopActing", pb.StopActingRequest(session_id=session_id)))
+                   for transport, session_id in self._acting_sessions()]
+        return answers[0] if len(answers) == 1 else answers
+
+    def acting(self) -> "list[ActingInfo | None] | ActingInfo | None":
+        """The actor's state on each server (None where no policy was ever set)."""
+        answers = []
+        for transport, session_id in self._acting_sessions():
+            info = transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id))
+            answers.append(ActingInfo.from_proto(info.acting) if info.HasField("acting") else None)
+        return answers[0] if len(answers) == 1 else answers
