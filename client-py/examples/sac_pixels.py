@@ -356,12 +356,7 @@ def train(args: Args, address: str) -> RunLog:
 
     def run_evaluation(env_steps: int) -> float:
         returns = evaluate(eval_envs, lambda o: scaled(agent.act(o, deterministic=True)), args.eval_episodes)
-        evaluations.append((env_steps, float(np.mean(returns))))
-        log.scalars(env_steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
-        log.flush()
-        if args.checkpoint:
-            torch.save(agent.state_dict() | {"env_steps": env_steps, "args": vars(args)}, log.dir / "checkpoint.pt")
-        return float(np.mean(returns))
+        return record_evaluation(args, log, agent, evaluations, env_steps, returns)
 
     if args.actor == "server":
         try:
@@ -433,6 +428,17 @@ def finish(args: Args, log: RunLog, aug: str, evaluations: "list[tuple[int, floa
     return log
 
 
+def record_evaluation(args: Args, log: RunLog, agent: RadSac, evaluations: "list[tuple[int, float]]", env_steps: int,
+                      returns: "list[float]") -> float:
+    """Logs an evaluation's returns (and saves the checkpoint); their mean."""
+    evaluations.append((env_steps, float(np.mean(returns))))
+    log.scalars(env_steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
+    log.flush()
+    if args.checkpoint:
+        torch.save(agent.state_dict() | {"env_steps": env_steps, "args": vars(args)}, log.dir / "checkpoint.pt")
+    return float(np.mean(returns))
+
+
 def as_list(value) -> list:
     return value if isinstance(value, list) else [value]
 
@@ -457,12 +463,7 @@ def train_server_side(args: Args, client, envs, eval_envs, agent: RadSac, log: R
         while sum(info.episodes for info in as_list(eval_envs.acting())) < args.eval_episodes:
             time.sleep(0.2)
         returns = [r for info in as_list(eval_envs.stop_acting()) for r in info.recent_returns][:args.eval_episodes]
-        evaluations.append((env_steps, float(np.mean(returns))))
-        log.scalars(env_steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
-        log.flush()
-        if args.checkpoint:
-            torch.save(agent.state_dict() | {"env_steps": env_steps, "args": vars(args)}, log.dir / "checkpoint.pt")
-        return float(np.mean(returns))
+        return record_evaluation(args, log, agent, evaluations, env_steps, returns)
 
     last_eval, last_return = run_evaluation(0), float("nan")
     next_eval = args.eval_every
