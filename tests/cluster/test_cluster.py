@@ -213,3 +213,37 @@ def test_compose_brings_up_healthy_servers_and_a_learner():
         subprocess.run([*compose, "down", "-v", "--remove-orphans", "-t", "5"], env=env, timeout=120,
                        capture_output=True)
     assert not docker("ps", "-aq", "--filter", f"name={project}")
+
+
+def metric_total(text: str, name: str) -> float:
+    """The sum of a counter's samples (every label set) in a Prometheus text exposition."""
+    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+               if line.startswith(name) and (line[len(name)] in " {"))
+
+
+def test_a_compose_learner_trains_with_the_servers_acting():
+    """Server-side actors as Compose runs them: the learner container trains RAD-SAC over the three
+    servers with --actor server (the policy exported to ONNX and sent, the servers acting and
+    evaluating with it), and every env step the servers took was their actors' (no Step call)."""
+    project = f"{PREFIX}-actors"
+    compose = ["docker-compose", "-p", project, "-f", str(ROOT / "docker" / "compose.yaml")]
+    env = {**os.environ, "RADSERVE_TAG": TAG}
+    try:
+        run = subprocess.run(
+            [*compose, "run", "--rm", "learner", "examples/sac_pixels.py", "--actor=server", f"--address={ADDRESSES}",
+             "--env=dmc/cartpole-swingup", "--num-envs=3", "--image-size=64", "--aug=translate(72)", "--num-filters=16",
+             "--hidden-dim=64", "--total-env-steps=960", "--init-steps=20", "--batch-size=16", "--eval-every=960",
+             "--eval-episodes=3", "--render-profile=fast", "--policy-every=10", "--log-every=10", "--runs-dir=/tmp/runs"],
+            capture_output=True, text=True, env=env, timeout=900)
+        assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+        assert "evaluation return" in run.stdout, run.stdout[-2000:]
+        for name in NAMES:
+            text = docker("exec", f"{project}_{name}_1", "/opt/radserve/venv/bin/python", "-c",
+                          "import urllib.request; print(urllib.request.urlopen('http://127.0.0.1:9090/metrics').read().decode())")
+            steps, acted = metric_total(text, "radserve_env_steps_total"), metric_total(text, "radserve_actor_env_steps_total")
+            assert steps > 0 and steps == acted, f"{name}: {steps} env steps, {acted} by its actors"
+            assert metric_total(text, "radserve_actor_policies_total") >= 2
+    finally:
+        subprocess.run([*compose, "down", "-v", "--remove-orphans", "-t", "5"], env=env, timeout=120,
+                       capture_output=True)
+    assert not docker("ps", "-aq", "--filter", f"name={project}")
