@@ -171,17 +171,24 @@ pub struct Acted {
     pub value: Option<Vec<f32>>,
 }
 
-/// ONNX Runtime, loaded once per process from `library`.
-pub fn runtime(library: &Path) -> Result<&'static ort::environment::Environment, PolicyError> {
-    static RUNTIME: OnceLock<Result<(PathBuf, ort::environment::Environment), String>> = OnceLock::new();
-    let loaded = RUNTIME.get_or_init(|| {
-        let builder = ort::init_from(library).map_err(|error| error.to_string())?;
-        builder.with_name("radserve").build().map(|environment| (library.to_path_buf(), environment)).map_err(|error| error.to_string())
-    });
-    match loaded {
-        Ok((_, environment)) => Ok(environment),
-        Err(message) => Err(PolicyError::Unavailable(format!("loading {}: {message}", library.display()))),
-    }
+/// ONNX Runtime, loaded once per process from the library `locate` finds. `locate` runs only until a
+/// load was tried (a missing library is looked for again at the next call; a library that failed to
+/// load is not).
+pub fn runtime(locate: impl FnOnce() -> Result<PathBuf, PolicyError>) -> Result<&'static ort::environment::Environment, PolicyError> {
+    static RUNTIME: OnceLock<Result<ort::environment::Environment, String>> = OnceLock::new();
+    let loaded = match RUNTIME.get() {
+        Some(loaded) => loaded,
+        None => {
+            let library = locate()?;
+            RUNTIME.get_or_init(|| {
+                let loaded = ort::init_from(&library).map_err(|error| error.to_string()).and_then(|builder| {
+                    builder.with_name("radserve").build().map_err(|error| error.to_string())
+                });
+                loaded.map_err(|message| format!("loading {}: {message}", library.display()))
+            })
+        }
+    };
+    loaded.as_ref().map_err(|message| PolicyError::Unavailable(message.clone()))
 }
 
 /// The ONNX Runtime library of the `onnxruntime` wheel installed for `python`, found without

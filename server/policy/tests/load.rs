@@ -29,7 +29,7 @@ fn categorical() -> PolicySpec {
 }
 
 fn load(name: &str, spec: PolicySpec, observations: ObservationSpec, actions: ActionSpec) -> Result<Policy, PolicyError> {
-    Policy::load(runtime(&library()).expect("ONNX Runtime"), &model(name), spec, observations, actions)
+    Policy::load(runtime(|| Ok(library())).expect("ONNX Runtime"), &model(name), spec, observations, actions)
 }
 
 #[test]
@@ -103,9 +103,9 @@ fn refusals_name_what_is_wrong() {
     let spec = PolicySpec { head: Head::GaussianTanh, threads: 1 };
     let text = message(load("categorical_fake.onnx", spec, fake_obs(2), discrete.clone()));
     assert!(text.contains("use categorical"), "{text}");
-    let text = message(Policy::load(runtime(&library()).unwrap(), b"not a model at all", categorical(), fake_obs(2), discrete.clone()));
+    let text = message(Policy::load(runtime(|| Ok(library())).unwrap(), b"not a model at all", categorical(), fake_obs(2), discrete.clone()));
     assert!(text.starts_with("not an ONNX model"), "{text}");
-    let text = message(Policy::load(runtime(&library()).unwrap(), &[], categorical(), fake_obs(2), discrete));
+    let text = message(Policy::load(runtime(|| Ok(library())).unwrap(), &[], categorical(), fake_obs(2), discrete));
     assert!(text.starts_with("not an ONNX model"), "{text}");
 }
 
@@ -130,7 +130,7 @@ proptest::proptest! {
             let at = at % bytes.len();
             bytes[at] = value;
         }
-        if let Ok(mut policy) = Policy::load(runtime(&library()).unwrap(), &bytes, categorical(), fake_obs(2), ActionSpec::Discrete { n: 3 }) {
+        if let Ok(mut policy) = Policy::load(runtime(|| Ok(library())).unwrap(), &bytes, categorical(), fake_obs(2), ActionSpec::Discrete { n: 3 }) {
             let _ = policy.act(&[9u8; 8], &mut ChaCha8Rng::seed_from_u64(0), 0, false);
         }
     }

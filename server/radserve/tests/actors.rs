@@ -162,7 +162,9 @@ async fn a_new_version_is_taken_between_steps_and_versions_must_grow() {
     assert_eq!(stale.code(), Code::FailedPrecondition);
     assert!(stale.message().contains("not newer"), "{}", stale.message());
     set_policy(&mut client, &id, "pick_first_byte.onnx", 4).await.unwrap();
-    let acting = wait_acting(&mut client, &id, |acting| acting.acting_version == Some(4)).await;
+    // Enough transitions for the batches below (their min_size is the batch size), whatever the
+    // moment the swap happened.
+    let acting = wait_acting(&mut client, &id, |acting| acting.acting_version == Some(4) && acting.env_steps >= 200).await;
     assert_eq!(acting.policy_version, Some(4));
     client.stop_acting(proto::StopActingRequest { session_id: id.clone() }).await.unwrap();
     // Every recorded transition was acted by one whole version: 4's are pick_first_byte's actions.

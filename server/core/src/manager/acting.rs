@@ -7,7 +7,6 @@
 //! each transition records the version that acted. Reverb's rate limiter (`samples_per_insert` with
 //! an error buffer) bounds how far acting may run ahead of the learner's sampling.
 
-use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, RwLock};
@@ -213,15 +212,14 @@ impl SessionManager {
         &self.acting
     }
 
+    /// ONNX Runtime, found (the workers' Python asked where its wheel is) and loaded at the first
+    /// SetPolicy only.
     fn runtime(&self) -> Result<&'static radserve_policy::Runtime, CoreError> {
-        let library = match (&self.acting.library, &self.acting.python) {
-            (Some(library), _) => library.clone(),
-            (None, Some(python)) => radserve_policy::library_of_python(python)?,
-            (None, None) => {
-                return Err(PolicyError::Unavailable("no [acting] onnxruntime_library and no workers' Python to find it in".into()).into())
-            }
-        };
-        Ok(radserve_policy::runtime(&library)?)
+        Ok(radserve_policy::runtime(|| match (&self.acting.library, &self.acting.python) {
+            (Some(library), _) => Ok(library.clone()),
+            (None, Some(python)) => radserve_policy::library_of_python(python),
+            (None, None) => Err(PolicyError::Unavailable("no [acting] onnxruntime_library and no workers' Python to find it in".into())),
+        })?)
     }
 
     /// Loads a policy for the session (checked, built and run once on zeros) and makes it the
@@ -437,6 +435,17 @@ impl Actor {
         }
     }
 
+    /// A reset or step of the envs failed: the actor goes on (the error shown) until it is the
+    /// `MAX_FAILED_STEPS`th in a row, which ends it.
+    fn envs_failed(&self, failures: &mut u32, error: &CoreError) -> Option<Ended> {
+        *failures += 1;
+        if *failures >= MAX_FAILED_STEPS {
+            return Some(Ended::Failed(format!("the envs failed {failures} times in a row; the last: {error}")));
+        }
+        self.slot.update(|status| status.error = Some(error.to_string()));
+        None
+    }
+
     /// Whether the rate limiter holds the next insert back (Reverb's SampleToInsertRatio: inserts may
     /// run ahead of samples / ratio by at most error_buffer / ratio).
     fn limited(&self, num_envs: u64) -> bool {
@@ -488,11 +497,9 @@ impl Actor {
             if session.needs_reset() {
                 if let Err(error) = session.reset(None).await {
                     session.actor_turn = false;
-                    failures += 1;
-                    if failures >= MAX_FAILED_STEPS {
-                        return Ended::Failed(format!("the envs failed {failures} times in a row; the last: {error}"));
+                    if let Some(ended) = self.envs_failed(&mut failures, &error) {
+                        return ended;
                     }
-                    self.slot.update(|status| status.error = Some(error.to_string()));
                     continue;
                 }
             }
@@ -542,22 +549,15 @@ impl Actor {
                         status.inference_seconds += inference;
                         status.step_seconds += step_seconds;
                         status.limited_seconds += limited;
-                        let mut recent: VecDeque<f64> = std::mem::take(&mut status.recent_returns).into();
-                        for episode in &outcome.episodes {
-                            if recent.len() == RECENT_EPISODES {
-                                recent.pop_front();
-                            }
-                            recent.push_back(episode.episode_return);
-                        }
-                        status.recent_returns = recent.into();
+                        let recent = &mut status.recent_returns;
+                        recent.extend(outcome.episodes.iter().map(|episode| episode.episode_return));
+                        recent.drain(..recent.len().saturating_sub(RECENT_EPISODES));
                     });
                 }
                 Err(error) => {
-                    failures += 1;
-                    if failures >= MAX_FAILED_STEPS {
-                        return Ended::Failed(format!("the envs failed {failures} steps in a row; the last: {error}"));
+                    if let Some(ended) = self.envs_failed(&mut failures, &error) {
+                        return ended;
                     }
-                    self.slot.update(|status| status.error = Some(error.to_string()));
                 }
             }
         }
