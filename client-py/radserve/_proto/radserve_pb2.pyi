@@ -342,7 +342,7 @@ class StopActingRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class ActingInfo(_message.Message):
-    __slots__ = ("state", "policy_version", "acting_version", "head", "env_steps", "episodes", "recent_returns", "inference_seconds", "step_seconds", "limited_seconds", "error")
+    __slots__ = ("state", "policy_version", "acting_version", "head", "env_steps", "episodes", "recent_returns", "inference_seconds", "step_seconds", "limited_seconds", "error", "recent_envs")
     STATE_FIELD_NUMBER: _ClassVar[int]
     POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
     ACTING_VERSION_FIELD_NUMBER: _ClassVar[int]
@@ -354,6 +354,7 @@ class ActingInfo(_message.Message):
     STEP_SECONDS_FIELD_NUMBER: _ClassVar[int]
     LIMITED_SECONDS_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
+    RECENT_ENVS_FIELD_NUMBER: _ClassVar[int]
     state: str
     policy_version: int
     acting_version: int
@@ -365,7 +366,8 @@ class ActingInfo(_message.Message):
     step_seconds: float
     limited_seconds: float
     error: str
-    def __init__(self, state: _Optional[str] = ..., policy_version: _Optional[int] = ..., acting_version: _Optional[int] = ..., head: _Optional[str] = ..., env_steps: _Optional[int] = ..., episodes: _Optional[int] = ..., recent_returns: _Optional[_Iterable[float]] = ..., inference_seconds: _Optional[float] = ..., step_seconds: _Optional[float] = ..., limited_seconds: _Optional[float] = ..., error: _Optional[str] = ...) -> None: ...
+    recent_envs: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, state: _Optional[str] = ..., policy_version: _Optional[int] = ..., acting_version: _Optional[int] = ..., head: _Optional[str] = ..., env_steps: _Optional[int] = ..., episodes: _Optional[int] = ..., recent_returns: _Optional[_Iterable[float]] = ..., inference_seconds: _Optional[float] = ..., step_seconds: _Optional[float] = ..., limited_seconds: _Optional[float] = ..., error: _Optional[str] = ..., recent_envs: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class DescribeSessionRequest(_message.Message):
     __slots__ = ("session_id",)

@@ -121,6 +121,11 @@ async fn the_actor_steps_with_the_policy_and_records_its_version() {
     let acting = wait_acting(&mut client, &id, |acting| acting.env_steps >= 60 && acting.episodes >= 3).await;
     assert_eq!((acting.policy_version, acting.acting_version, acting.head.as_str()), (Some(1), Some(1), "categorical"));
     assert!(!acting.recent_returns.is_empty());
+    // Each return names its env: seeds 10, 11, 12 end their episodes every 4, 5 and 3 steps.
+    assert_eq!(acting.recent_envs.len(), acting.recent_returns.len());
+    let ended = |env: u32| acting.recent_envs.iter().filter(|&&e| e == env).count();
+    assert!(ended(0) > 0 && ended(1) > 0 && ended(2) > ended(1) && ended(0) + ended(1) + ended(2) == acting.recent_envs.len(),
+            "{:?}", acting.recent_envs);
     let sample = proto::SampleBatchesRequest { session_id: id.clone(), batch_size: 32, max_batches: Some(4), ..Default::default() };
     let mut versions = std::collections::BTreeSet::new();
     for batch in batches(&mut client, sample).await {

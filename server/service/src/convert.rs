@@ -142,6 +142,7 @@ pub fn acting_to_proto(status: &radserve_core::ActingStatus) -> proto::ActingInf
         env_steps: status.env_steps,
         episodes: status.episodes,
         recent_returns: status.recent_returns.clone(),
+        recent_envs: status.recent_envs.clone(),
         inference_seconds: status.inference_seconds,
         step_seconds: status.step_seconds,
         limited_seconds: status.limited_seconds,

@@ -114,6 +114,8 @@ pub struct ActingStatus {
     pub episodes: u64,
     /// Returns of the last episodes ended while acting, oldest first.
     pub recent_returns: Vec<f64>,
+    /// The env each of `recent_returns` ended in.
+    pub recent_envs: Vec<u32>,
     /// Seconds spent in inference and in stepping the envs since the start.
     pub inference_seconds: f64,
     pub step_seconds: f64,
@@ -332,6 +334,7 @@ impl SessionManager {
             status.env_steps = 0;
             status.episodes = 0;
             status.recent_returns.clear();
+            status.recent_envs.clear();
             status.inference_seconds = 0.0;
             status.step_seconds = 0.0;
             status.limited_seconds = 0.0;
@@ -549,9 +552,11 @@ impl Actor {
                         status.inference_seconds += inference;
                         status.step_seconds += step_seconds;
                         status.limited_seconds += limited;
-                        let recent = &mut status.recent_returns;
-                        recent.extend(outcome.episodes.iter().map(|episode| episode.episode_return));
-                        recent.drain(..recent.len().saturating_sub(RECENT_EPISODES));
+                        status.recent_returns.extend(outcome.episodes.iter().map(|episode| episode.episode_return));
+                        status.recent_envs.extend(outcome.episodes.iter().map(|episode| episode.env_index as u32));
+                        let old = status.recent_returns.len().saturating_sub(RECENT_EPISODES);
+                        status.recent_returns.drain(..old);
+                        status.recent_envs.drain(..old);
                     });
                 }
                 Err(error) => {
