@@ -121,6 +121,15 @@ def conv_categorical(shape, n: int, value: bool = True, uint8: bool = False, see
     return g.model([obs_input(shape, uint8=uint8)], outputs)
 
 
+def linear_categorical(weights) -> bytes:
+    """Categorical logits = obs @ weights ([obs_dim, n]): a policy whose choices are far from ties,
+    so that two runtimes (or thread counts) that round differently still take the same actions."""
+    weights = np.asarray(weights, dtype=np.float32)
+    g = Graph(0)
+    g.op("MatMul", ["obs", g.constant(weights)], "logits")
+    return g.model([obs_input((weights.shape[0],))], [output("logits", ["batch", weights.shape[1]])])
+
+
 def pick_first_byte(shape, n: int) -> bytes:
     """Categorical logits that make action = (first byte of the observation) mod n certain: a test
     can tell from the recorded actions which observations the policy saw."""

@@ -4,7 +4,9 @@ policy into a rollout; batches carry the acting version (and, for rollouts, log-
 values); a client's step is refused while the server acts; bad models are refused with the reason.
 Models are built with onnx.helper (tests/policies.py), so no torch is needed here."""
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +15,9 @@ import radserve
 from radserve import FailedPreconditionError, InvalidArgumentError
 
 import policies
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "client-py" / "examples"))
+from runs import evaluate, evaluate_on_servers  # noqa: E402  (the examples' evaluation, learner- and server-side)
 
 
 def wait_for(envs, done, timeout=120.0):
@@ -135,3 +140,51 @@ def test_a_nan_policy_stops_its_actor_with_the_error_in_describe(client):
         envs.reset(seed=0)
     finally:
         envs.close()
+
+
+def test_steps_per_env_acts_one_rollout_and_returns_name_their_env(client):
+    envs = client.make_vec("procgen/bigfish", num_envs=3, seed=4, rollout_steps=8, num_levels=10)
+    try:
+        shape, n = envs.single_observation_space.shape, int(envs.single_action_space.n)
+        envs.set_policy(policies.conv_categorical(shape, n, value=True, uint8=True), head="categorical")
+        for bad in (0, -1, 1.5, True, "8"):
+            with pytest.raises(InvalidArgumentError, match="steps_per_env must be a positive integer"):
+                envs.start_acting(steps_per_env=bad)
+        with pytest.raises(InvalidArgumentError, match="not both"):
+            envs.start_acting(steps_per_env=8, max_env_steps=24)
+        assert envs.acting().state == "idle"
+        for rollout in range(2):
+            envs.start_acting(steps_per_env=8, seed=rollout)
+            info = wait_for(envs, lambda info: info.state != "acting")
+            assert (info.state, info.env_steps) == ("stopped", 24)
+            assert len(info.recent_envs) == len(info.recent_returns) and set(info.recent_envs) <= {0, 1, 2}
+            (batch,) = client.sample_batches(envs.session_id, batch_size=24, source="rollout")
+            # One whole rollout, every (t, env) once, all acted by the policy.
+            assert sorted(zip(batch.t.tolist(), batch.env_index.tolist())) == [(t, e) for t in range(8) for e in range(3)]
+            assert np.all(batch.policy_version == 1)
+        assert envs.describe().total_env_steps == 48
+    finally:
+        envs.close()
+
+
+def test_evaluating_on_the_servers_gives_the_learner_side_evaluation(client):
+    """evaluate_on_servers (the servers act, eval: argmax) returns what `evaluate` returns for the
+    same policy run here, same seeds: each env's first episodes in the same order, although CartPole's
+    episodes end at different steps (the first to end would favour the short ones)."""
+    import onnxruntime
+
+    # Push towards where the pole leans (its angle only): it balances for a while, episodes of
+    # different lengths.
+    model = policies.linear_categorical([[0.0, 0.0], [0.0, 0.0], [-1.0, 1.0], [0.0, 0.0]])
+    session = onnxruntime.InferenceSession(model)
+    here = client.make_vec("gym/CartPole-v1", num_envs=3, seed=21, autoreset_mode="SameStep")
+    there = client.make_vec("gym/CartPole-v1", num_envs=3, seed=21, autoreset_mode="SameStep")
+    try:
+        expected = evaluate(here, lambda obs: session.run(None, {"obs": obs.astype(np.float32)})[0].argmax(1), 7)
+        returns = evaluate_on_servers(there, model, "categorical", 7, seed=21)
+        assert len(returns) == 7 and len(set(returns)) > 1, returns
+        assert returns == expected
+        assert there.acting().state == "stopped"
+    finally:
+        here.close()
+        there.close()

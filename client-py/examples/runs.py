@@ -226,6 +226,111 @@ def episode_stats(infos: dict) -> "Iterable[tuple[float, int]]":
     return [stats for _, stats in _ended_episodes(infos)]
 
 
+def as_list(value) -> list:
+    """An env's actor answers (`acting()`, `stop_acting()`): one server's, or a list of several."""
+    return value if isinstance(value, list) else [value]
+
+
+class ActedProgress:
+    """What the servers' actors of `envs` report, polled (`--actor server`): the env steps acted since
+    the last start_acting (summed over the servers), the episodes that ended since the last poll (from
+    each actor's recent returns) as ((server, env), return), and an error as soon as one actor failed."""
+
+    def __init__(self, envs) -> None:
+        self.envs, self.seen = envs, {}
+
+    def restarted(self) -> None:
+        """A new start_acting: the actors count from zero again."""
+        self.seen.clear()
+
+    def poll(self) -> "tuple[int, list[tuple[tuple[int, int], float]]]":
+        infos = as_list(self.envs.acting())
+        failed = [info.error for info in infos if info is not None and info.state == "failed"]
+        if failed:
+            raise RuntimeError(f"a server's actor failed: {failed[0]}")
+        ended = []
+        for server, info in enumerate(infos):
+            if len(info.recent_envs) != len(info.recent_returns):
+                raise RuntimeError("this server does not say which env each episode ended in (ActingInfo.recent_envs); "
+                                   "it is older than this client")
+            new = min(info.episodes - self.seen.get(server, 0), len(info.recent_returns))
+            self.seen[server] = info.episodes
+            first = len(info.recent_returns) - new
+            ended += [((server, env), ret) for env, ret in zip(info.recent_envs[first:], info.recent_returns[first:])]
+        return sum(info.env_steps for info in infos), ended
+
+
+def evaluate_on_servers(envs, model: bytes, head: str, episodes: int, seed: int, deterministic: bool = True) -> "list[float]":
+    """`evaluate` for `--actor server`: returns of `episodes` whole episodes the servers act with
+    `model` on the vector env `envs`, reset first, with no Step call: each env's first episodes
+    (the same number from every env, so short episodes are not favoured), taken with the head's
+    deterministic action (`eval`) or, not `deterministic`, its draws."""
+    per_env = math.ceil(episodes / envs.num_envs)
+    envs.set_policy(model, head=head)
+    envs.reset(seed=seed)
+    envs.start_acting(eval=deterministic, seed=seed)
+    progress = ActedProgress(envs)
+    returns: "dict[tuple[int, int], list[float]]" = {}
+    while sum(min(len(r), per_env) for r in returns.values()) < per_env * envs.num_envs:
+        time.sleep(0.1)
+        for env, episode_return in progress.poll()[1]:
+            returns.setdefault(env, []).append(episode_return)
+    envs.stop_acting()
+    ordered = [r for round_ in range(per_env) for env in sorted(returns) for r in returns[env][round_:round_ + 1]]
+    return ordered[:episodes]
+
+
+def learn_while_servers_act(envs, batches, *, update: Callable, policy: Callable[[], bytes], head: str,
+                            policy_every: int, total_env_steps: int, eval_every: int, evaluate_at: Callable[[int], float],
+                            log: "RunLog", env_steps_per_acted: int = 1, log_every: int = 50) -> int:
+    """`--actor server`'s loop of an off-policy learner (the SAC examples), once the servers act on
+    `envs`: `update(batch)` on every batch of `batches` (a stream whose rate limiter matches the
+    actors'), `policy()` (ONNX bytes) sent as a new version every `policy_every` updates, the actors
+    polled every 10 updates (their episodes logged, a failed one raised), `evaluate_at(env_steps)`
+    every `eval_every` env steps (`env_steps_per_acted` env steps per acted step: the action repeat)
+    and at the end, which is the first poll past `total_env_steps`; the actors are stopped then.
+    Returns the env steps acted."""
+    from tqdm import tqdm
+
+    progress = ActedProgress(envs)
+    last_eval, last_return = evaluate_at(0), float("nan")
+    next_eval, evaluated = eval_every, 0
+    start, env_steps, metrics = time.perf_counter(), 0, {}
+    bar = tqdm(total=total_env_steps, unit="env step", dynamic_ncols=True)
+    try:
+        for number, batch in enumerate(batches):
+            metrics = update(batch)
+            if (number + 1) % policy_every == 0:
+                envs.set_policy(policy(), head=head)
+            if number % 10 and number % log_every:
+                continue
+            acted, ended = progress.poll()
+            acted *= env_steps_per_acted
+            for _, episode_return in ended:
+                last_return = episode_return
+                log.scalars(acted, **{"charts/episodic_return": episode_return})
+            bar.update(max(0, acted - env_steps))
+            env_steps = acted
+            sps = env_steps / (time.perf_counter() - start)
+            if number % log_every == 0:
+                versions = batch.policy_version[batch.policy_version >= 0] if batch.policy_version is not None else []
+                # Versions between the policy that acted and the newest sent (random steps left out).
+                staleness = float(np.mean(envs.policy_version - versions)) if len(versions) else 0.0
+                log.scalars(env_steps, **metrics, **{"charts/SPS": sps, "charts/policy_staleness": staleness})
+            bar.set_postfix(ret=f"{last_return:.0f}", eval=f"{last_eval:.0f}", sps=f"{sps:.0f}")
+            if env_steps >= next_eval:
+                next_eval += eval_every
+                last_eval, evaluated = evaluate_at(env_steps), env_steps
+            if env_steps >= total_env_steps:
+                break
+        envs.stop_acting()
+        if evaluated != env_steps:
+            evaluate_at(env_steps)
+    finally:
+        bar.close()
+    return env_steps
+
+
 def run_name(env_id: str, algorithm: str, seed: int) -> str:
     """CleanRL's run naming: env__algorithm__seed__unixtime (`/` in env ids becomes `-`)."""
     return f"{env_id.replace('/', '-')}__{algorithm}__{seed}__{int(time.time())}"

@@ -48,6 +48,8 @@ class ActingInfo:
     step_seconds: float = 0.0
     limited_seconds: float = 0.0
     error: str = ""
+    recent_envs: "list[int]" = field(default_factory=list)
+    """the env (index in this server's session) each of `recent_returns` ended in"""
 
     @staticmethod
     def from_proto(message: "pb.ActingInfo") -> "ActingInfo":
@@ -63,6 +65,7 @@ class ActingInfo:
             step_seconds=message.step_seconds,
             limited_seconds=message.limited_seconds,
             error=message.error,
+            recent_envs=list(message.recent_envs),
         )
 
 
@@ -144,8 +147,8 @@ def start_request(session_id: str, *, random_steps: int = 0, steps_per_second: "
 
 class ActingMixin:
     """set_policy / start_acting / stop_acting / acting for a vector env whose sessions are
-    `self._acting_sessions()`: (transport, session_id) pairs, one per server (a sharded env acts on
-    every server it spans, with the same policy and version)."""
+    `self._acting_sessions()`: (transport, session_id, num_envs) triples, one per server (a sharded env
+    acts on every server it spans, with the same policy and version)."""
 
     _policy_version = 0
 
@@ -171,33 +174,42 @@ class ActingMixin:
             model = export_onnx(policy, example_obs)
         version = self._policy_version + 1 if version is None else version
         answer = None
-        for transport, session_id in self._acting_sessions():
+        for transport, session_id, _ in self._acting_sessions():
             answer = transport.call("SetPolicy", set_policy_request(session_id, model, head, version, noise))
         self._policy_version = version
         return loaded(answer)
 
-    def start_acting(self, **settings) -> "ActingInfo":
+    def start_acting(self, *, steps_per_env: "int | None" = None, **settings) -> "ActingInfo":
         """Starts the server's actor on this env's session(s): see `radserve.actors.start_request` for
         the settings (random_steps, steps_per_second, eval, samples_per_insert, error_buffer,
-        min_size, seed, max_episodes, max_env_steps). Step and reset are refused while it acts."""
+        min_size, seed, max_episodes, max_env_steps; each server's own, a seed offset by the server's
+        position). `steps_per_env=T` stops every env after T steps, one rollout of a PPO learner:
+        `max_env_steps` of T times each server's envs. Step and reset are refused while it acts."""
+        if steps_per_env is not None:
+            if isinstance(steps_per_env, bool) or not isinstance(steps_per_env, int) or steps_per_env < 1:
+                raise InvalidArgumentError(f"steps_per_env must be a positive integer, got {steps_per_env!r}")
+            if settings.get("max_env_steps") is not None:
+                raise InvalidArgumentError("give steps_per_env or max_env_steps, not both")
         answer = None
-        for index, (transport, session_id) in enumerate(self._acting_sessions()):
+        for index, (transport, session_id, num_envs) in enumerate(self._acting_sessions()):
             shard_settings = dict(settings)
             if shard_settings.get("seed") is not None:
                 shard_settings["seed"] = int(shard_settings["seed"]) + index
+            if steps_per_env is not None:
+                shard_settings["max_env_steps"] = steps_per_env * num_envs
             answer = transport.call("StartActing", start_request(session_id, **shard_settings))
         return ActingInfo.from_proto(answer)
 
     def stop_acting(self) -> "list[ActingInfo] | ActingInfo":
         """Stops the actor after its current step; the env is the learner's to step again."""
         answers = [ActingInfo.from_proto(transport.call("StopActing", pb.StopActingRequest(session_id=session_id)))
-                   for transport, session_id in self._acting_sessions()]
+                   for transport, session_id, _ in self._acting_sessions()]
         return answers[0] if len(answers) == 1 else answers
 
     def acting(self) -> "list[ActingInfo | None] | ActingInfo | None":
         """The actor's state on each server (None where no policy was ever set)."""
         answers = []
-        for transport, session_id in self._acting_sessions():
+        for transport, session_id, _ in self._acting_sessions():
             info = transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id))
             answers.append(ActingInfo.from_proto(info.acting) if info.HasField("acting") else None)
         return answers[0] if len(answers) == 1 else answers

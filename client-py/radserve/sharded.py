@@ -160,9 +160,10 @@ class ShardedVectorEnv(ActingMixin, VectorEnv):
         return [shard.transport.address for shard in self.shards]
 
     def _acting_sessions(self):
-        """Each served shard's (transport, session id): a policy goes to every server."""
+        """Each served shard's (transport, session id, envs): a policy goes to every server."""
         self._check_open()
-        return [(shard.transport, shard.env.session_id) for shard in self.shards if not shard.lost and shard.env is not None]
+        return [(shard.transport, shard.env.session_id, shard.size) for shard in self.shards
+                if not shard.lost and shard.env is not None]
 
     @property
     def session_ids(self) -> "list[str | None]":
