@@ -105,6 +105,25 @@ def test_ppo_on_procgen_with_rollouts(tmp_path):
     assert list(metrics["losses/policy_loss"][0]) == [64, 128], "one log per rollout of 4 envs x 16 steps"
 
 
+def test_sac_from_states_with_the_servers_acting(tmp_path):
+    run_dir = run_learner("sac_state.py", tmp_path, "--actor", "server", "--env", "gym/InvertedPendulum-v5",
+                          "--total-steps", "300", "--learning-starts", "50", "--batch-size", "32",
+                          "--eval-every", "300", "--eval-episodes", "2", "--log-every", "20", "--policy-every", "10")
+    metrics = check_run(run_dir, {"losses/qf_loss", "losses/actor_loss", "losses/alpha_loss"})
+    assert metrics["charts/eval_return"][0][-1] >= 300
+    assert all(value >= 0 for value in metrics["charts/policy_staleness"][1])
+
+
+def test_ppo_with_the_servers_acting(tmp_path):
+    """--actor server: each rollout is acted by the server with the policy sent before it; the learner
+    reads the rollout's log-probabilities and values instead of computing its own."""
+    run_dir = run_learner("ppo_procgen.py", tmp_path, "--actor", "server", "--env", "procgen/bigfish", "--aug", "crop(56)",
+                          "--num-envs", "4", "--num-steps", "16", "--num-minibatches", "2", "--total-timesteps", "128",
+                          "--eval-every", "128", "--eval-episodes", "2", "--num-levels", "10")
+    metrics = check_run(run_dir, {"losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/approx_kl"})
+    assert list(metrics["losses/policy_loss"][0]) == [64, 128], "one log per rollout of 4 envs x 16 steps"
+
+
 def test_an_unknown_augmentation_is_refused_before_training(tmp_path):
     result = subprocess.run([sys.executable, str(EXAMPLES / "sac_state.py"), "--env", "gym/InvertedPendulum-v5",
                              "--aug", "ras_x", "--total-steps", "100", "--runs-dir", str(tmp_path), "--workers", "1"],

@@ -26,6 +26,7 @@ checkpoint.pt.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass
 
@@ -37,7 +38,8 @@ from tqdm import tqdm
 
 import radserve
 from radserve.torch import to_tensors
-from runs import RunLog, episode_stats, evaluate, evaluation_view, parse_args, plot_curves, run_name, select_device
+from runs import (ActedProgress, RunLog, as_list, episode_stats, evaluate, evaluate_on_servers, evaluation_view, parse_args, plot_curves,
+                  run_name, select_device)
 
 
 @dataclass
@@ -110,6 +112,8 @@ class Args:
     """seconds to wait for every server to answer SERVING before starting (a learner started beside its servers, as a Kubernetes Job is); 0: only the connection is waited for, 10 s"""
     workers: int = 0
     """worker processes of a started server (0: one per core)"""
+    actor: str = "learner"
+    """who acts: "learner" (this process runs the policy and steps the envs over gRPC) or "server" (before each rollout the policy is exported to ONNX and sent; the servers act num_steps steps with it, recording each action's log-probability and value, and evaluate; this process only reads rollouts and learns; docs/actors.md)"""
 
 
 def layer_init(layer: nn.Module, std: float = np.sqrt(2), bias: float = 0.0) -> nn.Module:
@@ -169,6 +173,26 @@ class Agent(nn.Module):
         return self.actor(hidden), self.critic(hidden).squeeze(-1)
 
 
+class ServerPolicy(nn.Module):
+    """The agent as the servers run it (head categorical with a value output): uint8 observations ->
+    (logits, value), fp32 (no autocast: ONNX Runtime's CPU convolutions are fp32)."""
+
+    def __init__(self, agent: Agent):
+        super().__init__()
+        self.agent = agent
+
+    def forward(self, obs: torch.Tensor):
+        x = obs.float() * (1.0 / 255.0)
+        hidden = F.relu(self.agent.hidden(F.relu(self.agent.convs(x).flatten(1))))
+        return self.agent.actor(hidden), self.agent.critic(hidden).squeeze(-1)
+
+
+def policy_model(agent: Agent, obs_shape) -> bytes:
+    """The agent now, as ONNX bytes (an fp32 copy on the CPU, exported)."""
+    module = ServerPolicy(copy.deepcopy(agent).cpu().float())
+    return radserve.actors.export_onnx(module, np.zeros((1, *obs_shape), dtype=np.uint8))
+
+
 class RewardNormalizer:
     """Scales rewards by the running standard deviation of each env's discounted return (baselines'
     VecNormalize with ob=False)."""
@@ -225,7 +249,11 @@ def train(args: Args, address: str) -> RunLog:
         return torch.distributions.Categorical(logits=logits).sample().cpu().numpy()
 
     def run_evaluation(steps: int) -> float:
-        returns = evaluate(eval_envs, policy, args.eval_episodes)
+        if args.actor == "server":
+            returns = evaluate_on_servers(eval_envs, policy_model(agent, obs_shape), "categorical", args.eval_episodes,
+                                          seed=args.seed + 10_000, deterministic=False)
+        else:
+            returns = evaluate(eval_envs, policy, args.eval_episodes)
         log.scalars(steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
         log.flush()
         if args.checkpoint:
@@ -238,31 +266,75 @@ def train(args: Args, address: str) -> RunLog:
     values = torch.zeros((args.num_steps, args.num_envs), device=device)
     rewards = torch.zeros((args.num_steps, args.num_envs), device=device)
     dones = torch.zeros((args.num_steps, args.num_envs), device=device)
-    obs, _ = envs.reset()
-    last_return, last_eval = float("nan"), run_evaluation(0)
-    next_eval, steps = args.eval_every, 0
+    progress = ActedProgress(envs)
+    last_return, steps = float("nan"), 0
+
+    def act_here(obs: np.ndarray) -> "tuple[np.ndarray, list[tuple[int, dict]]]":
+        """A rollout acted here: the server records every env's observations as the rollout, we
+        keep the rest. Returns the observations after it and the episodes that ended (env steps, scalars)."""
+        ended = []
+        for t in range(args.num_steps):
+            with torch.no_grad():
+                logits, value = agent(torch.as_tensor(np.array(obs), device=device))
+                distribution = torch.distributions.Categorical(logits=logits)
+                action = distribution.sample()
+            actions[t], logprobs[t], values[t] = action, distribution.log_prob(action), value
+            obs, reward, terminated, truncated, infos = envs.step(action.cpu().numpy())
+            done = terminated | truncated
+            reward = normalizer(reward, done) if normalizer else reward
+            rewards[t] = torch.as_tensor(reward, dtype=torch.float32, device=device)
+            dones[t] = torch.as_tensor(done, dtype=torch.float32, device=device)
+            ended += [(steps + (t + 1) * args.num_envs, {"charts/episodic_return": r, "charts/episodic_length": length})
+                      for r, length in episode_stats(infos)]
+        return obs, ended
+
+    def act_on_servers(update: int) -> "tuple[np.ndarray, list[tuple[int, dict]]]":
+        """A rollout acted by the servers: the current policy is sent, each env acts num_steps steps
+        with it (the servers record the rollout with each action's log-probability and value), then one
+        pass over the rollout, in the acting view, gives what act_here keeps (rewards normalized in
+        step order as act_here does) and the observations after the last step."""
+        envs.set_policy(policy_model(agent, obs_shape), head="categorical")
+        envs.start_acting(steps_per_env=args.num_steps, seed=args.seed * 1_000_003 + update)
+        progress.restarted()
+        ended, acting = [], True
+        while acting:
+            time.sleep(0.02)
+            acting = any(info.state == "acting" for info in as_list(envs.acting()))
+            acted, new = progress.poll()
+            ended += [(steps + acted, {"charts/episodic_return": r}) for _, r in new]
+        raw_rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
+        raw_dones = np.zeros((args.num_steps, args.num_envs), dtype=bool)
+        last_obs = np.zeros((args.num_envs, *obs_shape), dtype=np.uint8)
+        with client.sample_batches(envs.session_id, minibatch_size, source="rollout", augment=view or "none",
+                                   include_next_obs=True, seed=update, delivery=args.delivery) as stream:
+            for batch in stream:
+                t, env = batch.t.astype(np.int64), batch.env_index.astype(np.int64)
+                actions[t, env] = torch.as_tensor(batch.action, dtype=torch.long, device=device)
+                logprobs[t, env] = torch.as_tensor(batch.log_prob, device=device)
+                values[t, env] = torch.as_tensor(batch.value, device=device)
+                raw_rewards[t, env], raw_dones[t, env] = batch.reward, batch.terminated | batch.truncated
+                last = t == args.num_steps - 1
+                last_obs[env[last]] = batch.next_obs[last]
+        for t in range(args.num_steps):
+            reward = normalizer(raw_rewards[t], raw_dones[t]) if normalizer else raw_rewards[t]
+            rewards[t] = torch.as_tensor(reward, dtype=torch.float32, device=device)
+            dones[t] = torch.as_tensor(raw_dones[t], dtype=torch.float32, device=device)
+        return last_obs, ended
+
+    obs = envs.reset()[0] if args.actor == "learner" else None
+    last_eval = run_evaluation(0)
+    next_eval = args.eval_every
     start = time.perf_counter()
     try:
         bar = tqdm(total=num_updates * batch_size, unit="step", unit_scale=True, dynamic_ncols=True)
         for update in range(num_updates):
             if args.anneal_lr:
                 optimizer.param_groups[0]["lr"] = args.learning_rate * (1.0 - update / num_updates)
-            # Act: the server records every env's observations as the rollout; we keep the rest.
-            for t in range(args.num_steps):
-                with torch.no_grad():
-                    logits, value = agent(torch.as_tensor(np.array(obs), device=device))
-                    distribution = torch.distributions.Categorical(logits=logits)
-                    action = distribution.sample()
-                actions[t], logprobs[t], values[t] = action, distribution.log_prob(action), value
-                obs, reward, terminated, truncated, infos = envs.step(action.cpu().numpy())
-                done = terminated | truncated
-                reward = normalizer(reward, done) if normalizer else reward
-                rewards[t] = torch.as_tensor(reward, dtype=torch.float32, device=device)
-                dones[t] = torch.as_tensor(done, dtype=torch.float32, device=device)
-                steps += args.num_envs
-                for episode_return, episode_length in episode_stats(infos):
-                    last_return = episode_return
-                    log.scalars(steps, **{"charts/episodic_return": episode_return, "charts/episodic_length": episode_length})
+            obs, ended = act_here(obs) if args.actor == "learner" else act_on_servers(update)
+            for at, episode in ended:
+                last_return = episode["charts/episodic_return"]
+                log.scalars(at, **episode)
+            steps += batch_size
             bar.update(batch_size)
 
             # Generalized advantage estimation; dones[t] says whether obs t+1 starts a new episode.

@@ -32,7 +32,8 @@ from tqdm import tqdm
 
 import radserve
 from radserve.torch import to_tensors
-from runs import RunLog, episode_stats, evaluate, evaluation_view, parse_args, plot_curves, run_name, select_device
+from runs import (RunLog, episode_stats, evaluate, evaluate_on_servers, evaluation_view, learn_while_servers_act, parse_args,
+                  plot_curves, run_name, select_device)
 
 
 @dataclass
@@ -439,10 +440,6 @@ def record_evaluation(args: Args, log: RunLog, agent: RadSac, evaluations: "list
     return float(np.mean(returns))
 
 
-def as_list(value) -> list:
-    return value if isinstance(value, list) else [value]
-
-
 def train_server_side(args: Args, client, envs, eval_envs, agent: RadSac, log: RunLog, aug: str, action_repeat: int,
                       obs_shape, device, evaluations: "list[tuple[int, float]]") -> None:
     """--actor server: the servers act with the exported actor (random actions for the first init_steps
@@ -457,58 +454,18 @@ def train_server_side(args: Args, client, envs, eval_envs, agent: RadSac, log: R
                       min_size=min_size, seed=args.seed)
 
     def run_evaluation(env_steps: int) -> float:
-        eval_envs.set_policy(policy_model(agent, obs_shape), head="gaussian_tanh")
-        eval_envs.reset(seed=args.seed + 10_000)
-        eval_envs.start_acting(eval=True, seed=args.seed)
-        while sum(info.episodes for info in as_list(eval_envs.acting())) < args.eval_episodes:
-            time.sleep(0.2)
-        returns = [r for info in as_list(eval_envs.stop_acting()) for r in info.recent_returns][:args.eval_episodes]
+        returns = evaluate_on_servers(eval_envs, policy_model(agent, obs_shape), "gaussian_tanh", args.eval_episodes,
+                                      seed=args.seed + 10_000)
         return record_evaluation(args, log, agent, evaluations, env_steps, returns)
 
-    last_eval, last_return = run_evaluation(0), float("nan")
-    next_eval = args.eval_every
-    seen: "dict[int, int]" = {}
     stream = client.sample_batches(envs.session_id, args.batch_size, augment=aug, seed=args.seed, prefetch=args.prefetch,
                                    min_size=min_size, samples_per_insert=ratio, error_buffer=slack, delivery=args.delivery)
-    start, env_steps, metrics = time.perf_counter(), 0, {}
-    bar = tqdm(total=args.total_env_steps, unit="env step", dynamic_ncols=True)
-    try:
-        for update, batch in enumerate(stream):
-            metrics = agent.update(to_tensors(batch, device))
-            if (update + 1) % args.policy_every == 0:
-                envs.set_policy(policy_model(agent, obs_shape), head="gaussian_tanh")
-            if update % args.log_every == 0 or update % 10 == 0:
-                infos = as_list(envs.acting())
-                acted = sum(info.env_steps for info in infos) * action_repeat
-                for server, info in enumerate(infos):
-                    new = info.episodes - seen.get(server, 0)
-                    seen[server] = info.episodes
-                    for episode_return in info.recent_returns[len(info.recent_returns) - min(new, len(info.recent_returns)):]:
-                        last_return = episode_return
-                        log.scalars(acted, **{"charts/episodic_return": episode_return})
-                failed = [info.error for info in infos if info.state == "failed"]
-                if failed:
-                    raise RuntimeError(f"a server's actor failed: {failed[0]}")
-                bar.update(max(0, acted - env_steps))
-                env_steps = acted
-                if update % args.log_every == 0:
-                    versions = batch.policy_version[batch.policy_version >= 0] if batch.policy_version is not None else []
-                    # Versions between the policy that acted and the newest sent (random steps left out).
-                    staleness = float(np.mean(envs.policy_version - versions)) if len(versions) else 0.0
-                    log.scalars(env_steps, **metrics, **{"charts/SPS": env_steps / (time.perf_counter() - start),
-                                                         "charts/policy_staleness": staleness})
-                bar.set_postfix(ret=f"{last_return:.0f}", eval=f"{last_eval:.0f}", sps=f"{env_steps / (time.perf_counter() - start):.0f}")
-                if env_steps >= next_eval:
-                    next_eval += args.eval_every
-                    last_eval = run_evaluation(env_steps)
-                if env_steps >= args.total_env_steps:
-                    break
-        envs.stop_acting()
-        if not evaluations or evaluations[-1][0] != env_steps:
-            run_evaluation(env_steps)
-    finally:
-        stream.close()
-        bar.close()
+    with stream:
+        learn_while_servers_act(envs, stream, update=lambda batch: agent.update(to_tensors(batch, device)),
+                                policy=lambda: policy_model(agent, obs_shape), head="gaussian_tanh",
+                                policy_every=args.policy_every, total_env_steps=args.total_env_steps,
+                                eval_every=args.eval_every, evaluate_at=run_evaluation, log=log,
+                                env_steps_per_acted=action_repeat, log_every=args.log_every)
 
 
 def main() -> None:

@@ -12,6 +12,7 @@ SAC of Christodoulou 2019 (expectations over the policy's action probabilities),
     python client-py/examples/sac_state.py --env gym/HalfCheetah-v5 --aug ras_s
     python client-py/examples/sac_state.py --env gym/InvertedPendulum-v5 --aug "ras_m" --total-steps 20000
     python client-py/examples/sac_state.py --env gym/CartPole-v1 --aug "noise(std=0.1)"
+    python client-py/examples/sac_state.py --actor server                           # the server acts
 
 Results go to runs/<env>__sac_state__<seed>__<time>/: metrics.csv, TensorBoard events, curve.png,
 checkpoint.pt.
@@ -33,7 +34,8 @@ from tqdm import tqdm
 
 import radserve
 from radserve.torch import to_tensors
-from runs import RunLog, episode_stats, evaluate, parse_args, plot_curves, run_name, select_device
+from runs import (RunLog, episode_stats, evaluate, evaluate_on_servers, learn_while_servers_act, parse_args, plot_curves,
+                  read_metrics, run_name, select_device)
 
 
 @dataclass
@@ -100,6 +102,10 @@ class Args:
     """an existing radserve server, or several separated by commas (one sharded session over them); empty starts one on a free localhost port"""
     workers: int = 0
     """worker processes of a started server (0: one per core)"""
+    actor: str = "learner"
+    """who acts: "learner" (this process runs the policy and steps the envs over gRPC) or "server" (the policy is exported to ONNX and sent; the servers step the envs with it and evaluate, this process only streams batches and sends new weights; docs/actors.md)"""
+    policy_every: int = 50
+    """with --actor server: updates between two policy versions sent to the servers"""
 
 
 def mlp(inputs: int, hidden: int, outputs: int) -> nn.Sequential:
@@ -117,10 +123,14 @@ class ContinuousPolicy(nn.Module):
         self.register_buffer("scale", torch.tensor((space.high - space.low) / 2.0, dtype=torch.float32))
         self.register_buffer("bias", torch.tensor((space.high + space.low) / 2.0, dtype=torch.float32))
 
+    def gaussian(self, obs):
+        """The Gaussian's mean and squashed log std before the tanh."""
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        return mean, self.LOG_STD_MIN + 0.5 * (self.LOG_STD_MAX - self.LOG_STD_MIN) * (torch.tanh(log_std) + 1)
+
     def forward(self, obs):
         """(sampled action, its log-probability, deterministic action)."""
-        mean, log_std = self.net(obs).chunk(2, dim=-1)
-        log_std = self.LOG_STD_MIN + 0.5 * (self.LOG_STD_MAX - self.LOG_STD_MIN) * (torch.tanh(log_std) + 1)
+        mean, log_std = self.gaussian(obs)
         normal = torch.distributions.Normal(mean, log_std.exp())
         raw = normal.rsample()
         squashed = torch.tanh(raw)
@@ -136,6 +146,21 @@ class ContinuousCritic(nn.Module):
     def forward(self, obs, action):
         features = torch.cat([obs, action], dim=1)
         return self.q1(features), self.q2(features)
+
+
+class ServerPolicy(nn.Module):
+    """The actor as the servers run it: the Gaussian's mean and log std (head gaussian_tanh: the server
+    draws tanh(mean + exp(log_std) * N(0, 1)) and scales it onto the action bounds, as
+    ContinuousPolicy does) or the logits (head categorical)."""
+
+    def __init__(self, policy: nn.Module):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, obs: torch.Tensor):
+        if isinstance(self.policy, ContinuousPolicy):
+            return self.policy.gaussian(obs)
+        return self.policy.net(obs)
 
 
 class DiscretePolicy(nn.Module):
@@ -279,12 +304,18 @@ def train(args: Args, address: str) -> RunLog:
     print(f"run directory: {log.dir}")
 
     def run_evaluation(steps: int) -> float:
-        returns = evaluate(eval_envs, lambda o: agent.act(o, deterministic=True), args.eval_episodes)
-        log.scalars(steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
-        log.flush()
-        if args.checkpoint:
-            torch.save(agent.state_dict() | {"env_steps": steps, "args": vars(args)}, log.dir / "checkpoint.pt")
-        return float(np.mean(returns))
+        return record_evaluation(args, log, agent, steps,
+                                 evaluate(eval_envs, lambda o: agent.act(o, deterministic=True), args.eval_episodes))
+
+    if args.actor == "server":
+        try:
+            steps = train_server_side(args, client, envs, eval_envs, agent, log, device)
+        finally:
+            envs.close()
+            eval_envs.close()
+            client.close()
+            log.close()
+        return finish(args, log, steps)
 
     stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.aug, seed=args.seed,
                                    prefetch=args.prefetch, min_size=args.learning_starts, delivery=args.delivery)
@@ -323,13 +354,62 @@ def train(args: Args, address: str) -> RunLog:
         eval_envs.close()
         client.close()
         log.close()
+    return finish(args, log, vector_steps * args.num_envs)
+
+
+def finish(args: Args, log: RunLog, steps: int) -> RunLog:
     curve = plot_curves({f"SAC ({args.aug})": log.dir}, log.dir / "curve.png", title=f"{args.env}, aug {args.aug}")
-    print(f"final evaluation return {last_eval:.1f} after {vector_steps * args.num_envs} steps; curve: {curve}")
+    final = read_metrics(log.dir)["charts/eval_return"][1][-1]
+    print(f"final evaluation return {final:.1f} after {steps} steps; curve: {curve}")
     return log
+
+
+def train_server_side(args: Args, client, envs, eval_envs, agent: Sac, log: RunLog, device) -> int:
+    """--actor server: the servers act with the exported actor (uniform random actions for the first
+    learning_starts steps) and record into the replay; this process streams batches, updates, and
+    sends the actor every `policy_every` updates. The rate limiter on both sides keeps one update of
+    `batch_size` transitions per transition acted, as the learner-side loop does. No Step call is
+    made: evaluation acts on the servers too."""
+    head = "categorical" if agent.discrete else "gaussian_tanh"
+    example = np.zeros((1, *envs.single_observation_space.shape), dtype=np.float32)
+
+    def policy() -> bytes:
+        return radserve.actors.export_onnx(ServerPolicy(copy.deepcopy(agent.actor).cpu()), example)
+
+    min_size = min(args.learning_starts, args.buffer_size)
+    ratio, slack = float(args.batch_size), float(args.batch_size * max(args.num_envs, 4) * 4)
+    envs.set_policy(policy(), head=head)
+    envs.start_acting(random_steps=args.learning_starts, samples_per_insert=ratio, error_buffer=slack,
+                      min_size=min_size, seed=args.seed)
+
+    def run_evaluation(steps: int) -> float:
+        returns = evaluate_on_servers(eval_envs, policy(), head, args.eval_episodes, seed=args.seed + 10_000)
+        return record_evaluation(args, log, agent, steps, returns)
+
+    stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.aug, seed=args.seed,
+                                   prefetch=args.prefetch, min_size=min_size, samples_per_insert=ratio,
+                                   error_buffer=slack, delivery=args.delivery)
+    with stream:
+        steps = learn_while_servers_act(envs, stream, update=lambda batch: agent.update(to_tensors(batch, device)),
+                                        policy=policy, head=head, policy_every=args.policy_every,
+                                        total_env_steps=args.total_steps, eval_every=args.eval_every,
+                                        evaluate_at=run_evaluation, log=log, log_every=args.log_every)
+    return steps
+
+
+def record_evaluation(args: Args, log: RunLog, agent: Sac, steps: int, returns: "list[float]") -> float:
+    """Logs an evaluation's returns (and saves the checkpoint); their mean."""
+    log.scalars(steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
+    log.flush()
+    if args.checkpoint:
+        torch.save(agent.state_dict() | {"env_steps": steps, "args": vars(args)}, log.dir / "checkpoint.pt")
+    return float(np.mean(returns))
 
 
 def main() -> None:
     args = parse_args(Args, __doc__)
+    if args.actor not in ("learner", "server"):
+        raise SystemExit(f"--actor must be learner or server, got {args.actor!r}")
     if args.address:
         train(args, args.address)
         return
