@@ -127,9 +127,11 @@ bench: bench-sim bench-augment bench-replay bench-security
 bench-demo: demo
 	$(PYTHON) bench/demo_result.py $$(ls -td runs/demo/*/ | head -1)
 
-## bench-cluster: steps/s and sharded batches/s over 1-3 server containers beside one local server
+## bench-cluster: steps/s and sharded batches/s over 1-3 server containers beside one local server, and
+## server-side against learner-side acting over three (bench/cluster_acting.py)
 bench-cluster: setup images-local
 	$(PYTHON) bench/cluster.py
+	$(PYTHON) bench/cluster_acting.py
 
 bench-security: setup
 	$(PYTHON) bench/security_overhead.py --rounds 6 --steps 6000 --batches 120
