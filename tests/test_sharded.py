@@ -215,6 +215,61 @@ def test_a_lost_server_is_named_or_survived_and_comes_back(servers):
         lenient.close()
 
 
+def test_a_lost_server_comes_back_to_the_servers_acting(servers):
+    """With the servers acting, the learner makes no step, where lost servers are otherwise tried
+    again: on_server_loss="continue" goes on with the others (acting() says None for the lost one)
+    and set_policy reconnects it, sends it the policy and starts its actor with the settings the
+    others act with; its transitions then reach the batches again."""
+    import policies
+
+    client = radserve.Client([server.address for server in servers], on_server_loss="continue", reconnect_backoff=0.2,
+                             reconnect_backoff_max=0.5)
+    envs = client.make_vec("gym/CartPole-v1", num_envs=6, seed=0, replay_capacity=3000, autoreset_mode="SameStep")
+    model = policies.linear_categorical([[0.0, 0.0], [0.0, 0.0], [-1.0, 1.0], [0.0, 0.0]])
+    victim = servers[2]
+    try:
+        envs.set_policy(model, head="categorical")
+        envs.start_acting(seed=5, steps_per_second=600.0)
+        stream = client.sample_batches(envs.session_id, 12, min_size=12)
+        assert set(next(stream).server.tolist()) <= {0, 1, 2}
+        victim.process.send_signal(signal.SIGKILL)
+        victim.process.wait()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # "server ... lost", from the stream
+            for _ in range(5):
+                assert len(next(stream)) == 12
+            infos = envs.acting()
+            assert infos[2] is None and infos[0].state == infos[1].state == "acting"
+            envs.set_policy(model, head="categorical")  # the lost server is left out, not an error
+            assert envs.policy_version == 2
+
+            victim.args[victim.args.index("--address") + 1] = victim.address
+            victim.start()
+            deadline = time.monotonic() + 60  # the restarted server builds its catalog first
+            while time.monotonic() < deadline:
+                envs.set_policy(model, head="categorical")
+                infos = envs.acting()
+                if infos[2] is not None and infos[2].state == "acting":
+                    break
+                time.sleep(0.2)
+            assert infos[2] is not None and infos[2].state == "acting", infos
+            assert infos[2].policy_version == envs.policy_version
+            # Its new session's replay fills from its own actor; then it takes its share of the batches.
+            deadline = time.monotonic() + 30
+            seen: set = set()
+            while 2 not in seen and time.monotonic() < deadline:
+                batch = next(stream)
+                seen = set(batch.server.tolist())
+                time.sleep(0.1)
+            assert 2 in seen
+        stream.close()
+        stopped = envs.stop_acting()
+        assert [info.state for info in stopped] == ["stopped"] * 3
+    finally:
+        envs.close()
+        client.close()
+
+
 def test_a_sharded_env_refuses_the_resets_a_plain_env_refuses(servers, sharded):
     """The same checks, sharded or not: a mask is a numpy bool array of num_envs marking at least one env
     (a list, an all-False mask and ints are refused), seeds are ints, one per env or None."""

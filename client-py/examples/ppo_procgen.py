@@ -299,7 +299,7 @@ def train(args: Args, address: str) -> RunLog:
         ended, acting = [], True
         while acting:
             time.sleep(0.02)
-            acting = any(info.state == "acting" for info in as_list(envs.acting()))
+            acting = any(info is not None and info.state == "acting" for info in as_list(envs.acting()))
             acted, new = progress.poll()
             ended += [(steps + acted, {"charts/episodic_return": r}) for _, r in new]
         raw_rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)

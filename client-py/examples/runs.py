@@ -244,20 +244,23 @@ class ActedProgress:
         self.seen.clear()
 
     def poll(self) -> "tuple[int, list[tuple[tuple[int, int], float]]]":
-        infos = as_list(self.envs.acting())
-        failed = [info.error for info in infos if info is not None and info.state == "failed"]
+        # None: a server lost now (a sharded env going on without it) or one with no policy yet.
+        infos = {server: info for server, info in enumerate(as_list(self.envs.acting())) if info is not None}
+        failed = [info.error for info in infos.values() if info.state == "failed"]
         if failed:
             raise RuntimeError(f"a server's actor failed: {failed[0]}")
         ended = []
-        for server, info in enumerate(infos):
+        for server, info in infos.items():
             if len(info.recent_envs) != len(info.recent_returns):
                 raise RuntimeError("this server does not say which env each episode ended in (ActingInfo.recent_envs); "
                                    "it is older than this client")
-            new = min(info.episodes - self.seen.get(server, 0), len(info.recent_returns))
+            seen = self.seen.get(server, 0)
+            # Fewer than seen: the server came back with a new session, whose actor counts from zero.
+            new = min(info.episodes - seen if info.episodes >= seen else info.episodes, len(info.recent_returns))
             self.seen[server] = info.episodes
             first = len(info.recent_returns) - new
             ended += [((server, env), ret) for env, ret in zip(info.recent_envs[first:], info.recent_returns[first:])]
-        return sum(info.env_steps for info in infos), ended
+        return sum(info.env_steps for info in infos.values()), ended
 
 
 def evaluate_on_servers(envs, model: bytes, head: str, episodes: int, seed: int, deterministic: bool = True) -> "list[float]":

@@ -147,10 +147,15 @@ def start_request(session_id: str, *, random_steps: int = 0, steps_per_second: "
 
 class ActingMixin:
     """set_policy / start_acting / stop_acting / acting for a vector env whose sessions are
-    `self._acting_sessions()`: (transport, session_id, num_envs) triples, one per server (a sharded env
-    acts on every server it spans, with the same policy and version)."""
+    `self._acting_sessions()`: (transport, session_id, num_envs, position) for each server it is
+    served by now, out of `self._acting_servers` (a sharded env acts on every server it spans, with
+    the same policy and version; a lost server is left out until it is back)."""
 
     _policy_version = 0
+    _acting_servers = 1
+    # The settings of the last start_acting while the actors act (a server that comes back is started
+    # with them); None once stopped.
+    _acting_settings: "dict | None" = None
 
     @property
     def policy_version(self) -> int:
@@ -160,12 +165,21 @@ class ActingMixin:
     def _acting_sessions(self):  # pragma: no cover - provided by the env
         raise NotImplementedError
 
+    def _acting_returned(self) -> list:
+        """Servers that came back since the last call, reconnected: (transport, session_id, num_envs,
+        position) of their new sessions. A sharded env that goes on without a lost server says."""
+        return []
+
     def set_policy(self, policy: Any, example_obs: Any = None, *, head: str = "gaussian_tanh",
                    version: "int | None" = None, noise: "tuple[float, float, int, float] | None" = None) -> LoadedPolicy:
         """Sends a policy: ONNX bytes, or a torch module exported with `example_obs` (a batch of
         observations). `version` defaults to one more than the last this env sent; a running actor
         takes the new version between two steps. Refused models raise InvalidArgumentError with the
-        server's reason (the operator it does not support, the shape it expected)."""
+        server's reason (the operator it does not support, the shape it expected).
+
+        On a sharded env that goes on without a lost server (`on_server_loss="continue"`), this is
+        also when a lost server is tried again: one that is back gets a new session, this policy and,
+        while the others act, their start_acting settings."""
         if isinstance(policy, (bytes, bytearray, memoryview)):
             model = bytes(policy)
         else:
@@ -173,11 +187,26 @@ class ActingMixin:
                 raise InvalidArgumentError("set_policy(module, example_obs): a torch module needs a batch of observations to export")
             model = export_onnx(policy, example_obs)
         version = self._policy_version + 1 if version is None else version
+        returned = self._acting_returned()
         answer = None
-        for transport, session_id, _ in self._acting_sessions():
+        for transport, session_id, _, _ in self._acting_sessions():
             answer = transport.call("SetPolicy", set_policy_request(session_id, model, head, version, noise))
         self._policy_version = version
+        if self._acting_settings is not None:
+            for target in returned:
+                self._start_on(target, self._acting_settings)
         return loaded(answer)
+
+    @staticmethod
+    def _start_on(target, settings: dict) -> "pb.ActingInfo":
+        transport, session_id, num_envs, position = target
+        settings = dict(settings)
+        steps_per_env = settings.pop("steps_per_env", None)
+        if settings.get("seed") is not None:
+            settings["seed"] = int(settings["seed"]) + position
+        if steps_per_env is not None:
+            settings["max_env_steps"] = steps_per_env * num_envs
+        return transport.call("StartActing", start_request(session_id, **settings))
 
     def start_acting(self, *, steps_per_env: "int | None" = None, **settings) -> "ActingInfo":
         """Starts the server's actor on this env's session(s): see `radserve.actors.start_request` for
@@ -190,26 +219,25 @@ class ActingMixin:
                 raise InvalidArgumentError(f"steps_per_env must be a positive integer, got {steps_per_env!r}")
             if settings.get("max_env_steps") is not None:
                 raise InvalidArgumentError("give steps_per_env or max_env_steps, not both")
+        settings = dict(settings, steps_per_env=steps_per_env)
         answer = None
-        for index, (transport, session_id, num_envs) in enumerate(self._acting_sessions()):
-            shard_settings = dict(settings)
-            if shard_settings.get("seed") is not None:
-                shard_settings["seed"] = int(shard_settings["seed"]) + index
-            if steps_per_env is not None:
-                shard_settings["max_env_steps"] = steps_per_env * num_envs
-            answer = transport.call("StartActing", start_request(session_id, **shard_settings))
+        for target in self._acting_sessions():
+            answer = self._start_on(target, settings)
+        self._acting_settings = settings
         return ActingInfo.from_proto(answer)
 
     def stop_acting(self) -> "list[ActingInfo] | ActingInfo":
         """Stops the actor after its current step; the env is the learner's to step again."""
+        self._acting_settings = None
         answers = [ActingInfo.from_proto(transport.call("StopActing", pb.StopActingRequest(session_id=session_id)))
-                   for transport, session_id, _ in self._acting_sessions()]
+                   for transport, session_id, _, _ in self._acting_sessions()]
         return answers[0] if len(answers) == 1 else answers
 
     def acting(self) -> "list[ActingInfo | None] | ActingInfo | None":
-        """The actor's state on each server (None where no policy was ever set)."""
-        answers = []
-        for transport, session_id, _ in self._acting_sessions():
+        """The actor's state on each server, in the order of the servers (None where no policy was
+        ever set, and for a server lost now)."""
+        answers: "list[ActingInfo | None]" = [None] * self._acting_servers
+        for transport, session_id, _, position in self._acting_sessions():
             info = transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id))
-            answers.append(ActingInfo.from_proto(info.acting) if info.HasField("acting") else None)
+            answers[position] = ActingInfo.from_proto(info.acting) if info.HasField("acting") else None
         return answers[0] if len(answers) == 1 else answers

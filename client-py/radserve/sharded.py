@@ -15,7 +15,8 @@ The lost server is tried again with exponential backoff (`Client(reconnect_backo
 answers, a new session is created there with the same seeds, and its first observations appear in
 that step's rows (still marked inactive: that row's transition is not a real one); the next step is
 a normal one. Batches are then drawn from the remaining servers until the new session's replay holds
-a batch's share.
+a batch's share. A learner whose servers act (`start_acting`) makes no step: `set_policy` tries the
+lost servers instead, and starts a returned one's actor with the others' settings.
 """
 
 from __future__ import annotations
@@ -159,11 +160,24 @@ class ShardedVectorEnv(ActingMixin, VectorEnv):
         """The address of each shard's server, in shard (env) order."""
         return [shard.transport.address for shard in self.shards]
 
+    @property
+    def _acting_servers(self) -> int:
+        return len(self.shards)
+
     def _acting_sessions(self):
-        """Each served shard's (transport, session id, envs): a policy goes to every server."""
+        """Each served shard's (transport, session id, envs, position): a policy goes to every server."""
         self._check_open()
-        return [(shard.transport, shard.env.session_id, shard.size) for shard in self.shards
+        return [(shard.transport, shard.env.session_id, shard.size, position) for position, shard in enumerate(self.shards)
                 if not shard.lost and shard.env is not None]
+
+    def _acting_returned(self) -> list:
+        """With on_server_loss="continue", a learner whose servers act makes no step, where lost
+        servers are otherwise tried again: set_policy tries them (see `_reconnect_due`)."""
+        if self.on_server_loss != "continue":
+            return []
+        self._check_open()
+        returned = self._reconnect_due()
+        return [(shard.transport, shard.env.session_id, shard.size, self.shards.index(shard)) for shard in returned]
 
     @property
     def session_ids(self) -> "list[str | None]":

@@ -580,7 +580,7 @@ class RemoteVectorEnv(ActingMixin, VectorEnv):
         return infos
 
     def _acting_sessions(self):
-        return [(self._transport, self.session_id, self.num_envs)]
+        return [(self._transport, self.session_id, self.num_envs, 0)]
 
     def describe(self):
         """The session as the server sees it (steps taken, episodes completed, options)."""
