@@ -13,6 +13,7 @@ it scales (on a cluster each server has its own cores).
 """
 
 import argparse
+import contextlib
 import json
 import statistics
 import subprocess
@@ -80,6 +81,36 @@ def wait_healthy(name: str, timeout: float = 240) -> None:
     raise SystemExit(f"{name} not healthy within {timeout} s")
 
 
+@contextlib.contextmanager
+def server_containers(tag: str, label: str, count: int = 3):
+    """`count` server containers (one worker each) on a private network of their own, aliased
+    radserve-0, radserve-1, ...: yields (network, their addresses); removed on the way out."""
+    prefix = f"radserve-{label}-{uuid.uuid4().hex[:6]}"
+    network = f"{prefix}-net"
+    names = [f"radserve-{i}" for i in range(count)]
+    docker("network", "create", "--internal", network)
+    try:
+        for name in names:
+            docker("run", "-d", "--name", f"{prefix}-{name}", "--network", network, "--network-alias", name,
+                   "-e", "RADSERVE__SIM__WORKERS=1", f"radserve:{tag}", "serve", "--insecure")
+        for name in names:
+            wait_healthy(f"{prefix}-{name}")
+        yield network, [f"{name}:50051" for name in names]
+    finally:
+        containers = docker("ps", "-aq", "--filter", f"name={prefix}", check=False).split()
+        if containers:
+            docker("rm", "-f", *containers, check=False)
+        docker("network", "rm", network, check=False)
+
+
+def in_learner_container(tag: str, network: str, *args: str) -> dict:
+    """Runs a bench script (its path under /bench) in a learner container on `network`: the JSON of
+    its last line."""
+    output = docker("run", "--rm", "--network", network, "-v", f"{ROOT / 'bench'}:/bench:ro",
+                    f"radserve-learner:{tag}", *args)
+    return json.loads(output.splitlines()[-1])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rounds", type=int, default=3)
@@ -92,38 +123,21 @@ def main() -> None:
 
     import radserve
 
-    prefix = f"radserve-bench-{uuid.uuid4().hex[:6]}"
-    network = f"{prefix}-net"
-    names = [f"radserve-{i}" for i in range(3)]
     results: "dict[str, list[dict]]" = {}
-    docker("network", "create", "--internal", network)
-    try:
-        for name in names:
-            docker("run", "-d", "--name", f"{prefix}-{name}", "--network", network, "--network-alias", name,
-                   "-e", "RADSERVE__SIM__WORKERS=1", f"radserve:{args.tag}", "serve", "--insecure")
-        for name in names:
-            wait_healthy(f"{prefix}-{name}")
-        with radserve.LocalServer(workers=1) as local:
-            for round_ in range(args.rounds):
-                for count in ("shm", 0, 1, 2, 3):
-                    if count == "shm":
-                        label, result = "one local process, shared memory", measure(local.address, "shared_memory")
-                    elif count == 0:
-                        label, result = "one local process (no container)", measure(local.address)
-                    else:
-                        label = f"{count} server container{'s' if count > 1 else ''}"
-                        addresses = ",".join(f"{name}:50051" for name in names[:count])
-                        output = docker("run", "--rm", "--network", network, "-v", f"{ROOT / 'bench'}:/bench:ro",
-                                        f"radserve-learner:{args.tag}", "/bench/cluster.py", "--measure", addresses)
-                        result = json.loads(output.splitlines()[-1])
-                    results.setdefault(label, []).append(result)
-                    print(f"round {round_ + 1}: {label}: {result['steps_per_s']:,.0f} steps/s, "
-                          f"{result['batches_per_s']:.1f} batches/s ({result['delivery']})", file=sys.stderr)
-    finally:
-        containers = docker("ps", "-aq", "--filter", f"name={prefix}", check=False).split()
-        if containers:
-            docker("rm", "-f", *containers, check=False)
-        docker("network", "rm", network, check=False)
+    with server_containers(args.tag, "bench") as (network, servers), radserve.LocalServer(workers=1) as local:
+        for round_ in range(args.rounds):
+            for count in ("shm", 0, 1, 2, 3):
+                if count == "shm":
+                    label, result = "one local process, shared memory", measure(local.address, "shared_memory")
+                elif count == 0:
+                    label, result = "one local process (no container)", measure(local.address)
+                else:
+                    label = f"{count} server container{'s' if count > 1 else ''}"
+                    result = in_learner_container(args.tag, network, "/bench/cluster.py", "--measure",
+                                                  ",".join(servers[:count]))
+                results.setdefault(label, []).append(result)
+                print(f"round {round_ + 1}: {label}: {result['steps_per_s']:,.0f} steps/s, "
+                      f"{result['batches_per_s']:.1f} batches/s ({result['delivery']})", file=sys.stderr)
 
     import record  # bench/record.py: the results file (imported here: the learner container needs none of it)
 

@@ -19,7 +19,6 @@ import json
 import statistics
 import sys
 import time
-import uuid
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,35 +133,18 @@ def main() -> None:
 
     sys.path.insert(0, str(ROOT / "bench"))
     import record
-    from cluster import docker, wait_healthy
+    from cluster import in_learner_container, server_containers
 
-    prefix = f"radserve-acting-{uuid.uuid4().hex[:6]}"
-    network = f"{prefix}-net"
-    names = [f"radserve-{i}" for i in range(3)]
-    addresses = ",".join(f"{name}:50051" for name in names)
     results: "dict[tuple[str, str], list[dict]]" = {}
-    docker("network", "create", "--internal", network)
-    try:
-        for name in names:
-            docker("run", "-d", "--name", f"{prefix}-{name}", "--network", network, "--network-alias", name,
-                   "-e", "RADSERVE__SIM__WORKERS=1", f"radserve:{args.tag}", "serve", "--insecure")
-        for name in names:
-            wait_healthy(f"{prefix}-{name}")
+    with server_containers(args.tag, "acting") as (network, servers):
         for round_ in range(args.rounds):
             for config in CONFIGS:
                 for mode in (MODES if round_ % 2 == 0 else MODES[::-1]):
-                    output = docker("run", "--rm", "--network", network, "-v", f"{ROOT / 'bench'}:/bench:ro",
-                                    f"radserve-learner:{args.tag}", "/bench/cluster_acting.py", "--seconds",
-                                    str(args.seconds), "--measure", addresses, config, mode)
-                    result = json.loads(output.splitlines()[-1])
+                    result = in_learner_container(args.tag, network, "/bench/cluster_acting.py", "--seconds",
+                                                  str(args.seconds), "--measure", ",".join(servers), config, mode)
                     results.setdefault((config, mode), []).append(result)
                     print(f"round {round_ + 1}: {config} {mode}-side: {result['steps_per_s']:,.0f} env steps/s, "
                           f"learner CPU {result['learner_cpu_ms']:.3f} ms per env step", file=sys.stderr)
-    finally:
-        containers = docker("ps", "-aq", "--filter", f"name={prefix}", check=False).split()
-        if containers:
-            docker("rm", "-f", *containers, check=False)
-        docker("network", "rm", network, check=False)
 
     rows = []
     for config, (env_id, _, num_envs, head) in CONFIGS.items():
