@@ -263,6 +263,13 @@ class ActedProgress:
         return sum(info.env_steps for info in infos.values()), ended
 
 
+def served_envs(envs) -> int:
+    """How many of `envs` are served now: a sharded env going on without a lost server (its `active`
+    mask) acts on the others' only."""
+    active = getattr(envs, "active", None)
+    return envs.num_envs if active is None else int(np.sum(active))
+
+
 def evaluate_on_servers(envs, model: bytes, head: str, episodes: int, seed: int, deterministic: bool = True) -> "list[float]":
     """`evaluate` for `--actor server`: returns of `episodes` whole episodes the servers act with
     `model` on the vector env `envs`, reset first, with no Step call: each env's first episodes
@@ -274,7 +281,7 @@ def evaluate_on_servers(envs, model: bytes, head: str, episodes: int, seed: int,
     envs.start_acting(eval=deterministic, seed=seed)
     progress = ActedProgress(envs)
     returns: "dict[tuple[int, int], list[float]]" = {}
-    while sum(min(len(r), per_env) for r in returns.values()) < per_env * envs.num_envs:
+    while sum(min(len(r), per_env) for r in returns.values()) < per_env * served_envs(envs):
         time.sleep(0.1)
         for env, episode_return in progress.poll()[1]:
             returns.setdefault(env, []).append(episode_return)
