@@ -149,6 +149,24 @@ class Learner:
             thread.join(60)
         return {**self.drain, "batch_sizes": sorted(self.drain["batch_sizes"])}
 
+    def families(self) -> dict:
+        """A session of each simulator family the server image serves, reset and stepped: the
+        observation shape of each, or the error."""
+        client = radserve.Client(self.addresses)
+        shapes = {}
+        for env_id, options in (("dmc/cartpole-balance", OPTIONS), ("gym/HalfCheetah-v5", {}), ("procgen/bigfish", {})):
+            try:
+                envs = client.make_vec(env_id, num_envs=2, seed=0, autoreset_mode="SameStep", **options)
+                envs.reset(seed=0)
+                for _ in range(3):
+                    obs, *_ = envs.step(envs.action_space.sample())
+                envs.close()
+                shapes[env_id] = list(obs.shape)
+            except radserve.RadServeError as error:
+                shapes[env_id] = str(error)
+        client.close()
+        return shapes
+
     def same_host(self) -> dict:
         """In a server's network namespace: shared-memory acting and batches."""
         client = radserve.Client("127.0.0.1:50051")

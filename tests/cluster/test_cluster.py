@@ -193,6 +193,20 @@ def test_the_same_host_variant_shares_memory(cluster):
         learner.close()
 
 
+def test_every_simulator_family_runs_in_the_server_image(cluster):
+    """dm_control, gymnasium MuJoCo and ProcGen each create, reset and step in a server container
+    (ProcGen's libenv.so needs the system's GLib, which the image once lacked)."""
+    if docker("inspect", "-f", "{{.State.Running}}", container("radserve-0")) != "true":
+        start_server("radserve-0")
+    wait_healthy("radserve-0")
+    learner = LearnerContainer("--network", NETWORK, addresses="radserve-0:50051", name="learner-families")
+    try:
+        assert learner.ask("families") == {"dmc/cartpole-balance": [2, 9, 64, 64], "gym/HalfCheetah-v5": [2, 17],
+                                           "procgen/bigfish": [2, 3, 64, 64]}
+    finally:
+        learner.close()
+
+
 def test_compose_brings_up_healthy_servers_and_a_learner():
     """docker/compose.yaml: the servers become healthy, the learner (random actions, the torch-less
     learner image) runs against all three, and `down -v` leaves nothing."""
