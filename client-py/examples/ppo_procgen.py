@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 import radserve
 from radserve.torch import to_tensors
-from runs import (ActedProgress, RunLog, as_list, episode_stats, evaluate, evaluate_on_servers, evaluation_view, parse_args, plot_curves,
+from runs import (ActedProgress, RunLog, episode_stats, evaluate, evaluate_on_servers, evaluation_view, parse_args, plot_curves,
                   run_name, select_device)
 
 
@@ -296,12 +296,13 @@ def train(args: Args, address: str) -> RunLog:
         envs.set_policy(policy_model(agent, obs_shape), head="categorical")
         envs.start_acting(steps_per_env=args.num_steps, seed=args.seed * 1_000_003 + update)
         progress.restarted()
-        ended, acting = [], True
-        while acting:
+        ended = []
+        while True:
             time.sleep(0.02)
-            acting = any(info is not None and info.state == "acting" for info in as_list(envs.acting()))
             acted, new = progress.poll()
             ended += [(steps + acted, {"charts/episodic_return": r}) for _, r in new]
+            if not progress.acting:  # that answer already held the last episodes
+                break
         raw_rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
         raw_dones = np.zeros((args.num_steps, args.num_envs), dtype=bool)
         last_obs = np.zeros((args.num_envs, *obs_shape), dtype=np.uint8)

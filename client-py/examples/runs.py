@@ -207,8 +207,12 @@ def evaluate(envs, policy: Callable[[np.ndarray], np.ndarray], episodes: int) ->
             if counted[i] < per_env:
                 returns[i].append(episode_return)
                 counted[i] += 1
-    ordered = [r for round_ in range(per_env) for env_returns in returns for r in env_returns[round_:round_ + 1]]
-    return ordered[:episodes]
+    return in_rounds(returns, per_env)[:episodes]
+
+
+def in_rounds(returns: "list[list[float]]", per_env: int) -> "list[float]":
+    """Each env's first `per_env` returns (envs in order), the first of every env, then the second..."""
+    return [r for round_ in range(per_env) for env_returns in returns for r in env_returns[round_:round_ + 1]]
 
 
 def _ended_episodes(infos: dict) -> "list[tuple[int, tuple[float, int]]]":
@@ -238,6 +242,12 @@ class ActedProgress:
 
     def __init__(self, envs) -> None:
         self.envs, self.seen = envs, {}
+        self.infos: "dict[int, object]" = {}  # the last poll's answers by server position
+
+    @property
+    def acting(self) -> bool:
+        """Whether an actor was acting at the last poll."""
+        return any(info.state == "acting" for info in self.infos.values())
 
     def restarted(self) -> None:
         """A new start_acting: the actors count from zero again."""
@@ -246,6 +256,7 @@ class ActedProgress:
     def poll(self) -> "tuple[int, list[tuple[tuple[int, int], float]]]":
         # None: a server lost now (a sharded env going on without it) or one with no policy yet.
         infos = {server: info for server, info in enumerate(as_list(self.envs.acting())) if info is not None}
+        self.infos = infos
         failed = [info.error for info in infos.values() if info.state == "failed"]
         if failed:
             raise RuntimeError(f"a server's actor failed: {failed[0]}")
@@ -286,20 +297,19 @@ def evaluate_on_servers(envs, model: bytes, head: str, episodes: int, seed: int,
         for env, episode_return in progress.poll()[1]:
             returns.setdefault(env, []).append(episode_return)
     envs.stop_acting()
-    ordered = [r for round_ in range(per_env) for env in sorted(returns) for r in returns[env][round_:round_ + 1]]
-    return ordered[:episodes]
+    return in_rounds([returns[env] for env in sorted(returns)], per_env)[:episodes]
 
 
 def learn_while_servers_act(envs, batches, *, update: Callable, policy: Callable[[], bytes], head: str,
                             policy_every: int, total_env_steps: int, eval_every: int, evaluate_at: Callable[[int], float],
-                            log: "RunLog", env_steps_per_acted: int = 1, log_every: int = 50) -> int:
+                            log: "RunLog", env_steps_per_acted: int = 1, log_every: int = 50) -> "tuple[int, float]":
     """`--actor server`'s loop of an off-policy learner (the SAC examples), once the servers act on
     `envs`: `update(batch)` on every batch of `batches` (a stream whose rate limiter matches the
     actors'), `policy()` (ONNX bytes) sent as a new version every `policy_every` updates, the actors
     polled every 10 updates (their episodes logged, a failed one raised), `evaluate_at(env_steps)`
     every `eval_every` env steps (`env_steps_per_acted` env steps per acted step: the action repeat)
     and at the end, which is the first poll past `total_env_steps`; the actors are stopped then.
-    Returns the env steps acted."""
+    Returns the env steps acted and the last evaluation's return."""
     from tqdm import tqdm
 
     progress = ActedProgress(envs)
@@ -335,10 +345,10 @@ def learn_while_servers_act(envs, batches, *, update: Callable, policy: Callable
                 break
         envs.stop_acting()
         if evaluated != env_steps:
-            evaluate_at(env_steps)
+            last_eval = evaluate_at(env_steps)
     finally:
         bar.close()
-    return env_steps
+    return env_steps, last_eval
 
 
 def run_name(env_id: str, algorithm: str, seed: int) -> str:

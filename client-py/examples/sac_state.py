@@ -35,7 +35,7 @@ from tqdm import tqdm
 import radserve
 from radserve.torch import to_tensors
 from runs import (RunLog, episode_stats, evaluate, evaluate_on_servers, learn_while_servers_act, parse_args, plot_curves,
-                  read_metrics, run_name, select_device)
+                  run_name, select_device)
 
 
 @dataclass
@@ -309,13 +309,13 @@ def train(args: Args, address: str) -> RunLog:
 
     if args.actor == "server":
         try:
-            steps = train_server_side(args, client, envs, eval_envs, agent, log, device)
+            steps, last_eval = train_server_side(args, client, envs, eval_envs, agent, log, device)
         finally:
             envs.close()
             eval_envs.close()
             client.close()
             log.close()
-        return finish(args, log, steps)
+        return finish(args, log, steps, last_eval)
 
     stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.aug, seed=args.seed,
                                    prefetch=args.prefetch, min_size=args.learning_starts, delivery=args.delivery)
@@ -354,17 +354,16 @@ def train(args: Args, address: str) -> RunLog:
         eval_envs.close()
         client.close()
         log.close()
-    return finish(args, log, vector_steps * args.num_envs)
+    return finish(args, log, vector_steps * args.num_envs, last_eval)
 
 
-def finish(args: Args, log: RunLog, steps: int) -> RunLog:
+def finish(args: Args, log: RunLog, steps: int, final: float) -> RunLog:
     curve = plot_curves({f"SAC ({args.aug})": log.dir}, log.dir / "curve.png", title=f"{args.env}, aug {args.aug}")
-    final = read_metrics(log.dir)["charts/eval_return"][1][-1]
     print(f"final evaluation return {final:.1f} after {steps} steps; curve: {curve}")
     return log
 
 
-def train_server_side(args: Args, client, envs, eval_envs, agent: Sac, log: RunLog, device) -> int:
+def train_server_side(args: Args, client, envs, eval_envs, agent: Sac, log: RunLog, device) -> "tuple[int, float]":
     """--actor server: the servers act with the exported actor (uniform random actions for the first
     learning_starts steps) and record into the replay; this process streams batches, updates, and
     sends the actor every `policy_every` updates. The rate limiter on both sides keeps one update of
@@ -390,11 +389,10 @@ def train_server_side(args: Args, client, envs, eval_envs, agent: Sac, log: RunL
                                    prefetch=args.prefetch, min_size=min_size, samples_per_insert=ratio,
                                    error_buffer=slack, delivery=args.delivery)
     with stream:
-        steps = learn_while_servers_act(envs, stream, update=lambda batch: agent.update(to_tensors(batch, device)),
+        return learn_while_servers_act(envs, stream, update=lambda batch: agent.update(to_tensors(batch, device)),
                                         policy=policy, head=head, policy_every=args.policy_every,
                                         total_env_steps=args.total_steps, eval_every=args.eval_every,
                                         evaluate_at=run_evaluation, log=log, log_every=args.log_every)
-    return steps
 
 
 def record_evaluation(args: Args, log: RunLog, agent: Sac, steps: int, returns: "list[float]") -> float:
