@@ -192,7 +192,10 @@ class ActingMixin:
         for transport, session_id, _, _ in self._acting_sessions():
             answer = transport.call("SetPolicy", set_policy_request(session_id, model, head, version, noise))
         self._policy_version = version
-        if self._acting_settings is not None:
+        # Only while the others act: an actor that ended on its own budget (a PPO rollout's
+        # steps_per_env) is started again by the learner, which would find this one acting.
+        if returned and self._acting_settings is not None and any(
+                info is not None and info.state == "acting" for info in self._acting_answers()):
             for target in returned:
                 self._start_on(target, self._acting_settings)
         return loaded(answer)
@@ -236,8 +239,12 @@ class ActingMixin:
     def acting(self) -> "list[ActingInfo | None] | ActingInfo | None":
         """The actor's state on each server, in the order of the servers (None where no policy was
         ever set, and for a server lost now)."""
+        answers = self._acting_answers()
+        return answers[0] if len(answers) == 1 else answers
+
+    def _acting_answers(self) -> "list[ActingInfo | None]":
         answers: "list[ActingInfo | None]" = [None] * self._acting_servers
         for transport, session_id, _, position in self._acting_sessions():
             info = transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=session_id))
             answers[position] = ActingInfo.from_proto(info.acting) if info.HasField("acting") else None
-        return answers[0] if len(answers) == 1 else answers
+        return answers
