@@ -7,6 +7,7 @@ sharded learner that survives the loss (`on_server_loss="continue"`) gets the se
 batches back from the restored replay, without ever stopping.
 """
 
+import os
 import signal
 import time
 import warnings
@@ -194,5 +195,115 @@ def test_a_failed_snapshot_is_a_warning_and_a_metric_and_the_previous_one_stays(
             envs = client.make_vec(ENV, num_envs=2, seed=0, replay_capacity=1000, name="metered",
                                    autoreset_mode="SameStep")
             assert envs.info.replay["snapshot"]["restored_transitions"] == latest["size"]
+    finally:
+        server.stop()
+
+
+def _vm_hwm_bytes(pid):
+    """The peak resident memory of process `pid` (VmHWM)."""
+    with open(f"/proc/{pid}/status") as status:
+        line = next(line for line in status if line.startswith("VmHWM:"))
+    return int(line.split()[1]) * 1024
+
+
+def _named(client, name="hostile"):
+    return client.make_vec(ENV, num_envs=2, seed=1, replay_capacity=500, name=name, autoreset_mode="SameStep")
+
+
+def test_a_hostile_snapshot_directory_is_never_followed_and_shutdown_finishes(tmp_path):
+    """What a tenant with write access under snapshot_dir could plant (docs/security.md): a MANIFEST
+    linked to /proc/self/pagemap (claims 0 bytes, reads without end), a FIFO in place of a segment
+    (opening it waits for a writer for ever), a session directory that is a link to another
+    directory, and links at the names the next writes use. Each is refused or replaced at once, the
+    server's memory stays put, nothing outside the directory is read, written or removed, and a
+    SIGTERM with a FIFO planted ends the server within its drain time."""
+    snapshots = tmp_path / "snapshots"
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    victim = outside / "victim"
+    victim.write_bytes(b"precious")
+    server = _server(snapshots, RADSERVE__SERVER__DRAIN_TIMEOUT_S="5")
+    try:
+        with radserve.Client(server.address) as client:
+            envs = _named(client)
+            envs.reset(seed=1)
+            _steps(envs, 60)
+            saved = _snapshot_of_everything(client, envs.session_id)
+        _kill(server)
+        directory = next(snapshots.iterdir()) / "hostile"
+        assert (directory / "seg-00000001.rsnap").is_file()
+
+        # The session directory a link to a copy elsewhere (with a stray the restore would delete).
+        elsewhere = outside / "elsewhere"
+        directory.rename(elsewhere)
+        directory.symlink_to(elsewhere)
+        (elsewhere / "MANIFEST.tmp").write_bytes(b"not the server's")
+        (elsewhere / "seg-00000099.rsnap").write_bytes(b"not the server's either")
+        before = sorted((path.name, path.read_bytes()) for path in elsewhere.iterdir())
+        server = _server(snapshots, RADSERVE__SERVER__DRAIN_TIMEOUT_S="5")
+        with radserve.Client(server.address) as client:
+            envs = _named(client)
+            assert envs.info.replay["size"] == 0, "a linked directory is set aside, never restored from"
+            assert sorted((path.name, path.read_bytes()) for path in elsewhere.iterdir()) == before
+            assert any(path.is_symlink() and path.name.startswith("hostile.rejected-") for path in directory.parent.iterdir())
+            envs.reset(seed=1)
+            _steps(envs, 10)
+            _snapshot_of_everything(client, envs.session_id)
+            assert directory.is_dir() and not directory.is_symlink(), "a directory of its own in the link's place"
+            # Links at the names of the next segment and of the manifest's temporary file.
+            sequences = sorted(int(path.name[4:12]) for path in directory.glob("seg-*.rsnap"))
+            (directory / f"seg-{sequences[-1] + 1:08d}.rsnap").symlink_to(victim)
+            (directory / "MANIFEST.tmp").symlink_to(victim)
+            _steps(envs, 10)
+            _snapshot_of_everything(client, envs.session_id)
+            assert victim.read_bytes() == b"precious"
+            assert not [path for path in directory.iterdir() if path.is_symlink()]
+        _kill(server)
+
+        # The manifest a link to /proc/self/pagemap, then a FIFO in place of a segment.
+        manifest = directory / "MANIFEST"
+        good = manifest.read_bytes()
+        manifest.unlink()
+        manifest.symlink_to("/proc/self/pagemap")
+        server = _server(snapshots, RADSERVE__SERVER__DRAIN_TIMEOUT_S="5")
+        with radserve.Client(server.address) as client:
+            started = time.monotonic()
+            envs = _named(client)
+            assert envs.info.replay["size"] == 0 and time.monotonic() - started < 10
+            assert _vm_hwm_bytes(server.process.pid) < 1 << 30, "the server read the link"
+            envs.close()
+        _kill(server)
+        aside = next(path for path in directory.parent.iterdir() if path.name.startswith("hostile.rejected-") and path.is_dir())
+        aside.rename(directory.with_name("restored"))
+        restored = directory.with_name("restored")
+        for leftover in directory.iterdir():
+            leftover.unlink()
+        directory.rmdir()
+        restored.rename(directory)
+        (directory / "MANIFEST").unlink()
+        (directory / "MANIFEST").write_bytes(good)
+        segment = sorted(directory.glob("seg-*.rsnap"))[0]
+        segment.unlink()
+        os.mkfifo(segment)
+        server = _server(snapshots, RADSERVE__SERVER__DRAIN_TIMEOUT_S="5")
+        with radserve.Client(server.address) as client:
+            started = time.monotonic()
+            envs = _named(client)
+            assert envs.info.replay["size"] == 0 and time.monotonic() - started < 10, "a FIFO is refused at once"
+            envs.reset(seed=1)
+            _steps(envs, 5)
+            _snapshot_of_everything(client, envs.session_id)
+            # A FIFO planted where the next snapshot writes (the final one, at SIGTERM, or the
+            # periodic one before it): SIGTERM still ends the server in time.
+            sequences = sorted(int(path.name[4:12]) for path in directory.glob("seg-*.rsnap"))
+            fifo = directory / f"seg-{sequences[-1] + 1:08d}.rsnap"
+            os.mkfifo(fifo)
+            _steps(envs, 5)
+        started = time.monotonic()
+        server.process.send_signal(signal.SIGTERM)
+        assert server.process.wait(timeout=15) == 0
+        assert time.monotonic() - started < 8, "shutdown outlived its drain time"
+        assert fifo.is_file() and not fifo.is_fifo(), "the FIFO was replaced by the segment"
+        assert saved["size"] > 0
     finally:
         server.stop()

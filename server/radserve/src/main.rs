@@ -165,7 +165,11 @@ fn main() -> ExitCode {
         )
         .init();
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("tokio runtime");
-    match runtime.block_on(run(cli.command)) {
+    let result = runtime.block_on(run(cli.command));
+    // Dropping the runtime would wait for every blocking task, and one may be stuck on a file (a
+    // stalled disk under snapshot_dir): the drain deadline has passed by now, so it is not waited on.
+    runtime.shutdown_timeout(std::time::Duration::from_secs(1));
+    match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {
             eprintln!("radserve: {error:#}");

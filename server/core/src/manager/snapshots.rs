@@ -4,12 +4,12 @@
 //! session closes or the server shuts down, and read back when the same owner creates a session of
 //! the same name, env id and options after a restart (`radserve_replay::snapshot` has the format).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, RwLock};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use radserve_replay::snapshot::{self, RestoreReport, SessionCounters, SnapshotError, SnapshotWriter, Throttle};
+use radserve_replay::snapshot::{self, RestoreReport, SessionCounters, SnapshotError, SnapshotPath, SnapshotWriter, Throttle};
 use radserve_replay::{BufferKind, ReplayBuffer};
 use serde::{Deserialize, Serialize};
 use tracing::{info, warn};
@@ -132,8 +132,10 @@ impl Snapshots {
         config.snapshot_dir.is_some().then(|| Snapshots { config, hurry: Arc::default() })
     }
 
-    fn dir(&self, owner: &str, name: &str) -> PathBuf {
-        self.config.snapshot_dir.as_ref().expect("snapshots have a directory").join(owner_dir(owner)).join(name)
+    /// `<snapshot_dir>/<owner, hex>/<name>`, opened below `snapshot_dir` without following a symlink.
+    fn dir(&self, owner: &str, name: &str) -> Result<SnapshotPath, CoreError> {
+        let root = self.config.snapshot_dir.as_ref().expect("snapshots have a directory");
+        SnapshotPath::new(root, &[&owner_dir(owner), name]).map_err(|error| CoreError::Host(format!("the snapshot directory of '{name}': {error}")))
     }
 }
 
@@ -170,7 +172,7 @@ impl SessionManager {
         if replay.read().expect("replay lock").layout().kind != BufferKind::Replay {
             return Ok(None);
         }
-        let (dir, identity) = (snapshots.dir(owner, name), identity(session));
+        let (dir, identity) = (snapshots.dir(owner, name)?, identity(session));
         let policy = snapshots.config.on_bad_snapshot;
         let metrics = self.metrics.clone();
         let counted = metrics.clone();
@@ -335,7 +337,7 @@ impl Snapshotted {
 /// "empty") or returned as the error ("refuse").
 fn restore_or_start(
     replay: &RwLock<ReplayBuffer>,
-    dir: &Path,
+    dir: &SnapshotPath,
     identity: &str,
     policy: OnBadSnapshot,
     metrics: &CoreMetrics,

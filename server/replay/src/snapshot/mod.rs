@@ -17,11 +17,12 @@
 //! ring of frames while its blocks are written), the lost frames are skipped: the reader sees a gap
 //! and the restored buffer samples nothing that reaches below it.
 //!
-//! Reading trusts nothing: sizes are checked against the layout the session was created with (its
-//! memory already reserved) before anything is read, every block's CRC before it is applied, and any
-//! failure leaves the buffer empty with an error that names the file.
+//! Reading trusts nothing: files are opened relative to the directory's descriptor, never through a
+//! symlink, and read only when they are regular files (`dir.rs`); sizes are checked against the
+//! layout the session was created with (its memory already reserved) and the format's own limits
+//! before anything is read, the counters against the frames the segments hold, every block's CRC
+//! before it is applied, and any failure leaves the buffer empty with an error that names the file.
 
-use std::fs;
 use std::io;
 use std::path::{Path, PathBuf};
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -30,9 +31,11 @@ use serde::{Deserialize, Serialize};
 
 use crate::buffer::ReplayLayout;
 
+mod dir;
 mod read;
 mod write;
 
+pub use dir::SnapshotPath;
 pub use read::{restore, RestoreReport};
 pub use write::{SnapshotReport, SnapshotWriter, Throttle};
 
@@ -46,6 +49,10 @@ const MANIFEST_MAGIC: &[u8; 8] = b"RSNPMANI";
 const SEGMENT_MAGIC: &[u8; 8] = b"RSNPSEGM";
 /// A manifest lists at most MAX_SEGMENTS segments and one count per env: far below this.
 const MAX_MANIFEST_BYTES: u64 = 1 << 20;
+/// The largest value a counter of a snapshot may hold (frames per env, inserts, samples, steps):
+/// 2^48 is ~9,000 years of a million env steps per second, and far enough below 2^64 that nothing
+/// restored from a forged manifest can wrap when the session counts on.
+const MAX_COUNTER: u64 = 1 << 48;
 /// Bytes of the frames and metadata of one block (at least one record, whatever its size).
 const BLOCK_BYTES: usize = 4 << 20;
 /// magic, version, sequence, num_envs, frame_bytes, action_bytes, CRC.
@@ -149,14 +156,14 @@ fn block_records(layout: &ReplayLayout) -> usize {
 }
 
 /// Moves a snapshot that could not be used out of the way (`<dir>.rejected-<unix time>`), so a new one
-/// can start in its place and nothing is deleted; the new path.
-pub fn set_aside(dir: &Path) -> io::Result<PathBuf> {
+/// can start in its place and nothing is deleted; the new path. A symlink planted as the snapshot's
+/// directory is moved itself, never what it points to.
+pub fn set_aside(dir: &SnapshotPath) -> io::Result<PathBuf> {
     let stamp = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |since| since.as_nanos());
-    let mut name = dir.file_name().unwrap_or_default().to_os_string();
-    name.push(format!(".rejected-{stamp}"));
-    let target = dir.with_file_name(name);
-    fs::rename(dir, &target)?;
-    Ok(target)
+    let name = format!("{}.rejected-{stamp}", dir.name());
+    let parent = dir.open_parent(false)?.ok_or_else(|| io::Error::new(io::ErrorKind::NotFound, "the snapshot's directory is gone"))?;
+    parent.rename(dir.name(), &name)?;
+    Ok(parent.path().join(name))
 }
 
 #[cfg(test)]

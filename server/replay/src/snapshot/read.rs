@@ -1,15 +1,16 @@
-//! Reading a snapshot back into a new buffer, trusting nothing: sizes checked against the session's
-//! layout before anything is read, every block's CRC before it is applied.
+//! Reading a snapshot back into a new buffer, trusting nothing: files opened as regular files only,
+//! never through a symlink; sizes checked against the session's layout and the format's limits
+//! before anything is read, the counters against the frames, every block's CRC before it is applied.
 
-use std::fs::{self, File};
 use std::io::{self, Read};
 use std::path::Path;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+use super::dir::{SnapshotDir, SnapshotPath};
 use super::{
     block_records, segment_name, Manifest, Result, SessionCounters, SnapshotError, SnapshotWriter, BLOCK_HEADER_BYTES,
-    FORMAT_VERSION, MANIFEST, MANIFEST_MAGIC, MANIFEST_TMP, MAX_MANIFEST_BYTES, MAX_SEGMENTS, SEGMENT_HEADER_BYTES,
-    SEGMENT_MAGIC,
+    FORMAT_VERSION, MANIFEST, MANIFEST_MAGIC, MANIFEST_TMP, MAX_COUNTER, MAX_MANIFEST_BYTES, MAX_SEGMENTS,
+    SEGMENT_HEADER_BYTES, SEGMENT_MAGIC,
 };
 use crate::buffer::{ReplayBuffer, ReplayCounters, ReplayLayout, FIRST_OF_EPISODE, TERMINATED, TRUNCATED};
 
@@ -31,14 +32,17 @@ pub struct RestoreReport {
 /// Fill `buffer` (new, empty, made with the layout the snapshot must have) from the snapshot in
 /// `dir`; None when there is none. Episodes in progress when it was taken end as truncated. On an
 /// error the buffer is left empty.
-pub fn restore(dir: &Path, identity: &str, buffer: &mut ReplayBuffer) -> Result<Option<(RestoreReport, SnapshotWriter)>> {
+pub fn restore(dir: &SnapshotPath, identity: &str, buffer: &mut ReplayBuffer) -> Result<Option<(RestoreReport, SnapshotWriter)>> {
     let started = Instant::now();
-    let manifest_path = dir.join(MANIFEST);
-    if !manifest_path.is_file() {
-        return Ok(None);
-    }
-    let result = read_manifest(&manifest_path, identity, &buffer.layout).and_then(|manifest| {
-        let (bytes, truncated_episodes) = read_segments(dir, &manifest, buffer)?;
+    let Some(open) = dir.open(false).map_err(|error| SnapshotError::io(&dir.path(), error))? else { return Ok(None) };
+    let manifest_path = open.path().join(MANIFEST);
+    let contents = match open.read_bounded(MANIFEST, MAX_MANIFEST_BYTES) {
+        Ok(Some(contents)) => contents,
+        Ok(None) => return Ok(None),
+        Err(error) => return Err(SnapshotError::io(&manifest_path, error)),
+    };
+    let result = read_manifest(&manifest_path, &contents, identity, &buffer.layout, buffer.slots as u64).and_then(|manifest| {
+        let (bytes, truncated_episodes) = read_segments(&open, &manifest, buffer)?;
         Ok((manifest, bytes, truncated_episodes))
     });
     let (manifest, bytes, truncated_episodes) = match result {
@@ -48,7 +52,7 @@ pub fn restore(dir: &Path, identity: &str, buffer: &mut ReplayBuffer) -> Result<
             return Err(error);
         }
     };
-    remove_strays(dir, &manifest);
+    remove_strays(&open, &manifest);
     let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |since| since.as_secs());
     let report = RestoreReport {
         transitions: buffer.len(),
@@ -59,30 +63,31 @@ pub fn restore(dir: &Path, identity: &str, buffer: &mut ReplayBuffer) -> Result<
         duration: started.elapsed(),
     };
     let next_sequence = manifest.segments.last().map_or(1, |last| last.sequence + 1);
-    let writer = SnapshotWriter { dir: dir.to_path_buf(), layout: buffer.layout, manifest, next_sequence };
+    let writer = SnapshotWriter { dir: dir.clone(), layout: buffer.layout, manifest, next_sequence };
     Ok(Some((report, writer)))
 }
 
 /// Segments a crash left behind unlisted, and a half-written manifest.
-fn remove_strays(dir: &Path, manifest: &Manifest) {
-    let Ok(entries) = fs::read_dir(dir) else { return };
-    for entry in entries.flatten() {
-        let name = entry.file_name().to_string_lossy().into_owned();
+fn remove_strays(dir: &SnapshotDir, manifest: &Manifest) {
+    let Ok(names) = dir.names() else { return };
+    for name in names {
         let listed = manifest.segments.iter().any(|segment| segment_name(segment.sequence) == name);
         if (name.starts_with("seg-") && name.ends_with(".rsnap") && !listed) || name == MANIFEST_TMP {
-            let _ = fs::remove_file(entry.path());
+            let _ = dir.remove(&name);
         }
     }
 }
 
-fn read_manifest(path: &Path, identity: &str, layout: &ReplayLayout) -> Result<Manifest> {
+/// The most bytes one segment of `layout` can take: every frame the ring holds (`slots` per env),
+/// each in a block of its own.
+fn max_segment_bytes(layout: &ReplayLayout, slots: u64) -> u64 {
+    let record = (layout.snapshot_record_bytes() + BLOCK_HEADER_BYTES + 4) as u64;
+    (SEGMENT_HEADER_BYTES as u64).saturating_add(slots.saturating_mul(layout.num_envs as u64).saturating_mul(record))
+}
+
+fn read_manifest(path: &Path, contents: &[u8], identity: &str, layout: &ReplayLayout, slots: u64) -> Result<Manifest> {
     let invalid = |message: String| SnapshotError::new(path, message);
-    let length = fs::metadata(path).map_err(|error| SnapshotError::io(path, error))?.len();
-    if length > MAX_MANIFEST_BYTES {
-        return Err(invalid(format!("{length} bytes, more than a manifest can be ({MAX_MANIFEST_BYTES})")));
-    }
-    let contents = fs::read(path).map_err(|error| SnapshotError::io(path, error))?;
-    let manifest = parse_manifest(&contents).map_err(invalid)?;
+    let manifest = parse_manifest(contents).map_err(invalid)?;
     let expected = Manifest::empty(identity, layout);
     if manifest.identity != expected.identity {
         return Err(invalid(format!(
@@ -108,7 +113,49 @@ fn read_manifest(path: &Path, identity: &str, layout: &ReplayLayout) -> Result<M
     if manifest.segments.windows(2).any(|pair| pair[0].sequence >= pair[1].sequence) {
         return Err(invalid("its segments are not in ascending order".into()));
     }
+    let most = max_segment_bytes(layout, slots);
+    if let Some(segment) = manifest.segments.iter().find(|segment| segment.bytes > most || segment.sequence >= MAX_COUNTER) {
+        return Err(invalid(format!(
+            "it lists segment {} of {} bytes; a segment of this buffer has at most {most} bytes and a sequence below {MAX_COUNTER}",
+            segment.sequence, segment.bytes
+        )));
+    }
+    check_counters(&manifest).map_err(invalid)?;
     Ok(manifest)
+}
+
+/// The manifest's counters against the frames it counts: none past [`MAX_COUNTER`] (so none can
+/// wrap as the session counts on), no more transitions inserted than frames written, no more
+/// batches than samples, no more episodes ended than env steps.
+fn check_counters(manifest: &Manifest) -> std::result::Result<(), String> {
+    let session = &manifest.session;
+    let counters = &manifest.counters;
+    let named = [
+        ("frames written of an env", manifest.written.iter().copied().max().unwrap_or(0)),
+        ("inserts", counters.inserts),
+        ("samples", counters.samples),
+        ("batches", counters.batches),
+        ("step calls", session.step_calls),
+        ("env steps", session.total_env_steps),
+        ("episodes", session.episodes_completed),
+    ];
+    if let Some((name, value)) = named.iter().find(|(_, value)| *value > MAX_COUNTER) {
+        return Err(format!("its {name} counter is {value}, past what a snapshot can count ({MAX_COUNTER}): forged or corrupted"));
+    }
+    let frames: u64 = manifest.written.iter().sum();
+    if counters.inserts > frames {
+        return Err(format!("it counts {} transitions inserted but only {frames} frames written: forged or corrupted", counters.inserts));
+    }
+    if counters.batches > counters.samples {
+        return Err(format!("it counts {} batches but {} samples: forged or corrupted", counters.batches, counters.samples));
+    }
+    if session.episodes_completed > session.total_env_steps {
+        return Err(format!(
+            "it counts {} episodes ended in {} env steps: forged or corrupted",
+            session.episodes_completed, session.total_env_steps
+        ));
+    }
+    Ok(())
 }
 
 /// The manifest in `contents`, checked for what it is, its version and its checksum.
@@ -141,7 +188,7 @@ fn le_u64(bytes: &[u8], at: usize) -> u64 {
 }
 
 /// Apply every segment of `manifest` to `buffer`; (bytes read, episodes ended as truncated).
-fn read_segments(dir: &Path, manifest: &Manifest, buffer: &mut ReplayBuffer) -> Result<(u64, usize)> {
+fn read_segments(dir: &SnapshotDir, manifest: &Manifest, buffer: &mut ReplayBuffer) -> Result<(u64, usize)> {
     let layout = buffer.layout;
     let (num_envs, slots) = (layout.num_envs, buffer.slots as u64);
     let record_bytes = layout.snapshot_record_bytes();
@@ -151,10 +198,17 @@ fn read_segments(dir: &Path, manifest: &Manifest, buffer: &mut ReplayBuffer) -> 
     let mut block = vec![0u8; per_block * record_bytes + 4];
     let mut total = 0u64;
     for segment in &manifest.segments {
-        let path = dir.join(segment_name(segment.sequence));
+        let name = segment_name(segment.sequence);
+        let path = dir.path().join(&name);
         let invalid = |message: String| SnapshotError::new(&path, message);
-        let mut file = File::open(&path).map_err(|error| SnapshotError::io(&path, error))?;
-        let length = file.metadata().map_err(|error| SnapshotError::io(&path, error))?.len();
+        let (file, length) = match dir.open_regular(&name) {
+            Ok(Some(opened)) => opened,
+            Ok(None) => return Err(invalid("missing: the manifest lists it".into())),
+            Err(error) => return Err(SnapshotError::io(&path, error)),
+        };
+        // Reads stop at the length the manifest records (bounded by the layout), whatever the file
+        // grows to meanwhile.
+        let mut file = file.take(segment.bytes);
         if length != segment.bytes {
             return Err(invalid(format!("{length} bytes, the manifest says {}: truncated or replaced", segment.bytes)));
         }
@@ -230,7 +284,7 @@ fn read_segments(dir: &Path, manifest: &Manifest, buffer: &mut ReplayBuffer) -> 
     }
     if let Some(env) = (0..num_envs).find(|&env| hi[env] != manifest.written[env]) {
         return Err(SnapshotError::new(
-            &dir.join(MANIFEST),
+            &dir.path().join(MANIFEST),
             format!("it counts {} frames of env {env}; its segments hold {}", manifest.written[env], hi[env]),
         ));
     }

@@ -87,6 +87,11 @@ fn assert_same_transitions(original: &ReplayBuffer, restored: &ReplayBuffer) -> 
 }
 
 
+/// The snapshot directory `path` (a child of a temporary directory, which is its root).
+fn at(path: &Path) -> SnapshotPath {
+    SnapshotPath::new(path.parent().unwrap(), &[path.file_name().unwrap().to_str().unwrap()]).unwrap()
+}
+
 fn session(step_calls: u64) -> SessionCounters {
     SessionCounters { step_calls, total_env_steps: step_calls * 3, episodes_completed: step_calls / 7 }
 }
@@ -97,7 +102,7 @@ fn a_restored_buffer_samples_what_the_original_held() {
     let path = dir.path().join("alice").join("run-1");
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let original = RwLock::new(ReplayBuffer::new(layout(300)).unwrap());
-    let mut writer = SnapshotWriter::new(&path, IDENTITY, layout(300)).unwrap();
+    let mut writer = SnapshotWriter::new(&at(&path), IDENTITY, layout(300)).unwrap();
     let mut step_calls = 0;
     let mut reports = Vec::new();
     // Fill past the ring several times, with a snapshot after each chunk: the first is full, the
@@ -121,7 +126,7 @@ fn a_restored_buffer_samples_what_the_original_held() {
     }).sum::<u64>());
 
     let mut restored = ReplayBuffer::new(layout(300)).unwrap();
-    let (report, mut resumed) = restore(&path, IDENTITY, &mut restored).unwrap().expect("a snapshot");
+    let (report, mut resumed) = restore(&at(&path), IDENTITY, &mut restored).unwrap().expect("a snapshot");
     let original = original.into_inner().unwrap();
     assert_eq!(report.transitions, original.len(), "{report:?}");
     assert_eq!(report.session, session(step_calls));
@@ -138,7 +143,7 @@ fn a_restored_buffer_samples_what_the_original_held() {
     let report = resumed.write(&restored, session(step_calls), &mut Throttle::new(0, None)).unwrap();
     assert_eq!(report.frames, 25 * 3);
     let mut again = ReplayBuffer::new(layout(300)).unwrap();
-    restore(&path, IDENTITY, &mut again).unwrap().expect("a snapshot");
+    restore(&at(&path), IDENTITY, &mut again).unwrap().expect("a snapshot");
     assert!(assert_same_transitions(&restored.into_inner().unwrap(), &again) > 200);
 }
 
@@ -146,9 +151,9 @@ fn a_restored_buffer_samples_what_the_original_held() {
 fn no_snapshot_is_none_and_a_rollout_has_none() {
     let dir = tempfile::tempdir().unwrap();
     let mut buffer = ReplayBuffer::new(layout(30)).unwrap();
-    assert!(restore(&dir.path().join("absent"), IDENTITY, &mut buffer).unwrap().is_none());
+    assert!(restore(&at(&dir.path().join("absent")), IDENTITY, &mut buffer).unwrap().is_none());
     let rollout = ReplayLayout::rollout(8, 3, 1, 4, 4);
-    assert!(SnapshotWriter::new(dir.path(), IDENTITY, rollout).unwrap_err().to_string().contains("only replay buffers"));
+    assert!(SnapshotWriter::new(&at(&dir.path().join("rollout")), IDENTITY, rollout).unwrap_err().to_string().contains("only replay buffers"));
 }
 
 /// A buffer being recorded and its snapshots, in a temporary directory.
@@ -165,7 +170,7 @@ impl Recording {
     fn new(seed: u64, capacity: usize) -> Recording {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("run");
-        let writer = SnapshotWriter::new(&path, IDENTITY, layout(capacity)).unwrap();
+        let writer = SnapshotWriter::new(&at(&path), IDENTITY, layout(capacity)).unwrap();
         let buffer = RwLock::new(ReplayBuffer::new(layout(capacity)).unwrap());
         Recording { _dir: dir, path, rng: ChaCha8Rng::seed_from_u64(seed), buffer, writer, step_calls: 0 }
     }
@@ -181,7 +186,7 @@ impl Recording {
     /// A new buffer restored from the snapshot on disk.
     fn restored(&self) -> ReplayBuffer {
         let mut restored = ReplayBuffer::new(self.buffer.read().unwrap().layout).unwrap();
-        restore(&self.path, IDENTITY, &mut restored).unwrap().expect("a snapshot");
+        restore(&at(&self.path), IDENTITY, &mut restored).unwrap().expect("a snapshot");
         restored
     }
 }
@@ -201,11 +206,11 @@ fn another_session_or_layout_is_refused_naming_the_manifest() {
     let recording = snapshot_on_disk();
     let path = &recording.path;
     let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-    let error = restore(path, "{\"env\":\"other\"}", &mut buffer).unwrap_err();
+    let error = restore(&at(path), "{\"env\":\"other\"}", &mut buffer).unwrap_err();
     assert_eq!(error.file, path.join(MANIFEST));
     assert!(error.to_string().contains("created as"), "{error}");
     let mut bigger = ReplayBuffer::new(layout(151)).unwrap();
-    let error = restore(path, IDENTITY, &mut bigger).unwrap_err();
+    let error = restore(&at(path), IDENTITY, &mut bigger).unwrap_err();
     assert!(error.to_string().contains("this session's is (151, 3, 3, 48, 8)"), "{error}");
     assert!(bigger.is_empty() && buffer.is_empty());
 }
@@ -218,10 +223,10 @@ fn a_foreign_file_or_another_format_version_is_named_as_such() {
     bytes[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
     fs::write(&manifest, &bytes).unwrap();
     let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-    let error = restore(&recording.path, IDENTITY, &mut buffer).unwrap_err();
+    let error = restore(&at(&recording.path), IDENTITY, &mut buffer).unwrap_err();
     assert!(error.to_string().contains("snapshot format version 2; this server reads version 1"), "{error}");
     fs::write(&manifest, b"{\"identity\": \"someone else's JSON\"}").unwrap();
-    let error = restore(&recording.path, IDENTITY, &mut buffer).unwrap_err();
+    let error = restore(&at(&recording.path), IDENTITY, &mut buffer).unwrap_err();
     assert!(error.to_string().contains("not a radserve snapshot manifest") && error.file == manifest, "{error}");
 }
 
@@ -233,7 +238,7 @@ fn a_crash_mid_write_leaves_the_previous_snapshot() {
     fs::write(path.join(segment_name(3)), b"RSNPSEGM half a segment").unwrap();
     fs::write(path.join(MANIFEST_TMP), b"RSNPMANI half a manifest").unwrap();
     let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-    let (report, _) = restore(path, IDENTITY, &mut buffer).unwrap().unwrap();
+    let (report, _) = restore(&at(path), IDENTITY, &mut buffer).unwrap().unwrap();
     assert_eq!(report.transitions, recording.buffer.read().unwrap().len());
     assert!(!path.join(segment_name(3)).exists() && !path.join(MANIFEST_TMP).exists(), "strays are removed");
 }
@@ -283,22 +288,22 @@ proptest! {
     /// Any byte changed, any file cut short or extended: refused, naming a file of the snapshot, the
     /// buffer left empty, nothing panics.
     #[test]
-    fn damaged_files_are_refused(file in 0usize..3, at in any::<prop::sample::Index>(), xor in 1u8..=255, cut in any::<bool>(), extra in prop::collection::vec(any::<u8>(), 0..16)) {
+    fn damaged_files_are_refused(file in 0usize..3, index in any::<prop::sample::Index>(), xor in 1u8..=255, cut in any::<bool>(), extra in prop::collection::vec(any::<u8>(), 0..16)) {
         let recording = snapshot_on_disk();
         let path = &recording.path;
         let target = &files(path)[file];
         let mut bytes = fs::read(target).unwrap();
-        let at = at.index(bytes.len());
+        let offset = index.index(bytes.len());
         if cut {
-            bytes.truncate(at);
+            bytes.truncate(offset);
         } else if extra.is_empty() {
-            bytes[at] ^= xor;
+            bytes[offset] ^= xor;
         } else {
             bytes.extend_from_slice(&extra);
         }
         fs::write(target, &bytes).unwrap();
         let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-        let error = restore(path, IDENTITY, &mut buffer).unwrap_err();
+        let error = restore(&at(path), IDENTITY, &mut buffer).unwrap_err();
         prop_assert!(error.file.starts_with(path), "{error}");
         prop_assert!(buffer.is_empty() && buffer.counters == ReplayCounters::default());
     }
@@ -321,11 +326,160 @@ proptest! {
         manifest.segments = sequences.iter().enumerate().map(|(index, &sequence)| {
             SegmentEntry { sequence, bytes: sizes.get(index).copied().unwrap_or(bytes) }
         }).collect();
-        write_manifest(path, &manifest).unwrap();
+        write_manifest(&at(path).open(false).unwrap().unwrap(), &manifest).unwrap();
         let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
-        match restore(path, IDENTITY, &mut buffer) {
+        match restore(&at(path), IDENTITY, &mut buffer) {
             Ok(restored) => prop_assert!(restored.is_some()),
             Err(error) => prop_assert!(buffer.is_empty() && error.file.starts_with(path), "{error}"),
         }
+    }
+}
+
+/// A restore of `recording`'s snapshot into a new buffer: its error (the buffer left empty).
+fn restore_error(recording: &Recording) -> SnapshotError {
+    let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
+    let error = restore(&at(&recording.path), IDENTITY, &mut buffer).expect_err("refused");
+    assert!(buffer.is_empty() && buffer.counters == ReplayCounters::default());
+    error
+}
+
+#[test]
+fn a_symlinked_manifest_or_segment_is_refused_without_being_read() {
+    // /proc/self/pagemap claims 0 bytes and reads without end: it must not be opened at all.
+    let recording = snapshot_on_disk();
+    let manifest = recording.path.join(MANIFEST);
+    fs::remove_file(&manifest).unwrap();
+    std::os::unix::fs::symlink("/proc/self/pagemap", &manifest).unwrap();
+    let error = restore_error(&recording);
+    assert!(error.to_string().contains("is a symlink, which is never followed") && error.file == manifest, "{error}");
+
+    let recording = snapshot_on_disk();
+    let outside = recording._dir.path().join("secret");
+    fs::write(&outside, b"not the server's to read").unwrap();
+    let segment = recording.path.join(segment_name(1));
+    fs::remove_file(&segment).unwrap();
+    std::os::unix::fs::symlink(&outside, &segment).unwrap();
+    let error = restore_error(&recording);
+    assert!(error.to_string().contains("symlink") && error.file == segment, "{error}");
+}
+
+#[test]
+fn a_fifo_or_a_directory_in_place_of_a_file_is_refused_at_once() {
+    for (file, make) in [(MANIFEST, "fifo"), ("seg-00000002.rsnap", "fifo"), ("seg-00000001.rsnap", "dir")] {
+        let recording = snapshot_on_disk();
+        let path = recording.path.join(file);
+        fs::remove_file(&path).unwrap();
+        if make == "fifo" {
+            rustix::fs::mknodat(rustix::fs::CWD, &path, rustix::fs::FileType::Fifo, rustix::fs::Mode::from_raw_mode(0o600), 0).unwrap();
+        } else {
+            fs::create_dir(&path).unwrap();
+        }
+        // Opening a FIFO for reading would wait for a writer for ever: this returns.
+        let error = restore_error(&recording);
+        let expected = if make == "fifo" { "is a FIFO, not a regular file" } else { "a directory" };
+        assert!(error.to_string().contains(expected) && error.file == path, "{file}: {error}");
+    }
+}
+
+#[test]
+fn a_symlinked_session_directory_is_refused_and_set_aside_without_touching_its_target() {
+    let recording = snapshot_on_disk();
+    let elsewhere = recording._dir.path().join("elsewhere");
+    fs::rename(&recording.path, &elsewhere).unwrap();
+    std::os::unix::fs::symlink(&elsewhere, &recording.path).unwrap();
+    // A stray the restore would remove, were it followed.
+    fs::write(elsewhere.join(MANIFEST_TMP), b"outside").unwrap();
+    let before = files(&elsewhere);
+    let error = restore_error(&recording);
+    assert!(error.to_string().contains("is a symlink, which is never followed"), "{error}");
+    let aside = set_aside(&at(&recording.path)).unwrap();
+    assert!(fs::symlink_metadata(&aside).unwrap().file_type().is_symlink(), "the link itself was moved");
+    assert_eq!(files(&elsewhere), before, "nothing of the target was removed");
+    // A writer there now creates a real directory.
+    let mut writer = SnapshotWriter::new(&at(&recording.path), IDENTITY, layout(150)).unwrap();
+    writer.write(&recording.buffer, session(recording.step_calls), &mut Throttle::new(0, None)).unwrap();
+    assert!(fs::symlink_metadata(&recording.path).unwrap().is_dir());
+    assert_eq!(files(&elsewhere), before);
+    writer.discard().unwrap();
+    assert!(!recording.path.exists() && files(&elsewhere) == before, "discard removes the directory, not the target");
+}
+
+#[test]
+fn names_planted_while_writing_are_replaced_never_written_through() {
+    let mut recording = snapshot_on_disk();
+    let outside = recording._dir.path().join("victim");
+    fs::write(&outside, b"precious").unwrap();
+    // The next segment's name and the manifest's temporary name, planted as links to the victim, and
+    // a FIFO at the segment after (opening it for writing would wait for a reader).
+    std::os::unix::fs::symlink(&outside, recording.path.join(segment_name(3))).unwrap();
+    std::os::unix::fs::symlink(&outside, recording.path.join(MANIFEST_TMP)).unwrap();
+    let fifo = recording.path.join(segment_name(4));
+    rustix::fs::mknodat(rustix::fs::CWD, &fifo, rustix::fs::FileType::Fifo, rustix::fs::Mode::from_raw_mode(0o600), 0).unwrap();
+    for _ in 0..2 {
+        recording.record(7);
+        recording.snapshot().unwrap();
+    }
+    assert_eq!(fs::read(&outside).unwrap(), b"precious");
+    assert!(files(&recording.path).iter().all(|file| fs::symlink_metadata(file).unwrap().is_file()), "{:?}", files(&recording.path));
+    assert_same_transitions(&recording.buffer.read().unwrap(), &recording.restored());
+}
+
+#[test]
+fn forged_counters_with_a_valid_checksum_are_a_bad_snapshot() {
+    type Forge = fn(&mut Manifest);
+    let forgeries: [(&str, Forge); 5] = [
+        ("inserts counter is 18446744073709551615", |manifest| manifest.counters.inserts = u64::MAX),
+        ("step calls counter", |manifest| manifest.session.step_calls = u64::MAX),
+        ("env steps counter", |manifest| manifest.session.total_env_steps = 1 << 60),
+        ("transitions inserted but only", |manifest| manifest.counters.inserts = manifest.written.iter().sum::<u64>() + 1),
+        ("batches but", |manifest| manifest.counters.batches = manifest.counters.samples + 1),
+    ];
+    for (expected, forge) in forgeries {
+        let recording = snapshot_on_disk();
+        let path = &recording.path;
+        let mut manifest = parse_manifest(&fs::read(path.join(MANIFEST)).unwrap()).unwrap();
+        forge(&mut manifest);
+        write_manifest(&at(path).open(false).unwrap().unwrap(), &manifest).unwrap();
+        let error = restore_error(&recording);
+        assert!(error.to_string().contains(expected) && error.to_string().contains("forged"), "{expected}: {error}");
+    }
+}
+
+/// What a file of a snapshot is replaced with in `other_file_types_are_refused`.
+#[derive(Clone, Copy, Debug)]
+enum Planted {
+    SymlinkToFile,
+    SymlinkToDir,
+    DanglingSymlink,
+    Fifo,
+    Directory,
+    Socket,
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    /// The reader's fuzzer over file types: any file of a snapshot replaced by a symlink (to a file, a
+    /// directory, nowhere), a FIFO, a directory or a socket is refused, naming that file, at once.
+    #[test]
+    fn other_file_types_are_refused(file in 0usize..3, planted in prop_oneof![
+        Just(Planted::SymlinkToFile), Just(Planted::SymlinkToDir), Just(Planted::DanglingSymlink),
+        Just(Planted::Fifo), Just(Planted::Directory), Just(Planted::Socket),
+    ]) {
+        let recording = snapshot_on_disk();
+        let target = files(&recording.path)[file].clone();
+        let copy = recording._dir.path().join("copy");
+        fs::rename(&target, &copy).unwrap();
+        let _listener;
+        match planted {
+            Planted::SymlinkToFile => std::os::unix::fs::symlink(&copy, &target).unwrap(),
+            Planted::SymlinkToDir => std::os::unix::fs::symlink(recording._dir.path(), &target).unwrap(),
+            Planted::DanglingSymlink => std::os::unix::fs::symlink("/nonexistent/radserve", &target).unwrap(),
+            Planted::Fifo => rustix::fs::mknodat(rustix::fs::CWD, &target, rustix::fs::FileType::Fifo, rustix::fs::Mode::from_raw_mode(0o600), 0).unwrap(),
+            Planted::Directory => fs::create_dir(&target).unwrap(),
+            Planted::Socket => _listener = std::os::unix::net::UnixListener::bind(&target).unwrap(),
+        }
+        let error = restore_error(&recording);
+        prop_assert!(error.file == target, "{planted:?} at {}: {error}", target.display());
     }
 }

@@ -1,13 +1,13 @@
 //! Writing snapshots: a segment of the frames recorded since the last one (or every frame held, for
 //! a full one), copied a block at a time under the buffer's read lock and paced, then the manifest.
 
-use std::fs::{self, File};
 use std::io::{self, BufWriter, Write};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+use super::dir::{SnapshotDir, SnapshotPath};
 use super::{
     block_records, segment_name, Manifest, Result, SavedCounters, SegmentEntry, SessionCounters, SnapshotError,
     BLOCK_HEADER_BYTES, FORMAT_VERSION, MANIFEST, MANIFEST_MAGIC, MANIFEST_TMP, MAX_SEGMENTS, SEGMENT_HEADER_BYTES,
@@ -59,7 +59,7 @@ pub struct SnapshotReport {
 /// Writes the snapshots of one buffer into its directory, each after the last.
 #[derive(Debug)]
 pub struct SnapshotWriter {
-    pub(super) dir: PathBuf,
+    pub(super) dir: SnapshotPath,
     pub(super) layout: ReplayLayout,
     pub(super) manifest: Manifest,
     pub(super) next_sequence: u64,
@@ -69,15 +69,16 @@ impl SnapshotWriter {
     /// A writer for a buffer with no snapshot yet in `dir` (created on the first write). Only replay
     /// buffers are snapshotted: a rollout is on-policy data of the policy of its last update, which a
     /// learner collects again after a restart anyway.
-    pub fn new(dir: &Path, identity: &str, layout: ReplayLayout) -> Result<Self> {
+    pub fn new(dir: &SnapshotPath, identity: &str, layout: ReplayLayout) -> Result<Self> {
         if layout.kind != BufferKind::Replay {
-            return Err(SnapshotError::new(dir, "only replay buffers are snapshotted, not rollouts"));
+            return Err(SnapshotError::new(&dir.path(), "only replay buffers are snapshotted, not rollouts"));
         }
-        Ok(SnapshotWriter { dir: dir.to_path_buf(), layout, manifest: Manifest::empty(identity, &layout), next_sequence: 1 })
+        Ok(SnapshotWriter { dir: dir.clone(), layout, manifest: Manifest::empty(identity, &layout), next_sequence: 1 })
     }
 
-    pub fn dir(&self) -> &Path {
-        &self.dir
+    /// The snapshot's directory, for messages.
+    pub fn dir(&self) -> PathBuf {
+        self.dir.path()
     }
 
     /// Bytes the snapshot takes on disk (its listed segments).
@@ -109,16 +110,21 @@ impl SnapshotWriter {
     /// and the previous snapshot stays as it was: the next call writes the same frames again.
     pub fn write(&mut self, buffer: &RwLock<ReplayBuffer>, session: SessionCounters, throttle: &mut Throttle) -> Result<SnapshotReport> {
         let started = Instant::now();
-        fs::create_dir_all(&self.dir).map_err(|error| SnapshotError::io(&self.dir, error))?;
+        let dir = match self.dir.open(true) {
+            Ok(Some(dir)) => dir,
+            Ok(None) => return Err(SnapshotError::new(&self.dir.path(), "could not be created")),
+            Err(error) => return Err(SnapshotError::io(&self.dir.path(), error)),
+        };
         let full = self.manifest.segments.is_empty()
             || self.manifest.segments.len() >= MAX_SEGMENTS
             || self.manifest.bytes() > 2 * self.layout.memory_bytes() as u64;
         let sequence = self.next_sequence;
-        let path = self.dir.join(segment_name(sequence));
-        let written = match self.write_segment(&path, sequence, buffer, full, throttle) {
+        let name = segment_name(sequence);
+        let path = dir.path().join(&name);
+        let written = match self.write_segment(&dir, &name, sequence, buffer, full, throttle) {
             Ok(written) => written,
             Err(error) => {
-                let _ = fs::remove_file(&path);
+                let _ = dir.remove(&name);
                 return Err(SnapshotError::io(&path, error));
             }
         };
@@ -133,13 +139,13 @@ impl SnapshotWriter {
         manifest.counters = SavedCounters { inserts: counters.inserts, samples: counters.samples, batches: counters.batches };
         manifest.session = session;
         manifest.unix_time_s = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |since| since.as_secs());
-        if let Err(error) = write_manifest(&self.dir, &manifest) {
-            let _ = fs::remove_file(&path);
+        if let Err(error) = write_manifest(&dir, &manifest) {
+            let _ = dir.remove(&name);
             return Err(error);
         }
         if full {
             for old in &self.manifest.segments {
-                let _ = fs::remove_file(self.dir.join(segment_name(old.sequence)));
+                let _ = dir.remove(&segment_name(old.sequence));
             }
         }
         self.manifest = manifest;
@@ -150,14 +156,15 @@ impl SnapshotWriter {
     /// Writes one segment; (its bytes, the frames in it, one past the last frame covered per env).
     fn write_segment(
         &self,
-        path: &Path,
+        dir: &SnapshotDir,
+        name: &str,
         sequence: u64,
         buffer: &RwLock<ReplayBuffer>,
         full: bool,
         throttle: &mut Throttle,
     ) -> io::Result<(u64, u64, Vec<u64>)> {
         let layout = &self.layout;
-        let mut out = BufWriter::with_capacity(1 << 20, File::create(path)?);
+        let mut out = BufWriter::with_capacity(1 << 20, dir.create_exclusive(name)?);
         let mut header = Vec::with_capacity(SEGMENT_HEADER_BYTES);
         header.extend_from_slice(SEGMENT_MAGIC);
         header.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
@@ -208,16 +215,17 @@ impl SnapshotWriter {
         Ok((bytes, frames, hi))
     }
 
-    /// Remove the snapshot (its directory and everything in it).
+    /// Remove the snapshot (its directory and the files in it; a symlink in it is removed, never
+    /// followed).
     pub fn discard(&self) -> io::Result<()> {
-        match fs::remove_dir_all(&self.dir) {
-            Err(error) if error.kind() == io::ErrorKind::NotFound => Ok(()),
-            other => other,
+        match self.dir.open_parent(false)? {
+            Some(parent) => parent.remove_tree(self.dir.name()),
+            None => Ok(()),
         }
     }
 }
 
-pub(super) fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<()> {
+pub(super) fn write_manifest(dir: &SnapshotDir, manifest: &Manifest) -> Result<()> {
     let body = serde_json::to_vec(manifest).expect("a manifest serializes");
     let mut contents = Vec::with_capacity(body.len() + 20);
     contents.extend_from_slice(MANIFEST_MAGIC);
@@ -225,18 +233,17 @@ pub(super) fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<()> {
     contents.extend_from_slice(&(body.len() as u32).to_le_bytes());
     contents.extend_from_slice(&body);
     contents.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
-    let tmp = dir.join(MANIFEST_TMP);
     let write = || -> io::Result<()> {
-        let mut file = File::create(&tmp)?;
+        let mut file = dir.create_exclusive(MANIFEST_TMP)?;
         file.write_all(&contents)?;
         file.sync_all()?;
-        fs::rename(&tmp, dir.join(MANIFEST))?;
+        dir.rename(MANIFEST_TMP, MANIFEST)?;
         // The rename itself must reach the disk before the old segments are deleted.
-        File::open(dir)?.sync_all()
+        dir.sync()
     };
     write().map_err(|error| {
-        let _ = fs::remove_file(&tmp);
-        SnapshotError::io(&dir.join(MANIFEST), error)
+        let _ = dir.remove(MANIFEST_TMP);
+        SnapshotError::io(&dir.path().join(MANIFEST), error)
     })
 }
 
