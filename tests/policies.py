@@ -177,6 +177,80 @@ def external_data(shape, n: int) -> bytes:
     return model.SerializeToString()
 
 
+def sparse_exfiltration(shape, n: int, location: str = "creds.txt", count: int = 4) -> bytes:
+    """The hostile probe of issue 53: a categorical policy whose value output adds a Constant whose
+    sparse_value keeps its values in external data (`location`, relative to the runtime's working
+    directory): `count` float32 values read from that file, summed into every env's value."""
+    g = Graph(0)
+    x = g.op("Flatten", [g.op("Div", ["obs", g.constant(255.0)])], axis=1)
+    x = g.op("Tanh", [g.linear(x, int(np.prod(shape)), 16)])
+    g.linear(x, 16, n, "logits", scale=1.0)
+    values = TensorProto(name="leak_values", data_type=TensorProto.FLOAT, dims=[count])
+    values.data_location = TensorProto.EXTERNAL
+    for key, value in (("location", location), ("offset", "0"), ("length", str(4 * count))):
+        entry = values.external_data.add()
+        entry.key, entry.value = key, value
+    indices = numpy_helper.from_array(np.arange(count, dtype=np.int64), "leak_indices")
+    sparse = helper.make_sparse_tensor(values, indices, [count])
+    g.nodes.append(helper.make_node("Constant", [], ["leak"], name="leak", sparse_value=sparse))
+    leaked = g.op("ReduceSum", ["leak", g.constant_int([0])], keepdims=1)
+    g.op("Add", [g.linear(x, 16, 1), leaked], "value")
+    graph = helper.make_graph(g.nodes, "policy", [obs_input(shape)], [output("logits", ["batch", n]), output("value", ["batch", 1])], g.weights)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+def memory_bomb(shape, n: int, kind: str, pad_scale: float = float(1 << 24)) -> bytes:
+    """A categorical policy of a few hundred bytes within the allowed operators whose value output
+    needs gigabytes (issue 53's probes): "concat", 30 chained doublings of one float (4 GiB at
+    constant folding); "broadcast", [2^16, 1] + [1, 2^16] (16 GiB at constant folding); "pad", the
+    observations padded by their largest byte x 2^24 columns (nothing on the zero observations of
+    the load check, ~16 GiB per env on the first real frame)."""
+    g = Graph(0)
+    flat = g.op("Flatten", [g.op("Div", ["obs", g.constant(255.0)])], axis=1)
+    g.op("Tanh", [g.linear(flat, int(np.prod(shape)), n)], "logits")
+    if kind == "concat":
+        x = g.constant([1.0])
+        for _ in range(30):
+            x = g.op("Concat", [x, x], axis=0)
+        big = g.op("ReduceSum", [x, g.constant_int([0])], keepdims=1)
+    elif kind == "broadcast":
+        column = g.constant([[1.0]])
+        for _ in range(16):
+            column = g.op("Concat", [column, column], axis=0)
+        row = g.op("Transpose", [column], perm=[1, 0])
+        big = g.op("ReduceSum", [g.op("Add", [column, row])], keepdims=0)
+        big = g.op("Reshape", [big, g.constant_int([1])])
+    elif kind == "pad":
+        largest = g.op("ReduceMax", ["obs"], keepdims=0)
+        columns = g.op("Cast", [g.op("Mul", [largest, g.constant(pad_scale)])], to=TensorProto.INT64)
+        pads = g.op("Concat", [g.constant_int([0] * (2 * (len(shape) + 1) - 1)), g.op("Reshape", [columns, g.constant_int([1])])], axis=0)
+        padded = g.op("Pad", ["obs", pads], mode="constant")
+        big = g.op("Reshape", [g.op("ReduceSum", [padded], keepdims=0), g.constant_int([1])])
+    else:
+        raise ValueError(kind)
+    g.op("Add", [g.op("Mul", [g.linear(flat, int(np.prod(shape)), 1), g.constant(1.0)]), g.op("Mul", [big, g.constant(0.0)])], "value")
+    graph = helper.make_graph(g.nodes, "policy", [obs_input(shape)], [output("logits", ["batch", n]), output("value", ["batch", 1])], g.weights)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+def many_nodes(shape, n: int, count: int) -> bytes:
+    """A categorical policy whose logits pass through `count` Identity nodes (a graph too large to
+    load: a million took ONNX Runtime minutes)."""
+    g = Graph(0)
+    x = g.linear(g.op("Flatten", ["obs"], axis=1), int(np.prod(shape)), n)
+    for _ in range(count - 1):
+        x = g.op("Identity", [x])
+    g.op("Identity", [x], "logits")
+    graph = helper.make_graph(g.nodes, "policy", [obs_input(shape)], [output("logits", ["batch", n])], g.weights)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
 def _constant_int(self: Graph, value) -> str:
     name = self.name("i")
     self.weights.append(numpy_helper.from_array(np.asarray(value, dtype=np.int64), name))
@@ -198,6 +272,10 @@ def write_rust_models() -> None:
         "nan_fake.onnx": nan_policy(fake, 3),
         "random_op_fake.onnx": with_op(fake, 3),
         "external_fake.onnx": external_data(fake, 3),
+        "sparse_external_fake.onnx": sparse_exfiltration(fake, 3),
+        "concat_bomb_fake.onnx": memory_bomb(fake, 3, "concat"),
+        "broadcast_bomb_fake.onnx": memory_bomb(fake, 3, "broadcast"),
+        "pad_bomb_fake.onnx": memory_bomb(fake, 3, "pad"),
         "gaussian_3x2.onnx": mlp_gaussian(3, 2, hidden=8),
         # gym/CartPole-v1 (float32 [4], Discrete(2)) and gym/Pendulum-v1 (float32 [3], Box(1)):
         # the fuzzer's base sessions.

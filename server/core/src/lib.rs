@@ -26,7 +26,7 @@ mod snapshot_tests;
 pub use catalog::{EnvId, EnvNames, Family, OptionValue, Options};
 pub use error::CoreError;
 pub use manager::{
-    ActingConfig, ActingRequest, ActingState, ActingStatus, LoadedPolicy,
+    ActingConfig, ActingRequest, ActingState, ActingStatus, LoadedPolicy, DEFAULT_POLICY_MEMORY_BYTES,
     BufferRequest, CatalogEntry, LeaseHold, Limits, OnBadSnapshot, Progress, ReplayConfig, ReplayInfo, ReplaySource, SessionExtras,
     SessionInfo, SessionManager, SessionSummary, SnapshotInfo, MAX_NAME_BYTES,
 };

@@ -8,24 +8,23 @@
 //! of the declared shapes. Nothing about the model can fail later except its numbers: an output that
 //! is not finite stops the actor (`PolicyError::NonFinite`).
 //!
-//! Inference runs in ONNX Runtime, loaded at run time from the `onnxruntime` wheel installed beside
-//! the workers' Python (or a library path in the configuration); one environment per process.
+//! Inference runs in ONNX Runtime, loaded from the `onnxruntime` wheel installed beside the
+//! workers' Python (or a library path in the configuration), in a process of its own per policy
+//! that can open no file and use no more memory than its session was charged ([`runtime`] says how;
+//! [`RuntimeLauncher`] starts it). The server itself never loads a model.
 
 use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
 
-use ort::session::builder::GraphOptimizationLevel;
-use ort::session::Session;
-use ort::value::Tensor;
 use rand::Rng;
 
 pub mod head;
 pub mod model;
+mod process;
+pub mod runtime;
 
 pub use head::Head;
-/// ONNX Runtime's process-wide environment (see [`runtime`]).
-pub use ort::environment::Environment as Runtime;
 pub use model::{inspect, ModelSummary, SUPPORTED_OPS};
+pub use process::RuntimeLauncher;
 
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]
 pub enum PolicyError {
@@ -41,6 +40,9 @@ pub enum PolicyError {
     NonFinite(String),
     #[error("ONNX Runtime is not available on this server: {0}")]
     Unavailable(String),
+    /// Past a limit of the policy runtime: its memory, or the time to load or to act.
+    #[error("the policy is over this server's limits: {0}")]
+    Exhausted(String),
 }
 
 /// The observations a session's policy acts on: `[num_envs, *shape]` of `dtype` (stacked frames
@@ -171,26 +173,6 @@ pub struct Acted {
     pub value: Option<Vec<f32>>,
 }
 
-/// ONNX Runtime, loaded once per process from the library `locate` finds. `locate` runs only until a
-/// load was tried (a missing library is looked for again at the next call; a library that failed to
-/// load is not).
-pub fn runtime(locate: impl FnOnce() -> Result<PathBuf, PolicyError>) -> Result<&'static ort::environment::Environment, PolicyError> {
-    static RUNTIME: OnceLock<Result<ort::environment::Environment, String>> = OnceLock::new();
-    let loaded = match RUNTIME.get() {
-        Some(loaded) => loaded,
-        None => {
-            let library = locate()?;
-            RUNTIME.get_or_init(|| {
-                let loaded = ort::init_from(&library).map_err(|error| error.to_string()).and_then(|builder| {
-                    builder.with_name("radserve").build().map_err(|error| error.to_string())
-                });
-                loaded.map_err(|message| format!("loading {}: {message}", library.display()))
-            })
-        }
-    };
-    loaded.as_ref().map_err(|message| PolicyError::Unavailable(message.clone()))
-}
-
 /// The ONNX Runtime library of the `onnxruntime` wheel installed for `python`, found without
 /// importing the package (its `capi/libonnxruntime.so.*`).
 pub fn library_of_python(python: &Path) -> Result<PathBuf, PolicyError> {
@@ -215,9 +197,9 @@ pub fn library_of_python(python: &Path) -> Result<PathBuf, PolicyError> {
     found.pop().ok_or_else(|| PolicyError::Unavailable(format!("no libonnxruntime.so in {}", capi.display())))
 }
 
-/// A loaded policy for one session.
+/// A loaded policy for one session: its checked summary and the runtime process that holds it.
 pub struct Policy {
-    session: Session,
+    runtime: process::RuntimeProcess,
     pub summary: ModelSummary,
     pub spec: PolicySpec,
     observations: ObservationSpec,
@@ -304,10 +286,10 @@ fn check_ports(summary: &ModelSummary, spec: &PolicySpec, observations: &Observa
 }
 
 impl Policy {
-    /// Checks and builds `bytes` for a session whose observations and actions are `observations`
-    /// and `actions`, then runs it once on zeros.
-    pub fn load(
-        environment: &ort::environment::Environment,
+    /// Checks `bytes` for a session whose observations and actions are `observations` and
+    /// `actions`, builds it in a policy runtime of its own, then runs it once on zeros.
+    pub async fn load(
+        launcher: &RuntimeLauncher,
         bytes: &[u8],
         spec: PolicySpec,
         observations: ObservationSpec,
@@ -315,36 +297,44 @@ impl Policy {
     ) -> Result<Policy, PolicyError> {
         let summary = inspect(bytes)?;
         let has_value = check_ports(&summary, &spec, &observations, &actions)?;
-        let runtime = |error: String| PolicyError::Runtime(error);
-        let session = Session::builder(environment)
-            .map_err(|error| runtime(error.to_string()))?
-            .with_intra_threads(spec.threads.max(1))
-            .map_err(|error| runtime(error.to_string()))?
-            .with_inter_threads(1)
-            .map_err(|error| runtime(error.to_string()))?
-            .with_intra_op_spinning(false)
-            .map_err(|error| runtime(error.to_string()))?
-            .with_optimization_level(GraphOptimizationLevel::Level3)
-            .map_err(|error| runtime(error.to_string()))?
-            .commit_from_memory(bytes)
-            .map_err(|error| runtime(error.to_string()))?;
-        // ONNX Runtime's view of the outputs can differ from the declared one only in a broken model.
-        if session.outputs().len() != summary.outputs.len() {
-            return Err(PolicyError::Runtime("the model's outputs differ from its graph's".into()));
-        }
+        // The outputs a run of this session can answer with (every output at most num_envs x the
+        // action size of float32, with room for the encoding), or an error message.
+        let per_output = observations.num_envs * actions.dims().max(1) * 4 + 64;
+        let max_reply = (summary.outputs.len() * per_output).max(64 << 10) + 4096;
+        let runtime = process::RuntimeProcess::start(launcher, bytes, spec.threads, max_reply).await?;
         let input_uint8 = summary.input.elem == model::ELEM_UINT8;
-        let mut policy = Policy { session, summary, spec, observations, actions, input_uint8, has_value };
+        let mut policy = Policy { runtime, summary, spec, observations, actions, input_uint8, has_value };
         let zeros = vec![0u8; policy.observation_bytes()];
         let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
-        policy.act(&zeros, &mut rng, 0, true).map_err(|error| match error {
+        policy.act(&zeros, &mut rng, 0, true).await.map_err(|error| match error {
             PolicyError::NonFinite(message) => PolicyError::NonFinite(format!("on zero observations: {message}")),
             other @ (PolicyError::NotOnnx(_)
             | PolicyError::Unsupported(_)
             | PolicyError::Mismatch(_)
             | PolicyError::Runtime(_)
-            | PolicyError::Unavailable(_)) => other,
+            | PolicyError::Unavailable(_)
+            | PolicyError::Exhausted(_)) => other,
         })?;
         Ok(policy)
+    }
+
+    /// Runs `model` once on `data` in a runtime of its own, without any of the server's checks: for
+    /// the tests that show the runtime contains what a check might miss.
+    #[doc(hidden)]
+    pub async fn run_unchecked(launcher: &RuntimeLauncher, model: &[u8], shape: Vec<i64>, uint8: bool, data: Vec<u8>) -> Result<Vec<(Vec<i64>, Vec<f32>)>, PolicyError> {
+        let mut runtime = process::RuntimeProcess::start(launcher, model, 1, 1 << 20).await?;
+        let outputs = runtime.run(shape, uint8, data).await?;
+        Ok(outputs.into_iter().map(|output| (output.shape, output.values)).collect())
+    }
+
+    /// The policy runtime's peak resident memory at its last answer.
+    pub fn peak_bytes(&self) -> u64 {
+        self.runtime.peak_bytes
+    }
+
+    /// The policy runtime's process id.
+    pub fn runtime_pid(&self) -> Option<u32> {
+        self.runtime.pid()
     }
 
     /// Bytes of one step's observations of every env.
@@ -364,7 +354,7 @@ impl Policy {
     /// The actions of every env for `obs` ([num_envs, *observation] uint8): the model run once on
     /// the batch, then the head per env. `env_steps` (the session's so far) sets the deterministic
     /// head's noise; `eval` acts without exploration.
-    pub fn act(&mut self, obs: &[u8], rng: &mut impl Rng, env_steps: u64, eval: bool) -> Result<Acted, PolicyError> {
+    pub async fn act(&mut self, obs: &[u8], rng: &mut (impl Rng + Send), env_steps: u64, eval: bool) -> Result<Acted, PolicyError> {
         if obs.len() != self.observation_bytes() {
             return Err(PolicyError::Mismatch(format!(
                 "{} bytes of observations; this policy takes {} ({} {:?} per env)",
@@ -376,31 +366,32 @@ impl Policy {
         }
         let num_envs = self.observations.num_envs;
         let shape: Vec<i64> = std::iter::once(num_envs).chain(self.observations.shape.iter().copied()).map(|d| d as i64).collect();
-        let runtime = |error: ort::Error| PolicyError::Runtime(error.to_string());
-        let outputs = if self.input_uint8 {
-            let tensor = Tensor::from_array((shape, obs.to_vec())).map_err(runtime)?;
-            self.session.run(ort::inputs![tensor]).map_err(runtime)?
+        let data = if self.input_uint8 {
+            obs.to_vec()
         } else {
-            let values = self.observations.dtype.to_f32(obs);
-            let tensor = Tensor::from_array((shape, values)).map_err(runtime)?;
-            self.session.run(ort::inputs![tensor]).map_err(runtime)?
+            self.observations.dtype.to_f32(obs).iter().flat_map(|value| value.to_le_bytes()).collect()
         };
+        let outputs = self.runtime.run(shape, self.input_uint8, data).await?;
+        if outputs.len() != self.summary.outputs.len() {
+            return Err(PolicyError::Runtime(format!("the model answered {} outputs; its graph declares {}", outputs.len(), self.summary.outputs.len())));
+        }
         let mut tensors: Vec<(String, Vec<f32>)> = Vec::with_capacity(outputs.len());
         let dims = self.actions.dims();
-        for (index, port) in self.summary.outputs.iter().enumerate() {
-            let (out_shape, values) = outputs[index].try_extract_tensor::<f32>().map_err(runtime)?;
+        for ((index, port), output) in self.summary.outputs.iter().enumerate().zip(outputs) {
             let is_value = index >= self.spec.head.outputs().0.len();
             let expected: &[&[i64]] = if is_value { &[&[num_envs as i64], &[num_envs as i64, 1]] } else { &[&[num_envs as i64, dims as i64]] };
-            if !expected.iter().any(|shape| **shape == **out_shape) {
+            let elements = output.shape.iter().try_fold(1i64, |product, &dim| product.checked_mul(dim));
+            if !expected.iter().any(|shape| **shape == *output.shape) || elements != Some(output.values.len() as i64) {
                 return Err(PolicyError::Mismatch(format!(
                     "output '{}' has shape {:?}; head {} needs {:?} (num_envs, {})",
                     port.name,
-                    &**out_shape,
+                    output.shape,
                     self.spec.head.name(),
                     expected[0],
                     if is_value { "a value per env" } else { "the action size" }
                 )));
             }
+            let values = output.values;
             if let Some(position) = values.iter().position(|value| !value.is_finite()) {
                 return Err(PolicyError::NonFinite(format!(
                     "output '{}' of env {} is {}",
@@ -409,9 +400,8 @@ impl Policy {
                     values[position]
                 )));
             }
-            tensors.push((port.name.clone(), values.to_vec()));
+            tensors.push((port.name.clone(), values));
         }
-        drop(outputs);
         let mut acted = Acted {
             actions: Vec::with_capacity(num_envs * self.actions.action_bytes()),
             log_prob: Vec::with_capacity(num_envs),

@@ -19,6 +19,9 @@ struct ModelProto {
     graph: Option<GraphProto>,
     #[prost(message, repeated, tag = "8")]
     opset_import: Vec<OperatorSetId>,
+    /// Training information (TrainingInfoProto): graphs and initializers beside the graph, refused.
+    #[prost(bytes = "vec", repeated, tag = "20")]
+    training_info: Vec<Vec<u8>>,
     /// Model-local functions (FunctionProto): a graph beside the graph, refused.
     #[prost(bytes = "vec", repeated, tag = "25")]
     functions: Vec<Vec<u8>>,
@@ -71,6 +74,19 @@ struct AttributeProto {
     tensors: Vec<TensorProto>,
     #[prost(bytes = "vec", repeated, tag = "11")]
     graphs: Vec<Vec<u8>>,
+    /// A sparse tensor (Constant's sparse_value): its values and indices are tensors too.
+    #[prost(message, optional, tag = "22")]
+    sparse_tensor: Option<SparseTensorProto>,
+    #[prost(message, repeated, tag = "23")]
+    sparse_tensors: Vec<SparseTensorProto>,
+}
+
+#[derive(Clone, PartialEq, Message)]
+struct SparseTensorProto {
+    #[prost(message, optional, tag = "1")]
+    values: Option<TensorProto>,
+    #[prost(message, optional, tag = "2")]
+    indices: Option<TensorProto>,
 }
 
 #[derive(Clone, PartialEq, Message)]
@@ -231,10 +247,63 @@ fn external(tensor: &TensorProto) -> bool {
     tensor.data_location == 1 || !tensor.external_data.is_empty()
 }
 
+/// The most nodes and initializers a policy's graph may have. The actors this serves have tens to
+/// hundreds of nodes; a graph of a million (27 MB) took ONNX Runtime minutes and gigabytes to load.
+pub const MAX_NODES: usize = 10_000;
+pub const MAX_INITIALIZERS: usize = 10_000;
+
+/// How many times field `field` occurs at the top level of the message `bytes` (a wire-format scan
+/// that allocates nothing), and the bytes of the last occurrence when it is length-delimited.
+fn count_field(mut bytes: &[u8], field: u32) -> Result<(usize, Option<&[u8]>), String> {
+    use prost::encoding::{decode_key, decode_varint, WireType};
+    let (mut count, mut last) = (0, None);
+    while !bytes.is_empty() {
+        let (tag, wire_type) = decode_key(&mut bytes).map_err(|error| error.to_string())?;
+        let skip = match wire_type {
+            WireType::Varint => {
+                decode_varint(&mut bytes).map_err(|error| error.to_string())?;
+                0
+            }
+            WireType::SixtyFourBit => 8,
+            WireType::ThirtyTwoBit => 4,
+            WireType::LengthDelimited => usize::try_from(decode_varint(&mut bytes).map_err(|error| error.to_string())?).unwrap_or(usize::MAX),
+            WireType::StartGroup | WireType::EndGroup => return Err("groups are not ONNX".into()),
+        };
+        if skip > bytes.len() {
+            return Err("a field runs past the end".into());
+        }
+        if tag == field {
+            count += 1;
+            if wire_type == WireType::LengthDelimited {
+                last = Some(&bytes[..skip]);
+            }
+        }
+        bytes = &bytes[skip..];
+    }
+    Ok((count, last))
+}
+
+/// Refuses a graph with more nodes or initializers than a policy may have, before the model is
+/// decoded (decoding a million nodes is itself hundreds of megabytes).
+fn check_size(bytes: &[u8]) -> Result<(), PolicyError> {
+    let not_onnx = |error: String| PolicyError::NotOnnx(format!("the bytes do not decode as an ONNX ModelProto ({error})"));
+    let (_, graph) = count_field(bytes, 7).map_err(not_onnx)?;
+    let Some(graph) = graph else { return Ok(()) };
+    let (nodes, _) = count_field(graph, 1).map_err(not_onnx)?;
+    let (initializers, _) = count_field(graph, 5).map_err(not_onnx)?;
+    if nodes > MAX_NODES || initializers > MAX_INITIALIZERS {
+        return Err(PolicyError::Unsupported(format!(
+            "the graph has {nodes} nodes and {initializers} initializers; a policy has at most {MAX_NODES} of each"
+        )));
+    }
+    Ok(())
+}
+
 /// Reads and checks a model's structure: an ONNX model of one graph, opset in `OPSETS`, only
 /// `SUPPORTED_OPS`, no subgraph, no local function, no tensor stored outside the model (a path the
 /// server would open), one input, at least one output.
 pub fn inspect(bytes: &[u8]) -> Result<ModelSummary, PolicyError> {
+    check_size(bytes)?;
     let model = ModelProto::decode(bytes)
         .map_err(|error| PolicyError::NotOnnx(format!("the bytes do not decode as an ONNX ModelProto ({error})")))?;
     let graph = model.graph.as_ref().ok_or_else(|| PolicyError::NotOnnx("the model has no graph (ModelProto.graph is empty)".into()))?;
@@ -259,6 +328,9 @@ pub fn inspect(bytes: &[u8]) -> Result<ModelSummary, PolicyError> {
             OPSETS.start(),
             OPSETS.end()
         )));
+    }
+    if !model.training_info.is_empty() {
+        return Err(PolicyError::Unsupported("the model carries training information (ModelProto.training_info); export it for inference".into()));
     }
     if !model.functions.is_empty() {
         return Err(PolicyError::Unsupported("the model defines local functions; export without them (inline them)".into()));
@@ -296,10 +368,12 @@ pub fn inspect(bytes: &[u8]) -> Result<ModelSummary, PolicyError> {
                     node.name, node.op_type, attribute.name
                 )));
             }
-            if attribute.t.iter().chain(&attribute.tensors).any(external) {
+            let sparse = attribute.sparse_tensor.iter().chain(&attribute.sparse_tensors).flat_map(|sparse| sparse.values.iter().chain(&sparse.indices));
+            if attribute.t.iter().chain(&attribute.tensors).chain(sparse).any(external) {
                 return Err(PolicyError::Unsupported(format!(
-                    "node '{}' ({}) has a tensor stored outside the model (external data)",
-                    node.name, node.op_type
+                    "node '{}' ({}) has a tensor stored outside the model (external data) in attribute '{}': a path the \
+                     server would open; send one self-contained file",
+                    node.name, node.op_type, attribute.name
                 )));
             }
         }
@@ -341,6 +415,28 @@ mod tests {
         assert_eq!(summary.input.dims, Some(vec![Dim::Named("batch".into()), Dim::Fixed(1), Dim::Fixed(2), Dim::Fixed(2)]));
         assert_eq!(summary.outputs.iter().map(|port| port.name.as_str()).collect::<Vec<_>>(), ["logits", "value"]);
         assert_eq!(summary.ops.get("Gemm"), Some(&3));
+    }
+
+    /// A graph of `nodes` Identity nodes, encoded by hand (field numbers of onnx.proto3).
+    fn graph_of(nodes: usize) -> Vec<u8> {
+        let node = [0x22, 8, b'I', b'd', b'e', b'n', b't', b'i', b't', b'y'];
+        let mut graph = Vec::new();
+        for _ in 0..nodes {
+            graph.extend_from_slice(&[0x0a, node.len() as u8]);
+            graph.extend_from_slice(&node);
+        }
+        let mut model = vec![0x08, 8, 0x3a];
+        prost::encoding::encode_varint(graph.len() as u64, &mut model);
+        model.extend_from_slice(&graph);
+        model
+    }
+
+    #[test]
+    fn a_graph_past_the_node_limit_is_refused_before_it_is_decoded() {
+        let error = inspect(&graph_of(MAX_NODES + 1)).unwrap_err();
+        assert!(error.to_string().contains(&format!("the graph has {} nodes", MAX_NODES + 1)), "{error}");
+        // At the limit the size check passes (and the model fails later for what it lacks).
+        assert!(!inspect(&graph_of(MAX_NODES)).unwrap_err().to_string().contains("nodes and"));
     }
 
     proptest! {

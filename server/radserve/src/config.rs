@@ -42,11 +42,28 @@ pub struct ActingSection {
     pub threads: usize,
     /// The largest model SetPolicy takes, in bytes (the RAD actor is 12 MB).
     pub max_model_bytes: u64,
+    /// The memory each policy may use, in bytes: the data memory (RLIMIT_DATA) of the process the
+    /// policy runs in (ONNX Runtime itself, ~40 MiB, the model's weights and every intermediate
+    /// tensor). Charged with the model's bytes to the session's owner (limits.memory_bytes and the
+    /// principal's quota) while the session holds the policy; a model that needs more is refused at
+    /// SetPolicy (RESOURCE_EXHAUSTED), or its actor fails.
+    pub policy_memory_bytes: u64,
+    /// Seconds a policy may take to be built and run once at SetPolicy.
+    pub policy_load_timeout_s: f64,
+    /// Seconds one inference may take before the actor fails.
+    pub policy_call_timeout_s: f64,
 }
 
 impl Default for ActingSection {
     fn default() -> Self {
-        ActingSection { onnxruntime_library: None, threads: 1, max_model_bytes: 64 << 20 }
+        ActingSection {
+            onnxruntime_library: None,
+            threads: 1,
+            max_model_bytes: 64 << 20,
+            policy_memory_bytes: radserve_core::DEFAULT_POLICY_MEMORY_BYTES,
+            policy_load_timeout_s: 60.0,
+            policy_call_timeout_s: 30.0,
+        }
     }
 }
 
@@ -55,8 +72,12 @@ impl ActingSection {
         radserve_core::ActingConfig {
             library: self.onnxruntime_library.clone(),
             python: None,
+            program: None,
             threads: self.threads.max(1),
             max_model_bytes: usize::try_from(self.max_model_bytes).unwrap_or(usize::MAX),
+            policy_memory_bytes: self.policy_memory_bytes,
+            load_timeout: std::time::Duration::from_secs_f64(self.policy_load_timeout_s.clamp(0.1, 3600.0)),
+            call_timeout: std::time::Duration::from_secs_f64(self.policy_call_timeout_s.clamp(0.1, 3600.0)),
         }
     }
 }

@@ -136,10 +136,29 @@ enum Command {
         #[arg(long, default_value = "egl")]
         gl: String,
     },
+    /// Internal: run as a policy runtime process (started by the server for each policy; see
+    /// radserve_policy::runtime).
+    #[command(hide = true)]
+    PolicyRuntime {
+        #[arg(long)]
+        library: PathBuf,
+        #[arg(long)]
+        memory_bytes: u64,
+    },
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Command::PolicyRuntime { library, memory_bytes } = &cli.command {
+        // No tokio and no tracing: one thread reads requests and runs the model.
+        return match radserve_policy::runtime::serve(library, *memory_bytes, radserve_policy::runtime::Containment::FULL) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(error) => {
+                eprintln!("radserve policy runtime: {error}");
+                ExitCode::FAILURE
+            }
+        };
+    }
     if let Command::Worker { venv, gl } = &cli.command {
         // No tokio and no tracing in workers: one thread owns the interpreter and the simulators.
         let Some(gl) = GlBackend::parse(gl) else {
@@ -396,7 +415,7 @@ async fn run(command: Command) -> anyhow::Result<()> {
             manager.shutdown().await;
             result
         }
-        Command::Worker { .. } => unreachable!("handled before the runtime starts"),
+        Command::Worker { .. } | Command::PolicyRuntime { .. } => unreachable!("handled before the runtime starts"),
     }
 }
 

@@ -88,7 +88,8 @@ impl From<ServiceError> for Status {
     }
 }
 
-/// A refused model is the request's fault; a server without ONNX Runtime cannot act at all.
+/// A refused model is the request's fault; one past the policy runtime's memory or time is over a
+/// limit; a server without ONNX Runtime cannot act at all.
 fn policy_code(error: &radserve_policy::PolicyError) -> Code {
     use radserve_policy::PolicyError;
     match error {
@@ -96,6 +97,7 @@ fn policy_code(error: &radserve_policy::PolicyError) -> Code {
             Code::InvalidArgument
         }
         PolicyError::Unavailable(_) => Code::Unimplemented,
+        PolicyError::Exhausted(_) => Code::ResourceExhausted,
     }
 }
 

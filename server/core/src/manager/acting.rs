@@ -14,12 +14,13 @@ use std::time::{Duration, Instant};
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use radserve_policy::{ActionSpec, Head, ObservationSpec, ObservationType, Policy, PolicyError, PolicySpec};
+use radserve_policy::{ActionSpec, Head, ObservationSpec, ObservationType, Policy, PolicyError, PolicySpec, RuntimeLauncher};
 use radserve_replay::ReplayBuffer;
 use tokio::sync::watch;
 use tracing::{info, warn};
 
 use super::{SessionManager, SharedSession};
+use crate::budget::Reservation;
 use crate::error::CoreError;
 use crate::metrics::CoreMetrics;
 use crate::principal::{log_id, Principal};
@@ -43,16 +44,46 @@ pub struct ActingConfig {
     pub library: Option<PathBuf>,
     /// The workers' Python, where the onnxruntime wheel is looked for.
     pub python: Option<PathBuf>,
+    /// The radserve executable, run as `radserve policy-runtime` for each policy (None: this one).
+    pub program: Option<PathBuf>,
     /// ONNX Runtime intra-op threads per policy.
     pub threads: usize,
     /// The largest model SetPolicy takes.
     pub max_model_bytes: usize,
+    /// The data memory of each policy's runtime process (its RLIMIT_DATA), charged with the model's
+    /// bytes to the session's owner while the policy is held.
+    pub policy_memory_bytes: u64,
+    /// A policy must be built (and run once) within this; each inference must answer within
+    /// `call_timeout`.
+    pub load_timeout: Duration,
+    pub call_timeout: Duration,
 }
+
+/// The default data memory of a policy runtime: ONNX Runtime's own (~40 MiB) and a pixel actor of
+/// tens of megabytes with its activations at a few hundred envs, with room.
+pub const DEFAULT_POLICY_MEMORY_BYTES: u64 = 512 << 20;
 
 impl Default for ActingConfig {
     fn default() -> Self {
-        ActingConfig { library: None, python: None, threads: 1, max_model_bytes: 64 << 20 }
+        ActingConfig {
+            library: None,
+            python: None,
+            program: None,
+            threads: 1,
+            max_model_bytes: 64 << 20,
+            policy_memory_bytes: DEFAULT_POLICY_MEMORY_BYTES,
+            load_timeout: Duration::from_secs(60),
+            call_timeout: Duration::from_secs(30),
+        }
     }
+}
+
+/// A policy as the session holds it: its version, and the memory charged for it (returned when
+/// the policy is dropped, its runtime process killed).
+pub(crate) struct HeldPolicy {
+    policy: Policy,
+    version: u32,
+    _charge: Reservation,
 }
 
 /// What StartActing asks for.
@@ -139,7 +170,7 @@ pub struct LoadedPolicy {
 #[derive(Default)]
 pub(crate) struct ActorSlot {
     /// The newest policy, until the actor takes it (between two steps).
-    pending: Mutex<Option<(Policy, u32)>>,
+    pending: Mutex<Option<HeldPolicy>>,
     status: Mutex<ActingStatus>,
     /// The running actor: its stop signal and task.
     running: Mutex<Option<(watch::Sender<bool>, tokio::task::JoinHandle<()>)>>,
@@ -156,12 +187,12 @@ impl ActorSlot {
         change(&mut self.status.lock().expect("actor status lock"));
     }
 
-    fn take_pending(&self) -> Option<(Policy, u32)> {
+    fn take_pending(&self) -> Option<HeldPolicy> {
         self.pending.lock().expect("policy lock").take()
     }
 
     /// The policy an actor stopped with goes back, unless a newer one waits.
-    fn give_back(&self, policy: (Policy, u32)) {
+    fn give_back(&self, policy: HeldPolicy) {
         let mut pending = self.pending.lock().expect("policy lock");
         if pending.is_none() {
             *pending = Some(policy);
@@ -214,14 +245,35 @@ impl SessionManager {
         &self.acting
     }
 
-    /// ONNX Runtime, found (the workers' Python asked where its wheel is) and loaded at the first
-    /// SetPolicy only.
-    fn runtime(&self) -> Result<&'static radserve_policy::Runtime, CoreError> {
-        Ok(radserve_policy::runtime(|| match (&self.acting.library, &self.acting.python) {
-            (Some(library), _) => Ok(library.clone()),
-            (None, Some(python)) => radserve_policy::library_of_python(python),
-            (None, None) => Err(PolicyError::Unavailable("no [acting] onnxruntime_library and no workers' Python to find it in".into())),
-        })?)
+    /// How policy runtimes start: ONNX Runtime's library found (the workers' Python asked where its
+    /// wheel is, off the async workers) at the first SetPolicy that finds it, then kept.
+    async fn launcher(&self) -> Result<RuntimeLauncher, CoreError> {
+        let library = match self.onnxruntime.get() {
+            Some(library) => library.clone(),
+            None => {
+                let (library, python) = (self.acting.library.clone(), self.acting.python.clone());
+                let found = tokio::task::spawn_blocking(move || match (library, python) {
+                    (Some(library), _) => Ok(library),
+                    (None, Some(python)) => radserve_policy::library_of_python(&python),
+                    (None, None) => Err(PolicyError::Unavailable("no [acting] onnxruntime_library and no workers' Python to find it in".into())),
+                })
+                .await
+                .map_err(|error| CoreError::Host(format!("finding ONNX Runtime: {error}")))??;
+                self.onnxruntime.get_or_init(|| found).clone()
+            }
+        };
+        let program = match &self.acting.program {
+            Some(program) => program.clone(),
+            None => std::env::current_exe().map_err(|error| CoreError::Host(format!("locating the radserve executable: {error}")))?,
+        };
+        Ok(RuntimeLauncher {
+            program,
+            args: vec!["policy-runtime".into()],
+            library,
+            memory_bytes: self.acting.policy_memory_bytes,
+            load_timeout: self.acting.load_timeout,
+            call_timeout: self.acting.call_timeout,
+        })
     }
 
     /// Loads a policy for the session (checked, built and run once on zeros) and makes it the
@@ -254,12 +306,13 @@ impl SessionManager {
         }
         let observations = observation_spec(&info.observation_space, info.num_envs)?;
         let actions = action_spec(&info.action_space)?;
-        let environment = self.runtime()?;
+        let launcher = self.launcher().await?;
+        // Charged before the runtime starts: its memory limit and the model's bytes, which the
+        // server holds while the policy is loaded.
+        let charge = self.reserve_memory(caller, launcher.memory_bytes + model.len() as u64, "a policy (acting.policy_memory_bytes and the model)")?;
         let spec = PolicySpec { head, threads: self.acting.threads.max(1) };
         let head_name = spec.head.name();
-        let policy = tokio::task::spawn_blocking(move || Policy::load(environment, &model, spec, observations, actions))
-            .await
-            .map_err(|error| CoreError::Host(format!("loading the policy: {error}")))??;
+        let policy = Policy::load(&launcher, &model, spec, observations, actions).await?;
         let loaded = LoadedPolicy {
             opset: policy.summary.opset,
             ops: policy.summary.ops.clone(),
@@ -267,7 +320,8 @@ impl SessionManager {
             outputs: policy.summary.outputs.clone(),
             has_value: policy.has_value(),
         };
-        *slot.pending.lock().expect("policy lock") = Some((policy, version));
+        info!(session = log_id(session_id), version, peak_mib = policy.peak_bytes() >> 20, "policy loaded in its runtime");
+        *slot.pending.lock().expect("policy lock") = Some(HeldPolicy { policy, version, _charge: charge });
         slot.update(|status| {
             status.policy_version = Some(version);
             status.head = Some(head_name.to_string());
@@ -388,7 +442,7 @@ impl Actor {
     /// Acts until stopped, done or failed, then gives the session back to its clients. The loop runs
     /// in a task of its own, so that even a panic in it (a bug) ends as a failed actor whose session
     /// is usable again, never as a session refused for ever.
-    async fn run(self, policy: (Policy, u32), stopped: watch::Receiver<bool>, closed: watch::Receiver<bool>) {
+    async fn run(self, policy: HeldPolicy, stopped: watch::Receiver<bool>, closed: watch::Receiver<bool>) {
         let (session, slot, metrics, session_id) = (self.session.clone(), self.slot.clone(), self.metrics.clone(), self.session_id.clone());
         let ended = match tokio::spawn(self.act_owned(policy, stopped, closed)).await {
             Ok((ended, policy)) => {
@@ -406,7 +460,7 @@ impl Actor {
         Self::record_end(&slot, &metrics, &session_id, ended);
     }
 
-    async fn act_owned(mut self, mut policy: (Policy, u32), mut stopped: watch::Receiver<bool>, mut closed: watch::Receiver<bool>) -> (Ended, (Policy, u32)) {
+    async fn act_owned(mut self, mut policy: HeldPolicy, mut stopped: watch::Receiver<bool>, mut closed: watch::Receiver<bool>) -> (Ended, HeldPolicy) {
         let ended = self.act(&mut policy, &mut stopped, &mut closed).await;
         (ended, policy)
     }
@@ -462,7 +516,7 @@ impl Actor {
         inserts as f64 > allowed
     }
 
-    async fn act(&mut self, policy: &mut (Policy, u32), stopped: &mut watch::Receiver<bool>, closed: &mut watch::Receiver<bool>) -> Ended {
+    async fn act(&mut self, policy: &mut HeldPolicy, stopped: &mut watch::Receiver<bool>, closed: &mut watch::Receiver<bool>) -> Ended {
         let (num_envs, action_space) = {
             let session = self.session.lock().await;
             (session.num_envs() as u64, session.frame_spec.action.clone())
@@ -512,11 +566,12 @@ impl Actor {
             let (actions, stamp) = if random {
                 (actions_spec.random(num_envs as usize, &mut self.rng), None)
             } else {
-                let (model, version) = policy;
+                let HeldPolicy { policy: model, version, .. } = policy;
                 let eval = self.request.eval;
                 let total = session.total_env_steps;
-                let rng = &mut self.rng;
-                match crate::session::copying(usize::MAX, || model.act(&obs, rng, total, eval)) {
+                // In the policy's runtime process, awaited (never on this thread), within
+                // acting.policy_call_timeout_s.
+                match model.act(&obs, &mut self.rng, total, eval).await {
                     Ok(acted) => {
                         let stamp = ActedStamp { version: *version as i32, log_prob: acted.log_prob, value: acted.value };
                         (acted.actions, Some(stamp))

@@ -25,7 +25,7 @@ mod replay;
 pub(crate) mod snapshots;
 mod types;
 
-pub use acting::{ActingConfig, ActingRequest, ActingState, ActingStatus, LoadedPolicy, RECENT_EPISODES};
+pub use acting::{ActingConfig, ActingRequest, ActingState, ActingStatus, LoadedPolicy, DEFAULT_POLICY_MEMORY_BYTES, RECENT_EPISODES};
 pub use admission::MAX_STEP_OBSERVATION_BYTES;
 pub use lease::{LeaseHold, Progress};
 pub use snapshots::{OnBadSnapshot, ReplayConfig, MAX_NAME_BYTES};
@@ -76,6 +76,8 @@ pub struct SessionManager {
     snapshots: Option<Snapshots>,
     /// How server-side policies are loaded and run.
     acting: ActingConfig,
+    /// ONNX Runtime's library, once found (the policy runtimes load it).
+    onnxruntime: std::sync::OnceLock<std::path::PathBuf>,
 }
 
 #[derive(Default)]
@@ -123,6 +125,7 @@ impl SessionManager {
             metrics: Arc::default(),
             snapshots: None,
             acting: ActingConfig::default(),
+            onnxruntime: std::sync::OnceLock::new(),
         }
     }
 

@@ -79,7 +79,11 @@ pub async fn start_fake_server_on(
 ) -> TestServer {
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = format!("http://{}", listener.local_addr().unwrap());
-    let acting = radserve_core::ActingConfig { python: Some(repo_python()), ..Default::default() };
+    let acting = radserve_core::ActingConfig {
+        python: Some(repo_python()),
+        program: Some(PathBuf::from(env!("CARGO_BIN_EXE_radserve"))),
+        ..Default::default()
+    };
     let manager = Arc::new(SessionManager::new(simulators.clone(), limits).with_acting(acting));
     let options = radserve::ServeOptions { augment_threads: 1, ..options };
     let (stop, stopped) = oneshot::channel::<()>();
