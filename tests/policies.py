@@ -251,6 +251,48 @@ def many_nodes(shape, n: int, count: int) -> bytes:
     return model.SerializeToString()
 
 
+def random_policy(seed: int, obs_dim: int, n: int, max_width: int = 1 << 30) -> bytes:
+    """A categorical policy drawn from a grammar of the allowed operators with random sizes, for the
+    property test of the policy runtime's limits: the observations [batch, obs_dim] pass through
+    2 to 8 random layers on a [batch, width] tensor (elementwise ops, MatMul, Concat doubling, Pad,
+    a broadcast through a third axis, Softmax, Transpose round trips), then ReduceSum and a bias make
+    the logits. Widths are drawn log-uniformly up to `max_width`, so some models are small, some
+    need gigabytes at their first run; weights stay small (MatMul only while width x out <= 2^22)."""
+    rng = np.random.default_rng(seed)
+    g = Graph(seed)
+    x, width = "obs", obs_dim
+    for _ in range(int(rng.integers(2, 9))):
+        choice = rng.choice(["unary", "binary", "matmul", "concat", "pad", "broadcast", "softmax", "transpose"])
+        if choice == "unary":
+            x = g.op(str(rng.choice(["Relu", "Tanh", "Sigmoid", "Abs", "Neg", "Softsign"])), [x])
+        elif choice == "binary":
+            x = g.op(str(rng.choice(["Add", "Mul", "Sub", "Max", "Min"])), [x, g.constant(rng.standard_normal((1, 1)))])
+        elif choice == "matmul":
+            out = int(2 ** rng.uniform(0, 12))
+            if width * out <= 1 << 22:
+                x, width = g.op("MatMul", [x, g.weight((width, out), 0.1)]), out
+        elif choice == "concat":
+            for _ in range(int(rng.integers(1, 6))):
+                x, width = g.op("Concat", [x, x], axis=1), width * 2
+        elif choice == "pad":
+            extra = int(2 ** rng.uniform(0, np.log2(max_width)))
+            x, width = g.op("Pad", [x, g.constant_int([0, 0, 0, extra])], mode="constant"), width + extra
+        elif choice == "broadcast":
+            depth = int(2 ** rng.uniform(0, 16))
+            wide = g.op("Add", [g.op("Unsqueeze", [x, g.constant_int([1])]), g.constant(np.zeros((depth, 1)))])
+            x = g.op("ReduceSum", [wide, g.constant_int([1])], keepdims=0)
+        elif choice == "softmax":
+            x = g.op("Softmax", [x], axis=1)
+        else:
+            x = g.op("Transpose", [g.op("Transpose", [x], perm=[1, 0])], perm=[1, 0])
+    total = g.op("ReduceSum", [x, g.constant_int([1])], keepdims=1)
+    g.op("Add", [g.op("Mul", [total, g.constant(1e-3)]), g.constant(rng.standard_normal((1, n)))], "logits")
+    graph = helper.make_graph(g.nodes, "policy", [obs_input((obs_dim,))], [output("logits", ["batch", n])], g.weights)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
 def _constant_int(self: Graph, value) -> str:
     name = self.name("i")
     self.weights.append(numpy_helper.from_array(np.asarray(value, dtype=np.int64), name))

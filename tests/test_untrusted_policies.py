@@ -183,3 +183,39 @@ def test_policies_are_charged_to_the_owners_budget(hostile_server):
         fourth.set_policy(policies.linear_categorical(np.eye(4, 2)), head="categorical")
         big.close()
         fourth.close()
+
+
+def test_random_models_are_refused_or_act_within_the_charged_memory(hostile_server):
+    """The property test over a grammar of the allowed operators (policies.random_policy): each
+    model, small or needing gigabytes, is refused at SetPolicy, acts, or fails its actor, and
+    whatever it does, no policy runtime passes its charged memory (plus ONNX Runtime's library
+    text) and the server's process tree stays within its baseline plus one policy's charge."""
+    pid = hostile_server.process.pid
+    outcomes = {}
+    with radserve.Client(hostile_server.address) as client:
+        envs = _cartpole(client)
+        envs.reset(seed=0)
+        time.sleep(0.5)
+        baseline = _rss(pid) + sum(_rss(child) for child in _children(pid))
+        with TreePeak(pid) as peak:
+            for seed in range(24):
+                model = policies.random_policy(seed, 4, 2)
+                try:
+                    envs.set_policy(model, head="categorical")
+                except (InvalidArgumentError, ResourceExhaustedError) as refused:
+                    outcomes[seed] = type(refused).__name__
+                    continue
+                envs.start_acting(max_env_steps=20)
+                deadline = time.monotonic() + 60
+                while (info := envs.acting()).state == "acting":
+                    assert time.monotonic() < deadline, (seed, info)
+                    time.sleep(0.02)
+                outcomes[seed] = info.state
+                assert info.state in ("stopped", "failed"), (seed, info)
+                if info.state == "stopped":
+                    assert info.env_steps == 20, (seed, info)
+        assert peak.runtime_peak < 2 * POLICY_MEMORY + 64 * MIB, (peak.runtime_peak, outcomes)
+        assert peak.peak < baseline + 2 * POLICY_MEMORY + 128 * MIB, (peak.peak, baseline, outcomes)
+        # The grammar reaches both sides of the limit.
+        assert "stopped" in outcomes.values() and "ResourceExhaustedError" in outcomes.values(), outcomes
+        envs.reset(seed=0)

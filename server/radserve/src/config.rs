@@ -43,8 +43,8 @@ pub struct ActingSection {
     /// The largest model SetPolicy takes, in bytes (the RAD actor is 12 MB).
     pub max_model_bytes: u64,
     /// The memory each policy may use, in bytes: the data memory (RLIMIT_DATA) of the process the
-    /// policy runs in (ONNX Runtime itself, ~40 MiB, the model's weights and every intermediate
-    /// tensor). Charged with the model's bytes to the session's owner (limits.memory_bytes and the
+    /// policy runs in (ONNX Runtime's own ~20 MiB, the model's weights and every intermediate tensor;
+    /// RAD's pixel actor at 8 envs peaks at ~75 MiB). Charged with the model's bytes to the session's owner (limits.memory_bytes and the
     /// principal's quota) while the session holds the policy; a model that needs more is refused at
     /// SetPolicy (RESOURCE_EXHAUSTED), or its actor fails.
     pub policy_memory_bytes: u64,

@@ -59,9 +59,10 @@ pub struct ActingConfig {
     pub call_timeout: Duration,
 }
 
-/// The default data memory of a policy runtime: ONNX Runtime's own (~40 MiB) and a pixel actor of
-/// tens of megabytes with its activations at a few hundred envs, with room.
-pub const DEFAULT_POLICY_MEMORY_BYTES: u64 = 512 << 20;
+/// The default data memory of a policy runtime: ONNX Runtime's own (~20 MiB of data before a model)
+/// and RAD's pixel actor (12 MB of weights) at 8 envs of 9x84x84 peak at ~75 MiB; the rest is room
+/// for wider actors and more envs.
+pub const DEFAULT_POLICY_MEMORY_BYTES: u64 = 256 << 20;
 
 impl Default for ActingConfig {
     fn default() -> Self {
