@@ -55,7 +55,7 @@ pub struct ObservationSpec {
 }
 
 /// The element type of a session's observations.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum ObservationType {
     Uint8,
     Float32,
@@ -80,7 +80,7 @@ impl ObservationType {
     }
 
     /// Little-endian observation bytes as the float32 a model takes.
-    fn to_f32(self, bytes: &[u8]) -> Vec<f32> {
+    pub(crate) fn to_f32(self, bytes: &[u8]) -> Vec<f32> {
         match self {
             ObservationType::Uint8 => bytes.iter().map(|&byte| f32::from(byte)).collect(),
             ObservationType::Float32 => bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
@@ -323,7 +323,8 @@ impl Policy {
     #[doc(hidden)]
     pub async fn run_unchecked(launcher: &RuntimeLauncher, model: &[u8], shape: Vec<i64>, uint8: bool, data: Vec<u8>) -> Result<Vec<(Vec<i64>, Vec<f32>)>, PolicyError> {
         let mut runtime = process::RuntimeProcess::start(launcher, model, 1, 1 << 20).await?;
-        let outputs = runtime.run(shape, uint8, data).await?;
+        let dtype = if uint8 { ObservationType::Uint8 } else { ObservationType::Float32 };
+        let outputs = runtime.run(shape, dtype, uint8, &data).await?;
         Ok(outputs.into_iter().map(|output| (output.shape, output.values)).collect())
     }
 
@@ -366,12 +367,7 @@ impl Policy {
         }
         let num_envs = self.observations.num_envs;
         let shape: Vec<i64> = std::iter::once(num_envs).chain(self.observations.shape.iter().copied()).map(|d| d as i64).collect();
-        let data = if self.input_uint8 {
-            obs.to_vec()
-        } else {
-            self.observations.dtype.to_f32(obs).iter().flat_map(|value| value.to_le_bytes()).collect()
-        };
-        let outputs = self.runtime.run(shape, self.input_uint8, data).await?;
+        let outputs = self.runtime.run(shape, self.observations.dtype, self.input_uint8, obs).await?;
         if outputs.len() != self.summary.outputs.len() {
             return Err(PolicyError::Runtime(format!("the model answered {} outputs; its graph declares {}", outputs.len(), self.summary.outputs.len())));
         }

@@ -3,6 +3,7 @@
 //! size (the process runs untrusted input and is trusted no more than its model), killed when
 //! dropped.
 
+use std::os::fd::AsRawFd;
 use std::path::PathBuf;
 use std::process::Stdio;
 use std::time::Duration;
@@ -11,7 +12,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::process::{Child, ChildStdin, ChildStdout, Command};
 
 use crate::runtime::{Output, Reply, Request};
-use crate::PolicyError;
+use crate::{ObservationType, PolicyError};
 
 /// How to start a policy runtime and what it may use.
 #[derive(Clone, Debug)]
@@ -79,6 +80,12 @@ impl RuntimeProcess {
             .map_err(|error| PolicyError::Unavailable(format!("starting the policy runtime {}: {error}", launcher.program.display())))?;
         let stdin = child.stdin.take().expect("stdin is piped");
         let stdout = child.stdout.take().expect("stdout is piped");
+        // A step's observations (a few hundred kilobytes of pixels) in one write, not sixteen of the
+        // default 64 KiB pipe; best effort (a lower pipe-max-size keeps the default).
+        for fd in [stdin.as_raw_fd(), stdout.as_raw_fd()] {
+            // SAFETY: fcntl on a descriptor this process owns, with an integer argument.
+            unsafe { libc::fcntl(fd, libc::F_SETPIPE_SZ, 1 << 20) };
+        }
         let mut process = RuntimeProcess {
             child,
             stdin,
@@ -89,7 +96,7 @@ impl RuntimeProcess {
             peak_bytes: 0,
         };
         let request = Request::Load { model: model.to_vec(), threads: threads as u32 };
-        match process.call(&request, launcher.load_timeout, "loading the model").await? {
+        match process.call(&request, None, launcher.load_timeout, "loading the model").await? {
             Reply::Loaded { peak_bytes, .. } => {
                 process.peak_bytes = peak_bytes;
                 Ok(process)
@@ -99,9 +106,9 @@ impl RuntimeProcess {
         }
     }
 
-    /// Runs the model on one batch.
-    pub(crate) async fn run(&mut self, shape: Vec<i64>, uint8: bool, data: Vec<u8>) -> Result<Vec<Output>, PolicyError> {
-        match self.call(&Request::Run { shape, uint8, data }, self.call_timeout, "running the model").await? {
+    /// Runs the model on one batch: `data` is the observations' raw bytes of `dtype`.
+    pub(crate) async fn run(&mut self, shape: Vec<i64>, dtype: ObservationType, uint8_input: bool, data: &[u8]) -> Result<Vec<Output>, PolicyError> {
+        match self.call(&Request::Run { shape, dtype, uint8_input }, Some(data), self.call_timeout, "running the model").await? {
             Reply::Outputs(outputs) => Ok(outputs),
             Reply::Failed { message, peak_bytes } => Err(self.failed(&message, peak_bytes, "running the model")),
             Reply::Loaded { .. } => Err(PolicyError::Runtime("the policy runtime answered a run with a load".into())),
@@ -121,8 +128,8 @@ impl RuntimeProcess {
         }
     }
 
-    async fn call(&mut self, request: &Request, limit: Duration, doing: &str) -> Result<Reply, PolicyError> {
-        match tokio::time::timeout(limit, self.exchange(request)).await {
+    async fn call(&mut self, request: &Request, payload: Option<&[u8]>, limit: Duration, doing: &str) -> Result<Reply, PolicyError> {
+        match tokio::time::timeout(limit, self.exchange(request, payload)).await {
             Ok(Ok(reply)) => Ok(reply),
             Ok(Err(error)) => {
                 // The process ended or said something unreadable: how it ended tells why.
@@ -158,10 +165,17 @@ impl RuntimeProcess {
         }
     }
 
-    async fn exchange(&mut self, request: &Request) -> std::io::Result<Reply> {
+    /// Sends `request` (and `payload`, raw, in a frame of its own: a postcard Vec<u8> would be
+    /// encoded a byte at a time) and reads the answer.
+    async fn exchange(&mut self, request: &Request, payload: Option<&[u8]>) -> std::io::Result<Reply> {
         let body = postcard::to_allocvec(request).map_err(|error| std::io::Error::new(std::io::ErrorKind::InvalidData, error.to_string()))?;
         self.stdin.write_all(&(body.len() as u32).to_le_bytes()).await?;
         self.stdin.write_all(&body).await?;
+        if let Some(payload) = payload {
+            let length = u32::try_from(payload.len()).map_err(|_| std::io::Error::new(std::io::ErrorKind::InvalidData, "observations over 4 GiB"))?;
+            self.stdin.write_all(&length.to_le_bytes()).await?;
+            self.stdin.write_all(payload).await?;
+        }
         self.stdin.flush().await?;
         let mut header = [0u8; 4];
         self.stdout.read_exact(&mut header).await?;

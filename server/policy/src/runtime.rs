@@ -33,8 +33,9 @@ use serde::{Deserialize, Serialize};
 pub(crate) enum Request {
     /// Build the model (first request, once).
     Load { model: Vec<u8>, threads: u32 },
-    /// Run it on one batch: `data` is uint8 values, or float32 little-endian when `!uint8`.
-    Run { shape: Vec<i64>, uint8: bool, data: Vec<u8> },
+    /// Run it on one batch, whose observations follow in a frame of their own (raw little-endian
+    /// bytes of `dtype`, converted here: uint8 as it is for a uint8 input, else to float32).
+    Run { shape: Vec<i64>, dtype: crate::ObservationType, uint8_input: bool },
 }
 
 /// One output tensor of a run.
@@ -64,20 +65,28 @@ pub(crate) fn write_message(out: &mut impl Write, message: &impl Serialize) -> i
     out.flush()
 }
 
-fn read_request(input: &mut impl Read) -> io::Result<Option<Request>> {
+/// One frame (a little-endian u32 length, then the bytes) into `body`; false at the end of input.
+fn read_frame(input: &mut impl Read, body: &mut Vec<u8>) -> io::Result<bool> {
     let mut header = [0u8; 4];
     match input.read_exact(&mut header) {
         Ok(()) => {}
-        Err(error) if error.kind() == io::ErrorKind::UnexpectedEof => return Ok(None),
+        Err(error) if error.kind() == io::ErrorKind::UnexpectedEof => return Ok(false),
         Err(error) => return Err(error),
     }
     let length = u32::from_le_bytes(header) as usize;
     if length > MAX_REQUEST_BYTES {
         return Err(io::Error::new(io::ErrorKind::InvalidData, format!("a request of {length} bytes")));
     }
-    let mut body = vec![0u8; length];
-    input.read_exact(&mut body)?;
-    postcard::from_bytes(&body).map(Some).map_err(|error| io::Error::new(io::ErrorKind::InvalidData, error.to_string()))
+    body.resize(length, 0);
+    input.read_exact(body)?;
+    Ok(true)
+}
+
+fn read_request(input: &mut impl Read, body: &mut Vec<u8>) -> io::Result<Option<Request>> {
+    if !read_frame(input, body)? {
+        return Ok(None);
+    }
+    postcard::from_bytes(body).map(Some).map_err(|error| io::Error::new(io::ErrorKind::InvalidData, error.to_string()))
 }
 
 /// This process's peak resident memory (getrusage's ru_maxrss).
@@ -197,13 +206,12 @@ fn build(environment: &ort::environment::Environment, model: &[u8], threads: u32
         .map_err(text)
 }
 
-fn run(session: &mut Session, shape: Vec<i64>, uint8: bool, data: Vec<u8>) -> Result<Vec<Output>, String> {
+fn run(session: &mut Session, shape: Vec<i64>, dtype: crate::ObservationType, uint8_input: bool, data: &[u8]) -> Result<Vec<Output>, String> {
     let text = |error: ort::Error| error.to_string();
-    let outputs = if uint8 {
-        session.run(ort::inputs![Tensor::from_array((shape, data)).map_err(text)?]).map_err(text)?
+    let outputs = if uint8_input {
+        session.run(ort::inputs![Tensor::from_array((shape, data.to_vec())).map_err(text)?]).map_err(text)?
     } else {
-        let values: Vec<f32> = data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        session.run(ort::inputs![Tensor::from_array((shape, values)).map_err(text)?]).map_err(text)?
+        session.run(ort::inputs![Tensor::from_array((shape, dtype.to_f32(data))).map_err(text)?]).map_err(text)?
     };
     let mut answers = Vec::with_capacity(outputs.len());
     for index in 0..outputs.len() {
@@ -243,7 +251,11 @@ pub fn serve(library: &Path, memory_bytes: u64, containment: Containment) -> Res
     }
     let (mut input, mut output) = (io::stdin().lock(), io::stdout().lock());
     let mut session: Option<Session> = None;
-    while let Some(request) = read_request(&mut input).map_err(|error| format!("reading a request: {error}"))? {
+    let (mut body, mut data) = (Vec::new(), Vec::new());
+    while let Some(request) = read_request(&mut input, &mut body).map_err(|error| format!("reading a request: {error}"))? {
+        if matches!(request, Request::Run { .. }) && !read_frame(&mut input, &mut data).map_err(|error| format!("reading observations: {error}"))? {
+            return Err("the input ended before a run's observations".into());
+        }
         let reply = match (request, &mut session) {
             (Request::Load { model, threads }, None) => match build(&environment, &model, threads) {
                 Ok(built) => {
@@ -255,7 +267,7 @@ pub fn serve(library: &Path, memory_bytes: u64, containment: Containment) -> Res
             },
             (Request::Load { .. }, Some(_)) => Reply::Failed { message: "a model is already loaded".into(), peak_bytes: peak_bytes() },
             (Request::Run { .. }, None) => Reply::Failed { message: "no model is loaded".into(), peak_bytes: peak_bytes() },
-            (Request::Run { shape, uint8, data }, Some(session)) => match run(session, shape, uint8, data) {
+            (Request::Run { shape, dtype, uint8_input }, Some(session)) => match run(session, shape, dtype, uint8_input, &data) {
                 Ok(outputs) => Reply::Outputs(outputs),
                 Err(message) => Reply::Failed { message, peak_bytes: peak_bytes() },
             },
