@@ -38,7 +38,7 @@ pub struct ActingSection {
     /// The ONNX Runtime library (libonnxruntime.so). Unset: the one of the onnxruntime wheel
     /// installed in the workers' virtualenv (sim.venv), which the server's requirements include.
     pub onnxruntime_library: Option<PathBuf>,
-    /// ONNX Runtime threads per policy's inference (1: on the acting task's own thread).
+    /// ONNX Runtime's intra-op threads per policy (in the policy's runtime process; 1: its main thread).
     pub threads: usize,
     /// The largest model SetPolicy takes, in bytes (the RAD actor is 12 MB).
     pub max_model_bytes: u64,
