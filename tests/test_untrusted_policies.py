@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import radserve
-from radserve import InvalidArgumentError, ResourceExhaustedError
+from radserve import FailedPreconditionError, InvalidArgumentError, ResourceExhaustedError
 
 import policies
 
@@ -150,6 +150,9 @@ def test_memory_bombs_are_refused_or_fail_their_actor_within_the_charged_memory(
                 assert time.monotonic() < deadline, info
                 time.sleep(0.05)
         assert info.state == "failed" and str(POLICY_MEMORY) in info.error, info
+        # Its runtime was stopped: the policy is gone (its charge returned), not set again.
+        with pytest.raises(FailedPreconditionError, match="SetPolicy before StartActing"):
+            envs.start_acting()
         # The runtime's own memory: its data limit plus ONNX Runtime's library text (~25 MiB).
         assert peak.runtime_peak < POLICY_MEMORY + 64 * MIB, (peak.runtime_peak, POLICY_MEMORY)
         assert peak.peak < baseline + POLICY_MEMORY + 128 * MIB, (peak.peak, baseline)

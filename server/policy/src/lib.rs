@@ -328,6 +328,11 @@ impl Policy {
         Ok(outputs.into_iter().map(|output| (output.shape, output.values)).collect())
     }
 
+    /// Whether the policy can act again: false once its runtime was stopped (past a limit, or gone).
+    pub fn usable(&self) -> bool {
+        self.runtime.alive()
+    }
+
     /// The policy runtime's peak resident memory at its last answer.
     pub fn peak_bytes(&self) -> u64 {
         self.runtime.peak_bytes

@@ -43,6 +43,8 @@ pub(crate) struct RuntimeProcess {
     max_reply_bytes: usize,
     /// The runtime's peak resident memory at its last answer.
     pub(crate) peak_bytes: u64,
+    /// Killed (or gone) after a call that failed: it answers nothing any more.
+    dead: bool,
 }
 
 /// Whether a runtime's failure reads as an allocation that its memory limit refused.
@@ -94,6 +96,7 @@ impl RuntimeProcess {
             memory_bytes: launcher.memory_bytes,
             max_reply_bytes,
             peak_bytes: 0,
+            dead: false,
         };
         let request = Request::Load { model: model.to_vec(), threads: threads as u32 };
         match process.call(&request, None, launcher.load_timeout, "loading the model").await? {
@@ -118,6 +121,10 @@ impl RuntimeProcess {
     fn failed(&mut self, message: &str, peak_bytes: u64, doing: &str) -> PolicyError {
         self.peak_bytes = self.peak_bytes.max(peak_bytes);
         if out_of_memory(message, peak_bytes, self.memory_bytes) {
+            // A runtime that reached its limit is stopped, its memory given back: it would reach it
+            // again on the next frame.
+            self.dead = true;
+            let _ = self.child.start_kill();
             PolicyError::Exhausted(format!(
                 "{doing} needs more than the {} bytes a policy may use (acting.policy_memory_bytes; the runtime reached {} \
                  bytes resident): {message}",
@@ -133,6 +140,7 @@ impl RuntimeProcess {
             Ok(Ok(reply)) => Ok(reply),
             Ok(Err(error)) => {
                 // The process ended or said something unreadable: how it ended tells why.
+                self.dead = true;
                 let _ = self.child.start_kill();
                 let status = tokio::time::timeout(Duration::from_secs(5), self.child.wait()).await;
                 let ended = match status {
@@ -158,6 +166,7 @@ impl RuntimeProcess {
                 }
             }
             Err(_) => {
+                self.dead = true;
                 let _ = self.child.start_kill();
                 let key = if doing == "loading the model" { "acting.policy_load_timeout_s" } else { "acting.policy_call_timeout_s" };
                 Err(PolicyError::Exhausted(format!("{doing} took longer than {} s ({key}); the policy runtime was stopped", limit.as_secs_f64())))
@@ -189,6 +198,11 @@ impl RuntimeProcess {
         let mut body = vec![0u8; length];
         self.stdout.read_exact(&mut body).await?;
         postcard::from_bytes(&body).map_err(|error| std::io::Error::new(std::io::ErrorKind::InvalidData, error.to_string()))
+    }
+
+    /// Whether the runtime still answers (it is killed after a call that failed or timed out).
+    pub(crate) fn alive(&self) -> bool {
+        !self.dead
     }
 
     /// The runtime's process id (tests watch its memory).

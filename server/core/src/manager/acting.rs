@@ -447,7 +447,11 @@ impl Actor {
         let (session, slot, metrics, session_id) = (self.session.clone(), self.slot.clone(), self.metrics.clone(), self.session_id.clone());
         let ended = match tokio::spawn(self.act_owned(policy, stopped, closed)).await {
             Ok((ended, policy)) => {
-                slot.give_back(policy);
+                // A policy whose runtime was stopped (past its memory or time) is dropped, its
+                // charge returned: StartActing then asks for a new one rather than failing again.
+                if policy.policy.usable() {
+                    slot.give_back(policy);
+                }
                 ended
             }
             Err(error) => Ended::Failed(format!("the actor stopped on an internal error: {error}")),
