@@ -338,11 +338,6 @@ impl Policy {
         self.runtime.peak_bytes
     }
 
-    /// The policy runtime's process id.
-    pub fn runtime_pid(&self) -> Option<u32> {
-        self.runtime.pid()
-    }
-
     /// Bytes of one step's observations of every env.
     pub fn observation_bytes(&self) -> usize {
         self.observations.num_envs * self.observations.shape.iter().product::<usize>() * self.observations.dtype.size()

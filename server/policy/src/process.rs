@@ -98,8 +98,8 @@ impl RuntimeProcess {
             peak_bytes: 0,
             dead: false,
         };
-        let request = Request::Load { model: model.to_vec(), threads: threads as u32 };
-        match process.call(&request, None, launcher.load_timeout, "loading the model").await? {
+        let request = Request::Load { threads: threads as u32 };
+        match process.call(&request, model, launcher.load_timeout, "loading the model").await? {
             Reply::Loaded { peak_bytes, .. } => {
                 process.peak_bytes = peak_bytes;
                 Ok(process)
@@ -111,7 +111,7 @@ impl RuntimeProcess {
 
     /// Runs the model on one batch: `data` is the observations' raw bytes of `dtype`.
     pub(crate) async fn run(&mut self, shape: Vec<i64>, dtype: ObservationType, uint8_input: bool, data: &[u8]) -> Result<Vec<Output>, PolicyError> {
-        match self.call(&Request::Run { shape, dtype, uint8_input }, Some(data), self.call_timeout, "running the model").await? {
+        match self.call(&Request::Run { shape, dtype, uint8_input }, data, self.call_timeout, "running the model").await? {
             Reply::Outputs(outputs) => Ok(outputs),
             Reply::Failed { message, peak_bytes } => Err(self.failed(&message, peak_bytes, "running the model")),
             Reply::Loaded { .. } => Err(PolicyError::Runtime("the policy runtime answered a run with a load".into())),
@@ -135,7 +135,7 @@ impl RuntimeProcess {
         }
     }
 
-    async fn call(&mut self, request: &Request, payload: Option<&[u8]>, limit: Duration, doing: &str) -> Result<Reply, PolicyError> {
+    async fn call(&mut self, request: &Request, payload: &[u8], limit: Duration, doing: &str) -> Result<Reply, PolicyError> {
         match tokio::time::timeout(limit, self.exchange(request, payload)).await {
             Ok(Ok(reply)) => Ok(reply),
             Ok(Err(error)) => {
@@ -174,17 +174,16 @@ impl RuntimeProcess {
         }
     }
 
-    /// Sends `request` (and `payload`, raw, in a frame of its own: a postcard Vec<u8> would be
-    /// encoded a byte at a time) and reads the answer.
-    async fn exchange(&mut self, request: &Request, payload: Option<&[u8]>) -> std::io::Result<Reply> {
+    /// Sends `request` and its payload (the model's or the observations' bytes, raw, in a frame of
+    /// their own: neither copied into the request nor encoded a byte at a time as a postcard Vec<u8>
+    /// would be) and reads the answer.
+    async fn exchange(&mut self, request: &Request, payload: &[u8]) -> std::io::Result<Reply> {
         let body = postcard::to_allocvec(request).map_err(|error| std::io::Error::new(std::io::ErrorKind::InvalidData, error.to_string()))?;
+        let length = u32::try_from(payload.len()).map_err(|_| std::io::Error::new(std::io::ErrorKind::InvalidData, "a payload over 4 GiB"))?;
         self.stdin.write_all(&(body.len() as u32).to_le_bytes()).await?;
         self.stdin.write_all(&body).await?;
-        if let Some(payload) = payload {
-            let length = u32::try_from(payload.len()).map_err(|_| std::io::Error::new(std::io::ErrorKind::InvalidData, "observations over 4 GiB"))?;
-            self.stdin.write_all(&length.to_le_bytes()).await?;
-            self.stdin.write_all(payload).await?;
-        }
+        self.stdin.write_all(&length.to_le_bytes()).await?;
+        self.stdin.write_all(payload).await?;
         self.stdin.flush().await?;
         let mut header = [0u8; 4];
         self.stdout.read_exact(&mut header).await?;
@@ -203,10 +202,5 @@ impl RuntimeProcess {
     /// Whether the runtime still answers (it is killed after a call that failed or timed out).
     pub(crate) fn alive(&self) -> bool {
         !self.dead
-    }
-
-    /// The runtime's process id (tests watch its memory).
-    pub(crate) fn pid(&self) -> Option<u32> {
-        self.child.id()
     }
 }

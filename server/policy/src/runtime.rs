@@ -16,7 +16,8 @@
 //!    the server missed, or a bug in ONNX Runtime, cannot read a file.
 //!
 //! Then it answers requests on stdin/stdout ([`Request`], [`Reply`]: a little-endian u32 length and
-//! a postcard body), one at a time. The server kills it when the policy is replaced or its session
+//! a postcard body, then a frame of raw bytes: the model for a load, the observations for a run),
+//! one at a time. The server kills it when the policy is replaced or its session
 //! closes, when a load or a call passes its deadline, and the kernel kills it with the server
 //! (PR_SET_PDEATHSIG).
 
@@ -31,10 +32,10 @@ use serde::{Deserialize, Serialize};
 /// What the server asks of the runtime.
 #[derive(Debug, Serialize, Deserialize)]
 pub(crate) enum Request {
-    /// Build the model (first request, once).
-    Load { model: Vec<u8>, threads: u32 },
-    /// Run it on one batch, whose observations follow in a frame of their own (raw little-endian
-    /// bytes of `dtype`, converted here: uint8 as it is for a uint8 input, else to float32).
+    /// Build the model (first request, once); its bytes are the request's payload.
+    Load { threads: u32 },
+    /// Run it on one batch, whose observations are the payload (raw little-endian bytes of `dtype`,
+    /// converted here: uint8 as it is for a uint8 input, else to float32).
     Run { shape: Vec<i64>, dtype: crate::ObservationType, uint8_input: bool },
 }
 
@@ -221,9 +222,6 @@ fn run(session: &mut Session, shape: Vec<i64>, dtype: crate::ObservationType, ui
     Ok(answers)
 }
 
-/// The runtime's main: contained as the module says, then one model loaded and run on request until
-/// stdin closes. Errors before the first request end the process (the server reports the message it
-/// wrote to stderr); errors of a request are answered.
 /// The steps of containment `serve` takes: all of them in the server (`radserve policy-runtime`);
 /// the tests leave one out at a time to show that each alone keeps a file unread.
 #[derive(Clone, Copy, Debug)]
@@ -236,6 +234,9 @@ impl Containment {
     pub const FULL: Containment = Containment { leave_the_filesystem: true, forbid_files: true };
 }
 
+/// The runtime's main: contained as the module says, then one model loaded and run on request until
+/// stdin closes. Errors before the first request end the process (the server reports the message it
+/// wrote to stderr); errors of a request are answered.
 pub fn serve(library: &Path, memory_bytes: u64, containment: Containment) -> Result<(), String> {
     if containment.leave_the_filesystem {
         leave_the_filesystem()?;
@@ -251,13 +252,14 @@ pub fn serve(library: &Path, memory_bytes: u64, containment: Containment) -> Res
     }
     let (mut input, mut output) = (io::stdin().lock(), io::stdout().lock());
     let mut session: Option<Session> = None;
-    let (mut body, mut data) = (Vec::new(), Vec::new());
+    let (mut body, mut payload) = (Vec::new(), Vec::new());
     while let Some(request) = read_request(&mut input, &mut body).map_err(|error| format!("reading a request: {error}"))? {
-        if matches!(request, Request::Run { .. }) && !read_frame(&mut input, &mut data).map_err(|error| format!("reading observations: {error}"))? {
-            return Err("the input ended before a run's observations".into());
+        if !read_frame(&mut input, &mut payload).map_err(|error| format!("reading a request's payload: {error}"))? {
+            return Err("the input ended before a request's payload".into());
         }
         let reply = match (request, &mut session) {
-            (Request::Load { model, threads }, None) => match build(&environment, &model, threads) {
+            // The model's bytes are released once it is built.
+            (Request::Load { threads }, None) => match build(&environment, &std::mem::take(&mut payload), threads) {
                 Ok(built) => {
                     let outputs = built.outputs().len() as u32;
                     session = Some(built);
@@ -267,7 +269,7 @@ pub fn serve(library: &Path, memory_bytes: u64, containment: Containment) -> Res
             },
             (Request::Load { .. }, Some(_)) => Reply::Failed { message: "a model is already loaded".into(), peak_bytes: peak_bytes() },
             (Request::Run { .. }, None) => Reply::Failed { message: "no model is loaded".into(), peak_bytes: peak_bytes() },
-            (Request::Run { shape, dtype, uint8_input }, Some(session)) => match run(session, shape, dtype, uint8_input, &data) {
+            (Request::Run { shape, dtype, uint8_input }, Some(session)) => match run(session, shape, dtype, uint8_input, &payload) {
                 Ok(outputs) => Reply::Outputs(outputs),
                 Err(message) => Reply::Failed { message, peak_bytes: peak_bytes() },
             },
@@ -298,7 +300,13 @@ pub fn main_from_args(args: impl Iterator<Item = String>) -> std::process::ExitC
         leave_the_filesystem: !args.iter().any(|arg| arg == "--keep-working-directory"),
         forbid_files: !args.iter().any(|arg| arg == "--allow-files"),
     };
-    match serve(Path::new(&library), memory, containment) {
+    main(Path::new(&library), memory, containment)
+}
+
+/// `serve` as a process's main (the server's `radserve policy-runtime` and the test binary): its
+/// error on standard error and exit code 1, which the server reads as a runtime that could not start.
+pub fn main(library: &Path, memory_bytes: u64, containment: Containment) -> std::process::ExitCode {
+    match serve(library, memory_bytes, containment) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(message) => {
             eprintln!("radserve policy runtime: {message}");

@@ -151,13 +151,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     if let Command::PolicyRuntime { library, memory_bytes } = &cli.command {
         // No tokio and no tracing: one thread reads requests and runs the model.
-        return match radserve_policy::runtime::serve(library, *memory_bytes, radserve_policy::runtime::Containment::FULL) {
-            Ok(()) => ExitCode::SUCCESS,
-            Err(error) => {
-                eprintln!("radserve policy runtime: {error}");
-                ExitCode::FAILURE
-            }
-        };
+        return radserve_policy::runtime::main(library, *memory_bytes, radserve_policy::runtime::Containment::FULL);
     }
     if let Command::Worker { venv, gl } = &cli.command {
         // No tokio and no tracing in workers: one thread owns the interpreter and the simulators.
