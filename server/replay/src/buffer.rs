@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 use rand::Rng;
 
 use crate::error::{ReplayError, Result};
+use crate::rate_limiter::{Activity, Occupancy};
 
 /// Whether a buffer serves uniform replay or the last rollout.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -233,6 +234,8 @@ pub struct ReplayBuffer {
     recent_batches: RecentBatches,
     /// Producers (sample streams) running on this buffer.
     active_producers: Arc<AtomicUsize>,
+    /// Woken by each insert and each sampled batch: the waiters on the rate limiter.
+    activity: Arc<Activity>,
 }
 
 /// One admitted sample stream of a buffer; dropping it frees its place (see
@@ -295,6 +298,7 @@ impl ReplayBuffer {
             counters: ReplayCounters::default(),
             recent_batches: RecentBatches::default(),
             active_producers: Arc::default(),
+            activity: Arc::default(),
         })
     }
 
@@ -314,6 +318,16 @@ impl ReplayBuffer {
 
     pub fn counters(&self) -> ReplayCounters {
         self.counters
+    }
+
+    /// What the rate limiter reads: the counters and the transitions held now.
+    pub fn occupancy(&self) -> Occupancy {
+        Occupancy::of(self.counters, self.len())
+    }
+
+    /// Signalled by each insert and each sampled batch (see [`crate::RateLimiter`]).
+    pub fn activity(&self) -> Arc<Activity> {
+        self.activity.clone()
     }
 
     /// Minibatches handed out per second, over the last 5 seconds.
@@ -407,6 +421,7 @@ impl ReplayBuffer {
         if step.terminated || step.truncated {
             self.in_episode[env] = false;
         }
+        self.activity.bump();
     }
 
     pub(crate) fn stamp(&mut self, slot: usize, acted: Option<ActedBy>) {
@@ -450,6 +465,7 @@ impl ReplayBuffer {
         self.counters.samples += count as u64;
         self.counters.batches += 1;
         self.recent_batches.record(Instant::now());
+        self.activity.bump();
         Ok(())
     }
 
@@ -530,6 +546,7 @@ impl ReplayBuffer {
         self.counters.samples += count as u64;
         self.counters.batches += 1;
         self.recent_batches.record(Instant::now());
+        self.activity.bump();
     }
 
     /// Copy the observation (`next == false`) or next observation stack of a sampled transition

@@ -8,6 +8,7 @@ mod buffer;
 mod delivery;
 mod error;
 mod producer;
+mod rate_limiter;
 mod shared;
 pub mod snapshot;
 
@@ -18,4 +19,5 @@ pub use buffer::{
 pub use delivery::{HeldSlots, InFlight};
 pub use error::{ReplayError, Result};
 pub use producer::{Batch, ObservationFormat, Output, Producer, Recycler, SampleSpec, Source, MAX_BATCH_BYTES};
+pub use rate_limiter::{Activity, Occupancy, RateLimiter};
 pub use shared::{SharedRing, Slot, SHARED_HEADER_BYTES, SHARED_MAGIC};

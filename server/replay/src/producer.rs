@@ -17,6 +17,7 @@ use rayon::prelude::*;
 
 use crate::buffer::{BufferKind, ProducerPermit, ReplayBuffer, TransitionMetadata, TransitionRef};
 use crate::error::{ReplayError, Result};
+use crate::rate_limiter::RateLimiter;
 use crate::shared::{SharedRing, Slot};
 
 /// The largest batch of observations a stream may produce (1 GiB): 512 translated 108x108 stacks with
@@ -32,6 +33,8 @@ pub const MAX_BATCH_BYTES: usize = 1 << 30;
 const TURN: Duration = Duration::from_millis(10);
 const FIRST_CHUNK: usize = 64;
 const MIN_CHUNK: usize = 4;
+/// How often a stream waiting for transitions looks at whether its client left.
+const LEFT_CHECK: Duration = Duration::from_millis(20);
 
 /// Runs `work` over `0..total` samples in chunks that each take about [`TURN`], on a thread of the
 /// augmentation pool; between two chunks it stops if the client left, else runs one job other
@@ -91,8 +94,8 @@ pub struct SampleSpec {
     /// Sampling waits until the buffer holds this many transitions (at least one batch's worth of
     /// distinct draws is not required: sampling is with replacement).
     pub min_size: usize,
-    /// When set, sampling waits while samples would exceed `samples_per_insert * inserts +
-    /// error_buffer` (Reverb's SampleToInsertRatio limiter).
+    /// When set, sampling keeps to this many samples per insert after `min_size`, within
+    /// `error_buffer` (Reverb's SampleToInsertRatio: see [`RateLimiter`]).
     pub samples_per_insert: Option<f64>,
     pub error_buffer: f64,
     /// Stop after this many batches (none: until the client leaves).
@@ -179,6 +182,8 @@ thread_local! {
 pub struct Producer {
     buffer: Arc<RwLock<ReplayBuffer>>,
     spec: SampleSpec,
+    /// Reverb's rate limiter, when the spec sets samples_per_insert.
+    limiter: Option<RateLimiter>,
     plan: Plan,
     obs_shape: Vec<usize>,
     obs_bytes: usize,
@@ -227,14 +232,10 @@ impl Producer {
                 ))
             }
         }
-        if let Some(ratio) = spec.samples_per_insert {
-            if !(ratio.is_finite() && ratio > 0.0 && spec.error_buffer.is_finite() && spec.error_buffer >= 0.0) {
-                return invalid(format!(
-                    "samples_per_insert must be positive and error_buffer non-negative, got {ratio} and {}",
-                    spec.error_buffer
-                ));
-            }
-        }
+        let limiter = match spec.samples_per_insert {
+            Some(ratio) => Some(RateLimiter::new(spec.min_size as u64, ratio, spec.error_buffer).map_err(ReplayError::InvalidArgument)?),
+            None => None,
+        };
         let (plan, obs_shape) = match format {
             ObservationFormat::Image(shape) => {
                 let plan = ImagePlan::new(&spec.pipeline, shape)?;
@@ -257,7 +258,7 @@ impl Producer {
                 if parts == 2 { " (obs and next_obs)" } else { "" },
             ));
         }
-        Ok(Self { buffer, spec, plan, obs_shape, obs_bytes, permit: None })
+        Ok(Self { buffer, spec, limiter, plan, obs_shape, obs_bytes, permit: None })
     }
 
     /// Run under `permit`, the place reserved for this stream when it was admitted (without one, the
@@ -331,14 +332,21 @@ impl Producer {
     ) {
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {
-            if !self.wait_until_allowed(ready) {
-                return;
-            }
             let mut batch = Batch { index, ..Batch::default() };
+            // Checked again under the write lock that counts the samples, so that two streams on
+            // one buffer cannot both take the limiter's last allowance.
+            let sampled = loop {
+                if !self.wait_until_allowed(ready) {
+                    return;
+                }
+                let mut buffer = self.buffer.write().expect("replay lock");
+                if self.allowed(&buffer) {
+                    break buffer.sample(self.spec.batch_size, rng, &mut batch.refs);
+                }
+            };
             if !self.allocate(spare, &mut batch, self.spec.batch_size, ready) {
                 return;
             }
-            let sampled = self.buffer.write().expect("replay lock").sample(self.spec.batch_size, rng, &mut batch.refs);
             let seed = self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
             if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None, &|| !ready.is_closed())) {
                 if error != ReplayError::Cancelled {
@@ -408,26 +416,19 @@ impl Producer {
         }
     }
 
-    /// Wait for enough data and for the rate limiter; false when the client left meanwhile.
-    fn wait_until_allowed(&self, ready: &tokio::sync::mpsc::Sender<Result<Batch>>) -> bool {
-        loop {
-            if ready.is_closed() {
-                return false;
-            }
-            let (len, counters) = {
-                let buffer = self.buffer.read().expect("replay lock");
-                (buffer.len(), buffer.counters())
-            };
-            let enough = len >= self.spec.min_size.max(1);
-            let within_rate = self.spec.samples_per_insert.is_none_or(|ratio| {
-                (counters.samples + self.spec.batch_size as u64) as f64
-                    <= ratio * counters.inserts as f64 + self.spec.error_buffer
-            });
-            if enough && within_rate {
-                return true;
-            }
-            std::thread::sleep(Duration::from_millis(2));
+    /// Whether the buffer holds `min_size` transitions and the rate limiter lets a batch through.
+    fn allowed(&self, buffer: &ReplayBuffer) -> bool {
+        match &self.limiter {
+            Some(limiter) => limiter.can_sample(buffer.occupancy(), self.spec.batch_size as u64),
+            None => buffer.len() >= self.spec.min_size.max(1),
         }
+    }
+
+    /// Waits, woken by the buffer's inserts and samples, until a batch is allowed; false when the
+    /// client left meanwhile (looked at every [`LEFT_CHECK`]).
+    fn wait_until_allowed(&self, ready: &tokio::sync::mpsc::Sender<Result<Batch>>) -> bool {
+        let activity = self.buffer.read().expect("replay lock").activity();
+        activity.wait_blocking(|| self.allowed(&self.buffer.read().expect("replay lock")), || !ready.is_closed(), LEFT_CHECK)
     }
 
     /// Memory for the observations of a batch of `size`: heap buffers, or a shared slot once one is

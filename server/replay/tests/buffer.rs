@@ -313,8 +313,9 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
     let (mut ready, _recycle) = producer.start(pool, Output::Heap);
-    // 2 samples per insert + 10 of slack: floor((2 * inserts + 10) / 10) batches, then it waits.
-    let allowed = (2 * inserts + 10) / 10;
+    // 2 samples per insert after the first (min_size 1, Reverb's offset) + 10 of slack:
+    // floor((2 * (inserts - 1) + 10) / 10) batches, then it waits.
+    let allowed = (2 * (inserts - 1) + 10) / 10;
     for _ in 0..allowed {
         ready.blocking_recv().unwrap().unwrap();
     }
