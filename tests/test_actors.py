@@ -2,7 +2,8 @@
 actor (gaussian_tanh), a gymnasium MuJoCo task with a state MLP, and ProcGen with a categorical
 policy into a rollout; batches carry the acting version (and, for rollouts, log-probabilities and
 values); a client's step is refused while the server acts; bad models are refused with the reason.
-Models are built with onnx.helper (tests/policies.py), so no torch is needed here."""
+Models are built with onnx.helper (tests/policies.py), so no torch is needed here. Over gRPC on the
+fake simulators: server/radserve/tests/actors.rs; the actor's loop alone: core/src/actor/tests.rs."""
 
 import sys
 import time

@@ -5,6 +5,7 @@
 //! tests. No transport either: `radserve-service` maps this onto gRPC.
 
 pub mod actions;
+pub mod actor;
 pub mod bounds;
 pub mod budget;
 pub mod catalog;
@@ -19,9 +20,7 @@ pub mod session;
 pub mod simulators;
 pub mod space;
 #[cfg(test)]
-mod tests;
-#[cfg(test)]
-mod snapshot_tests;
+mod test_support;
 
 pub use catalog::{EnvId, EnvNames, Family, OptionValue, Options};
 pub use error::CoreError;

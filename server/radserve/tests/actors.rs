@@ -2,7 +2,9 @@
 //! steps the session with the policy and records each transition with the version that acted,
 //! versions swap between steps, clients' steps are refused while it acts, a policy that turns NaN
 //! stops the actor (not the server), and seeds make acting reproducible. Models:
-//! server/policy/tests/models (tests/policies.py).
+//! server/policy/tests/models (tests/policies.py). The actor's loop alone (scripted policies, the
+//! rate limiter, a panic, a close) is tested in core (`core/src/actor/tests.rs`); with the real
+//! simulators and a Python learner, in tests/test_actors.py.
 
 mod common;
 

@@ -82,8 +82,8 @@ async fn an_envpool_session_steps_asynchronously_through_the_workers() {
     assert!(returned.iter().all(|&count| count > 0), "every env came back: {returned:?}");
     assert_eq!(firsts.len(), n);
     assert!(ends > 0, "the run covers episode ends");
-    assert_eq!(session.total_env_steps, steps as u64);
-    assert_eq!(session.episodes_completed, ends as u64);
+    assert_eq!(session.total_env_steps(), steps as u64);
+    assert_eq!(session.episodes_completed(), ends as u64);
     session.close().await;
     pool.stop().await;
 }

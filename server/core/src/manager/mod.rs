@@ -18,14 +18,18 @@ use crate::principal::{log_id, Principal};
 use crate::session::{AutoresetMode, Session, SessionStats};
 use crate::simulators::Simulators;
 
-mod acting;
+mod actor;
 mod admission;
 mod lease;
 mod replay;
 pub(crate) mod snapshots;
 mod types;
+#[cfg(test)]
+mod tests;
+#[cfg(test)]
+mod snapshot_tests;
 
-pub use acting::{ActingConfig, ActingRequest, ActingState, ActingStatus, LoadedPolicy, DEFAULT_POLICY_MEMORY_BYTES, RECENT_EPISODES};
+pub use crate::actor::{ActingConfig, ActingRequest, ActingState, ActingStatus, LoadedPolicy, DEFAULT_POLICY_MEMORY_BYTES, RECENT_EPISODES};
 pub use admission::MAX_STEP_OBSERVATION_BYTES;
 pub use lease::{LeaseHold, Progress};
 pub use snapshots::{OnBadSnapshot, ReplayConfig, MAX_NAME_BYTES};
@@ -56,7 +60,7 @@ struct Entry {
     /// Its replay's snapshot, for a named session with a replay buffer on a server that snapshots.
     snapshot: Option<Arc<SnapshotSlot>>,
     /// Its server-side policies and actor.
-    actor: Arc<acting::ActorSlot>,
+    actor: Arc<crate::actor::ActorSlot>,
 }
 
 pub struct SessionManager {
@@ -76,8 +80,8 @@ pub struct SessionManager {
     snapshots: Option<Snapshots>,
     /// How server-side policies are loaded and run.
     acting: ActingConfig,
-    /// ONNX Runtime's library, once found (the policy runtimes load it).
-    onnxruntime: std::sync::OnceLock<std::path::PathBuf>,
+    /// ONNX Runtime's library, located at the first SetPolicy (or why it was not found).
+    onnxruntime: tokio::sync::OnceCell<Result<std::path::PathBuf, String>>,
 }
 
 #[derive(Default)]
@@ -125,7 +129,7 @@ impl SessionManager {
             metrics: Arc::default(),
             snapshots: None,
             acting: ActingConfig::default(),
-            onnxruntime: std::sync::OnceLock::new(),
+            onnxruntime: tokio::sync::OnceCell::new(),
         }
     }
 
@@ -332,8 +336,8 @@ pub fn describe(session_id: &str, session: &Session) -> SessionInfo {
         action_space: session.frame_spec.action.clone(),
         frame_stack: session.config.frame_stack,
         autoreset_mode: AutoresetMode::SameStep,
-        total_env_steps: session.total_env_steps,
-        episodes_completed: session.episodes_completed,
+        total_env_steps: session.total_env_steps(),
+        episodes_completed: session.episodes_completed(),
         replay: session.replay().map(|replay| replay_info(&replay.read().expect("replay lock"))),
         acting: None,
     }

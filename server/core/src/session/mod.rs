@@ -6,7 +6,7 @@
 //! episode separately, as `final_obs`.
 
 use std::collections::VecDeque;
-use std::sync::atomic::AtomicU64;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 
 use radserve_augment::ImagePlan;
@@ -24,6 +24,8 @@ mod recovery;
 mod single;
 mod stacking;
 mod sync;
+#[cfg(test)]
+mod tests;
 
 /// A step whose observations reach this many bytes (every env's stack, before the view) does its
 /// copies (stacking, replay recording, the view) outside tokio's worker: below it the copies take
@@ -134,13 +136,12 @@ pub struct Session {
     /// Each env's seed: what it was last seeded with (seed + i at creation).
     seeds: Vec<u64>,
     needs_reset: bool,
-    pub total_env_steps: u64,
-    pub episodes_completed: u64,
     /// Step calls so far: the step index recorded with each transition.
     pub step_calls: u64,
     /// Where every frame and transition is recorded, when the session keeps a replay buffer.
     replay: Option<Arc<RwLock<ReplayBuffer>>>,
-    /// What Describe reads while a step holds the session (no lock needed).
+    /// Its counters (env steps, episodes), kept only here: Describe reads them while a step holds
+    /// the session (no lock needed).
     pub stats: Arc<SessionStats>,
     /// The evaluation view observations are returned through (replay keeps the raw frames).
     view: Option<ImagePlan>,
@@ -158,13 +159,27 @@ pub struct Session {
     /// The same: groups whose async reset is done and not yet returned by `recv`, with their reset
     /// infos, in order.
     group_resets: VecDeque<(usize, Infos)>,
-    /// The server's actor steps this session (StartActing): calls from clients that step or reset
-    /// it are refused until StopActing.
-    pub(crate) acting: bool,
-    /// Set by the actor around its own reset or step, the only ones allowed while `acting`.
-    pub(crate) actor_turn: bool,
-    /// What the actor acted with in the step it is taking (recorded with each transition).
-    pub(crate) acted: Option<ActedStamp>,
+    /// Who steps it: its clients, or the server's actor (StartActing), whose turns are the only
+    /// resets and steps allowed until it stops.
+    stepper: Stepper,
+}
+
+/// Who steps a session. Changed only through [`Session::hand_to_actor`], [`Session::hand_back`] and
+/// the actor's own [`Session::reset_as_actor`] / [`Session::step_as_actor`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub enum Stepper {
+    /// Its clients' reset and step calls (the default).
+    #[default]
+    Clients,
+    /// The server's actor; `turn` is set during the actor's own reset or step.
+    Actor { turn: Option<ActorTurn> },
+}
+
+/// The actor's reset or step in progress.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ActorTurn {
+    /// What acted in the step (None: a reset, or random actions), recorded with each transition.
+    pub acted: Option<ActedStamp>,
 }
 
 /// A server-side policy's step: its version and, per env, the action's log-probability and the
@@ -242,8 +257,6 @@ impl Session {
             groups,
             layout,
             needs_reset: true,
-            total_env_steps: 0,
-            episodes_completed: 0,
             step_calls: 0,
             replay: None,
             stats: Arc::new(SessionStats { seed: AtomicU64::new(config_seed), ..SessionStats::default() }),
@@ -254,9 +267,7 @@ impl Session {
             resetting: vec![false; config_num_envs],
             group_steps: (0..group_count).map(|_| None).collect(),
             group_resets: VecDeque::new(),
-            acting: false,
-            actor_turn: false,
-            acted: None,
+            stepper: Stepper::Clients,
         })
     }
 
@@ -270,25 +281,78 @@ impl Session {
         self.config.num_envs
     }
 
+    /// Env steps taken since the session was created (continued from a snapshot's).
+    pub fn total_env_steps(&self) -> u64 {
+        self.stats.total_env_steps.load(Ordering::Relaxed)
+    }
+
+    /// Episodes ended since the session was created (continued from a snapshot's).
+    pub fn episodes_completed(&self) -> u64 {
+        self.stats.episodes_completed.load(Ordering::Relaxed)
+    }
+
     /// A session whose replay was restored from a snapshot continues the counters it was taken
     /// with: step indices after those of the restored transitions, and the totals Describe shows.
     pub fn continue_from(&mut self, counters: radserve_replay::snapshot::SessionCounters) {
         self.step_calls = self.step_calls.max(counters.step_calls);
-        self.total_env_steps = counters.total_env_steps;
-        self.episodes_completed = counters.episodes_completed;
-        self.stats.total_env_steps.store(self.total_env_steps, std::sync::atomic::Ordering::Relaxed);
-        self.stats.episodes_completed.store(self.episodes_completed, std::sync::atomic::Ordering::Relaxed);
+        self.stats.total_env_steps.store(counters.total_env_steps, Ordering::Relaxed);
+        self.stats.episodes_completed.store(counters.episodes_completed, Ordering::Relaxed);
     }
 
     /// Refuses a client's reset or step while the server's actor steps the session.
     pub(crate) fn refuse_while_acting(&self, what: &str) -> Result<(), CoreError> {
-        if self.acting && !self.actor_turn {
+        if let Stepper::Actor { turn: None } = self.stepper {
             return Err(CoreError::Acting(format!(
                 "this session is stepped by the server's actor (StartActing): {what} is refused until StopActing; \
                  its transitions arrive through SampleBatches"
             )));
         }
         Ok(())
+    }
+
+    /// Who steps the session now.
+    pub fn stepper(&self) -> &Stepper {
+        &self.stepper
+    }
+
+    /// The server's actor takes the session over: clients' resets and steps are refused from now on.
+    pub(crate) fn hand_to_actor(&mut self) {
+        self.stepper = Stepper::Actor { turn: None };
+    }
+
+    /// The actor stopped: clients step the session again.
+    pub(crate) fn hand_back(&mut self) {
+        self.stepper = Stepper::Clients;
+    }
+
+    /// The actor's reset of every env.
+    pub(crate) async fn reset_as_actor(&mut self) -> Result<Vec<u8>, CoreError> {
+        self.stepper = Stepper::Actor { turn: Some(ActorTurn::default()) };
+        let reset = self.reset(None).await;
+        self.stepper = Stepper::Actor { turn: None };
+        reset
+    }
+
+    /// The actor's step of every env, each transition recorded with `acted`.
+    pub(crate) async fn step_as_actor(
+        &mut self,
+        dtype: crate::space::DType,
+        shape: &[usize],
+        actions: &[u8],
+        acted: Option<ActedStamp>,
+    ) -> Result<StepOutcome, CoreError> {
+        self.stepper = Stepper::Actor { turn: Some(ActorTurn { acted }) };
+        let outcome = self.step(dtype, shape, actions).await;
+        self.stepper = Stepper::Actor { turn: None };
+        outcome
+    }
+
+    /// What acted in the step in progress, when the actor takes it with a policy.
+    pub(crate) fn acted(&self) -> Option<&ActedStamp> {
+        match &self.stepper {
+            Stepper::Actor { turn: Some(ActorTurn { acted }) } => acted.as_ref(),
+            Stepper::Clients | Stepper::Actor { turn: None } => None,
+        }
     }
 
     /// Every env's current stacked observation, through the view (what the last reset or step
@@ -299,7 +363,7 @@ impl Session {
 
     /// Whether the server's actor is stepping this session.
     pub fn is_acting(&self) -> bool {
-        self.acting
+        matches!(self.stepper, Stepper::Actor { .. })
     }
 
     /// Whether the session must be reset (every env) before it steps: new, or after a failed step.
@@ -327,7 +391,7 @@ impl Session {
     }
 
     fn end_episode(&mut self, env: usize, terminated: bool, truncated: bool, error: Option<String>) -> EpisodeEnd {
-        self.episodes_completed += 1;
+        self.stats.episodes_completed.fetch_add(1, Ordering::Relaxed);
         let episode = EpisodeEnd {
             env_index: env,
             episode_return: self.episode_returns[env],

@@ -89,11 +89,9 @@ impl Session {
     /// After a step or recv that stepped `stepped` envs since `started`: the counters and metrics, and
     /// the outcome's observations through the view.
     pub(super) fn finish_step(&mut self, stepped: u64, started: std::time::Instant, outcome: &mut StepOutcome) {
-        self.total_env_steps += stepped;
+        self.stats.total_env_steps.fetch_add(stepped, Ordering::Relaxed);
         let errors = outcome.episodes.iter().filter(|episode| episode.error.is_some()).count() as u64;
         self.metrics.record_step(self.config.env.family, stepped, started.elapsed(), outcome.episodes.len() as u64, errors);
-        self.stats.total_env_steps.store(self.total_env_steps, Ordering::Relaxed);
-        self.stats.episodes_completed.store(self.episodes_completed, Ordering::Relaxed);
         self.step_calls += 1;
         outcome.obs = self.viewed(&self.stacks);
         outcome.final_obs = self.viewed(&outcome.final_obs);

@@ -242,7 +242,7 @@ impl Session {
                         truncated: result.truncated[local],
                         next_frame: &group.frames()[next],
                         step_index: self.step_calls,
-                        acted: self.acted.as_ref().map(|acted| acted.by(env)),
+                        acted: self.acted().map(|acted| acted.by(env)),
                     },
                 );
                 if ended {
