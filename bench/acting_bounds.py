@@ -16,7 +16,7 @@ on bench/vs_envpool.py's state and ProcGen workloads:
 - "one hop async": EnvPool's async pattern across the hop (batch = half the envs: the child sends the
   ready half's actions, then recv's the next ready half and rings).
 
-In the same rounds, radserve itself (2 workers, a synchronous session through shared-memory acting,
+In the same rounds, radserve itself (2 workers, a synchronous session through shared stepping,
 engine native and engine envpool; `--no-radserve` leaves it out). The column "one hop best /
 in-process best" (each round's better mode of each) is about the most any design with the simulator
 outside the learner's process can reach on this machine (the child's own work per call is a few numpy
@@ -282,7 +282,7 @@ def main() -> None:
                         result = vs_envpool.envpool_run(task, options, num_envs, mode, args.seconds)
                     elif side.startswith("one hop"):
                         result = one_hop(task, options, num_envs, mode, args.seconds)
-                    else:  # radserve, synchronous, through shared-memory acting
+                    else:  # radserve, synchronous, through shared stepping
                         result = vs_envpool.radserve_run(client, pids, env_id, radserve_options, num_envs,
                                                          "shared_memory", args.seconds, engine=mode)
                     row[side].append(result)

@@ -4,7 +4,7 @@ directly in one Python process, measured in the same run; prints a markdown tabl
     .venv/bin/python bench/sim_throughput.py [--seconds 4] [--rounds 3] [--workers 2] [--stream]
         [--only TEXT] [--delivery both|grpc|shared_memory] [--server-env NAME=VALUE]
 
-Each row is measured in rounds: through gRPC and through shared-memory acting
+Each row is measured in rounds: through gRPC and through shared stepping
 (`delivery="shared_memory"`, the client on the server's host), then the baseline. The table gives
 median rates and the median of the rounds' ratios with its range.
 

@@ -7,7 +7,7 @@ clients' errors and throughput.
 
 Sessions of killed clients are left behind on purpose and closed by the server's lease
 (`limits.session_idle_timeout_s`, set short here). Each client's sessions rotate through the kinds a
-learner opens: CartPole through gRPC, Pendulum through shared-memory acting, a ProcGen game with a
+learner opens: CartPole through gRPC, Pendulum through shared stepping, a ProcGen game with a
 replay buffer sampled with `crop(56)`, a Pendulum with a replay buffer sampled with `ras_m`, and a
 CartPole rollout sampled in epochs. Prints a table every `--report-every` seconds and a summary; a
 run of at least 10 minutes on the build writes bench/results/soak.json (docs/reliability.md).

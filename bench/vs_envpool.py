@@ -6,7 +6,7 @@ EnvPool (1.2.5, C++ dm_control / MuJoCo-gym / ProcGen ports with their own threa
 researcher would use instead of radserve for fast vectorized simulation. This script runs it from a
 virtualenv of its own (`.venv-envpool`, installed here, never the project's: the baseline is EnvPool
 as its users install it), then measures each workload in alternating rounds: radserve with 2
-workers through shared-memory acting and through gRPC (a Python client in this process, one
+workers through shared stepping and through gRPC (a Python client in this process, one
 session), with its native engine (the simulators' own Python packages) and with engine="envpool"
 (EnvPool's ports inside radserve's workers; state rows only), each in its synchronous mode and in
 EnvPool's asynchronous one (option batch_size = half the envs: recv the first ready half, send its

@@ -210,7 +210,7 @@ class TestProcgen(EnvContract):
         assert runs[0][0][1:].std() > 0  # the frames move, so equality says something
 
 
-# The same contract through shared-memory acting, for a pixel, a state, a discrete and a ProcGen env.
+# The same contract through shared stepping, for a pixel, a state, a discrete and a ProcGen env.
 class TestDmcPixelsSharedMemory(TestDmcPixels):
     delivery = "shared_memory"
 

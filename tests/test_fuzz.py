@@ -1,7 +1,9 @@
 """Property-based fuzzing through grpcio (the client learners use) with hypothesis: random but
 well-typed requests to every RPC of a real server with small limits. Every answer is OK or a status
 from the documented set, the server keeps serving, and what a refused or closed request reserved is
-returned. `make fuzz` raises the number of examples (RADSERVE_FUZZ_EXAMPLES)."""
+returned. `make fuzz` raises the number of examples (RADSERVE_FUZZ_EXAMPLES). The same properties
+through the generated Rust stubs, with raw bytes as any method's message:
+server/radserve/tests/fuzz.rs."""
 
 import os
 import time

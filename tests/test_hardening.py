@@ -1,5 +1,7 @@
 """Hostile requests through grpcio, the client most learners use: malformed messages and oversized
-fields get the status that names the client's mistake, in a message a client can read."""
+fields get the status that names the client's mistake, in a message a client can read. The same
+requests through the generated Rust stubs, with a check that the server serves everyone else after
+each: server/radserve/tests/hardening.rs."""
 
 import subprocess
 import sys

@@ -1,5 +1,7 @@
 """The Prometheus endpoint of a real server (metrics.address), scraped over HTTP while a session acts
-and parsed by Prometheus' own parser (prometheus_client's OpenMetrics parser)."""
+and parsed by Prometheus' own parser (prometheus_client's OpenMetrics parser). Each metric's
+meaning over the fake simulators (counters, gauges, the histogram, the endpoint's other paths):
+server/radserve/tests/metrics.rs."""
 
 import socket
 import urllib.error

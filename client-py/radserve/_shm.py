@@ -19,7 +19,7 @@ def receive_server_memory(socket_name: str, token: bytes, size: int, magic: byte
                           ) -> "tuple[mmap.mmap, socket.socket]":
     """Connects to the server's socket `socket_name`, presents `token`, maps the `size` bytes of
     memory it hands over and checks that they start with `magic` and `token`. Returns the mapping and
-    the connection (an acting channel goes on using it; close it otherwise)."""
+    the connection (a shared-stepping channel goes on using it; close it otherwise)."""
     connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     connection.settimeout(_HANDOFF_TIMEOUT_S)
     try:

@@ -99,6 +99,6 @@ _BY_NUMBER = {code.value[0]: code for code in grpc.StatusCode}
 
 
 def from_status(number: int, message: str) -> RadServeError:
-    """The error for a status that came outside gRPC (the shared-memory acting channel)."""
+    """The error for a status that came outside gRPC (the shared-stepping channel)."""
     code = _BY_NUMBER.get(number)
     return _BY_CODE.get(code, RadServeError)(message or str(code), code)

@@ -10,7 +10,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from . import _convert
-from ._acting import Answer, SharedActing
+from ._shared_stepping import Answer, SharedStepping
 from .actors import ActingMixin
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport, check_delivery
@@ -177,7 +177,7 @@ class RemoteVectorEnv(ActingMixin, VectorEnv):
         self._requests: "queue.Queue | None" = None
         self._responses = None
         self._pending = None  # the step sent by step_async, until step_wait takes its reply
-        self._shared: "SharedActing | None" = None
+        self._shared: "SharedStepping | None" = None
         # Envs whose episode ended in the last step, already reset on the server (which resets in
         # the ending step): NEXT_STEP's next step skips them, DISABLED waits for their reset.
         self._ended = np.zeros(self.num_envs, dtype=bool)
@@ -189,10 +189,10 @@ class RemoteVectorEnv(ActingMixin, VectorEnv):
         # returns them (NEXT_STEP: in the next step; DISABLED: in their reset).
         self._held_reset_infos: "dict[int, dict | None]" = {}
 
-        def shared() -> SharedActing:
+        def shared() -> SharedStepping:
             channel = transport.call("ShareActing", pb.ShareActingRequest(session_id=self.session_id))
             action_shape = () if info.action_space.shape == () else info.action_space.shape
-            return SharedActing(channel, self.num_envs, info.observation_space, self._action_dtype, action_shape,
+            return SharedStepping(channel, self.num_envs, info.observation_space, self._action_dtype, action_shape,
                                 explain_loss=self._session_error)
 
         self._shared = transport.negotiate(delivery, shared, lambda: None)

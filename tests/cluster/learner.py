@@ -168,7 +168,7 @@ class Learner:
         return shapes
 
     def same_host(self) -> dict:
-        """In a server's network namespace: shared-memory acting and batches."""
+        """In a server's network namespace: shared stepping and batches."""
         client = radserve.Client("127.0.0.1:50051")
         envs = client.make_vec(ENV, num_envs=2, seed=0, autoreset_mode="SameStep",
                                replay_capacity=500, delivery="shared_memory", **OPTIONS)

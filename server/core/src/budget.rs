@@ -1,5 +1,5 @@
 //! The server-wide memory budget: every allocation a request causes (a session's envs and frame
-//! buffers, replay, sample streams, acting channels) is reserved here before it is made, and
+//! buffers, replay, sample streams, shared-stepping channels) is reserved here before it is made, and
 //! refused with RESOURCE_EXHAUSTED and the numbers when the budget cannot hold it. A reservation is
 //! returned when it is dropped (the session closed, the stream ended).
 

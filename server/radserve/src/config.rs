@@ -220,8 +220,8 @@ pub struct ServerConfig {
     /// Serve a non-loopback address with neither tokens nor client certificates: anyone who can
     /// reach the port can do anything. Off: such a start-up is refused.
     pub insecure: bool,
-    /// Local users (uids) besides the server's own that may receive shared memory (same-host
-    /// acting and batches); checked on the socket with SO_PEERCRED.
+    /// Local users (uids) besides the server's own that may receive shared memory (shared
+    /// stepping and batches); checked on the socket with SO_PEERCRED.
     pub shared_memory_uids: Vec<u32>,
     /// host:port of a second listener that serves grpc.health.v1 only, in plaintext and without
     /// tokens, for probes that cannot speak TLS or present a certificate (kubelet's gRPC probes)

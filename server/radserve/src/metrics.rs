@@ -130,7 +130,7 @@ impl Collector for Sources {
         let (used, budget) = self.manager.memory();
         let gauges = [
             ("radserve_sessions", "Open sessions", sessions.len() as u64),
-            ("radserve_open_streams", "Streams holding a session open (sample streams, acting channels, joined dm_env_rpc streams)", sessions.iter().map(|s| s.open_streams as u64).sum()),
+            ("radserve_open_streams", "Streams holding a session open (sample streams, shared-stepping channels, joined dm_env_rpc streams)", sessions.iter().map(|s| s.open_streams as u64).sum()),
             ("radserve_replay_transitions", "Transitions held by the open sessions' replay buffers", sessions.iter().map(|s| s.replay_transitions).sum()),
             ("radserve_replay_bytes", "Memory of the open sessions' replay buffers", sessions.iter().map(|s| s.replay_bytes).sum()),
             ("radserve_snapshot_disk_bytes", "Bytes the open named sessions' replay snapshots take on disk", sessions.iter().filter_map(|s| s.snapshot.as_ref()).map(|s| s.disk_bytes).sum()),

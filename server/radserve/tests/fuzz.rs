@@ -5,6 +5,7 @@
 //! where it was (a refused request reserves nothing). Bounded in `cargo test` (PROPTEST_CASES,
 //! default 48 sequences and 256 raw messages); `make fuzz` runs many more. Each property prints how
 //! many cases it ran.
+//! The same properties through grpcio, with hypothesis: tests/test_fuzz.py.
 
 mod common;
 // Field values and operations (proptest strategies).
@@ -159,11 +160,11 @@ struct Case {
     client: RadServeClient<Channel>,
     base: Vec<String>,
     created: Vec<String>,
-    /// An acting channel was left unconnected: its memory returns after the server's connect timeout.
+    /// A shared-stepping channel was left unconnected: its memory returns after the server's connect timeout.
     unconnected_channel: bool,
 }
 
-/// Connects to an acting channel's socket as a same-host client would and sends `requests`; each
+/// Connects to a shared-stepping channel's socket as a same-host client would and sends `requests`; each
 /// answer must be a documented status code with a well-formed length.
 async fn use_channel(channel: &proto::SharedActingChannel, right_token: bool, requests: &[[u8; 16]]) -> Result<(), TestCaseError> {
     use std::os::linux::net::SocketAddrExt;
@@ -197,11 +198,11 @@ async fn use_channel(channel: &proto::SharedActingChannel, right_token: bool, re
             Some(Ok(_)) => {}
             // A wrong token: the server dropped the connection (or waits for the rightful client).
             Some(Err(_)) | None if !right_token => break,
-            other => prop_assert!(false, "no answer on the acting channel: {other:?}"),
+            other => prop_assert!(false, "no answer on the shared-stepping channel: {other:?}"),
         }
         let code = Code::from_i32(u32::from_le_bytes(header[..4].try_into().unwrap()) as i32);
         let length = u32::from_le_bytes(header[4..].try_into().unwrap()) as usize;
-        prop_assert!(DOCUMENTED.contains(&code), "acting channel answered {code:?}");
+        prop_assert!(DOCUMENTED.contains(&code), "shared-stepping channel answered {code:?}");
         prop_assert!(length <= 1 << 20, "an answer of {length} bytes");
         let mut body = vec![0u8; length];
         prop_assert!(stream.read_exact(&mut body).await.is_ok(), "a short answer");
@@ -415,7 +416,7 @@ impl Case {
         let listed = self.client.list_envs(proto::ListEnvsRequest { prefix: "gym/CartPole".into() }).await;
         prop_assert!(listed.is_ok(), "ListEnvs failed after the case: {listed:?}");
         let mut used = manager.memory().0;
-        let wait = if self.unconnected_channel { radserve_service::acting::CONNECT_TIMEOUT + Duration::from_secs(3) } else { Duration::from_secs(5) };
+        let wait = if self.unconnected_channel { radserve_service::shared_stepping::CONNECT_TIMEOUT + Duration::from_secs(3) } else { Duration::from_secs(5) };
         for _ in 0..wait.as_millis() / 50 {
             if used == baseline {
                 break;
@@ -579,7 +580,7 @@ fn arbitrary_bytes_as_any_message_get_documented_answers() {
     // A raw ShareActing that named a base session left a channel no client takes: the server drops it
     // after its connect timeout, and then holds nothing the messages caused.
     harness.runtime.block_on(async {
-        let deadline = tokio::time::Instant::now() + radserve_service::acting::CONNECT_TIMEOUT + Duration::from_secs(3);
+        let deadline = tokio::time::Instant::now() + radserve_service::shared_stepping::CONNECT_TIMEOUT + Duration::from_secs(3);
         while harness.server.manager.memory().0 != harness.baseline_memory && tokio::time::Instant::now() < deadline {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }

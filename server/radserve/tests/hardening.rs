@@ -1,6 +1,7 @@
 //! Hostile requests replayed against the real server (issue: "no request, client or fault can crash,
 //! freeze or exhaust the server"). Each test sends what broke an earlier build through the generated
-//! stubs and checks both the answer and that the server still serves everyone else.
+//! stubs and checks both the answer and that the server still serves everyone else. The same
+//! hostile messages through grpcio, the client most learners use: tests/test_hardening.py.
 
 mod common;
 

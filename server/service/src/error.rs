@@ -15,7 +15,7 @@ pub enum ServiceError {
     /// negative dimension, a size outside its range, a message out of the stream's order.
     #[error("{0}")]
     BadRequest(String),
-    /// The session already has what the request would open (one acting channel per session).
+    /// The session already has what the request would open (one shared-stepping channel per session).
     #[error("{0}")]
     AlreadyOpen(String),
     /// The request does not fit the state it finds (a dm_env_rpc step before joining a world).

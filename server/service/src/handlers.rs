@@ -1,6 +1,6 @@
 //! radserve's own API (`radserve.v1.RadServe`): each handler checks and converts its request, calls
 //! the core, and maps the core's errors to statuses (`crate::error`). The sample streams live in
-//! `sample_streams`, the shared-memory acting channel in `acting`, what every stream shares in
+//! `sample_streams`, the shared-stepping channel in `acting`, what every stream shares in
 //! `streams`, client deadlines in `deadline`.
 
 use std::pin::Pin;
@@ -14,7 +14,7 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 use tracing::debug;
 
-use crate::acting::{self, OpenChannels};
+use crate::shared_stepping::{self, OpenChannels};
 use crate::auth::caller;
 use crate::convert::{self, observation_tensor};
 use crate::deadline::{check_deadline, client_deadline, run_to_end};
@@ -31,8 +31,8 @@ pub struct RadServeService {
     pub(crate) manager: Arc<SessionManager>,
     /// Threads that augment minibatches (never a tokio worker).
     pub(crate) augment_pool: Arc<rayon::ThreadPool>,
-    /// Sessions with a shared-memory acting channel open.
-    acting_channels: OpenChannels,
+    /// Sessions with a shared-stepping channel open.
+    stepping_channels: OpenChannels,
     /// Who may receive shared memory on this host.
     pub(crate) peers: PeerPolicy,
     /// Becomes true when the server starts shutting down: every open stream then ends.
@@ -51,7 +51,7 @@ impl RadServeService {
         peers: PeerPolicy,
     ) -> (RadServeService, StreamStopper) {
         let (stop, stopping) = watch::channel(false);
-        (RadServeService { manager, augment_pool, acting_channels: OpenChannels::default(), peers, stopping }, StreamStopper(stop))
+        (RadServeService { manager, augment_pool, stepping_channels: OpenChannels::default(), peers, stopping }, StreamStopper(stop))
     }
 
     /// Resets and steps run to their end in a task of their own, even when the caller stops waiting
@@ -273,7 +273,7 @@ impl RadServe for RadServeService {
         let caller = caller(&request)?;
         let session_id = request.into_inner().session_id;
         let (description, channel) =
-            acting::open(self.manager.clone(), caller, &session_id, &self.acting_channels, self.peers.clone())
+            shared_stepping::open(self.manager.clone(), caller, &session_id, &self.stepping_channels, self.peers.clone())
                 .await
                 .map_err(Status::from)?;
         tokio::spawn(channel.serve(session_id));

@@ -77,7 +77,7 @@ impl HandoffSocket {
     }
 
     /// Waits (at most `CONNECT_TIMEOUT`) for a connection from an allowed user that presents
-    /// `token`, sends it `memory`, and returns the connection (an acting channel goes on using it).
+    /// `token`, sends it `memory`, and returns the connection (a shared-stepping channel goes on using it).
     /// None: nobody rightful came in time. The listener closes when this returns.
     pub async fn hand_over(self, token: [u8; 16], memory: BorrowedFd<'_>, peers: &PeerPolicy) -> Option<UnixStream> {
         let deadline = Instant::now() + CONNECT_TIMEOUT;

@@ -1,7 +1,7 @@
 //! The gRPC face of radserve. Handlers here only validate and convert messages, call the core
 //! (`radserve_core`), and map its errors to statuses; no logic lives in the transport.
 
-pub mod acting;
+pub mod shared_stepping;
 pub mod auth;
 pub mod codec;
 pub mod convert;

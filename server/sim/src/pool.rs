@@ -1,5 +1,6 @@
-//! Worker processes as seen from the server: each is driven by one actor task that owns its pipes,
-//! handles requests in order, and replaces the process when it dies.
+//! Worker processes as seen from the server: each is driven by one supervising task
+//! (`supervise_worker`) that owns its pipes, handles requests in order, and replaces the process
+//! when it dies.
 
 use std::collections::{BTreeMap, HashSet};
 use std::io;
@@ -194,7 +195,7 @@ struct Job {
     reply: oneshot::Sender<Reply>,
 }
 
-/// A handle on one worker's actor; cheap to clone.
+/// A handle on one worker's supervising task; cheap to clone.
 #[derive(Clone)]
 pub struct WorkerHandle {
     index: usize,
@@ -280,25 +281,25 @@ pub struct WorkerPool {
     workers: Vec<WorkerHandle>,
     launcher: WorkerLauncher,
     transient: TransientPids,
-    /// Tells the actors to end their processes and return (`stop`).
+    /// Tells the supervisors to end their workers' processes and return (`stop`).
     stopping: watch::Sender<bool>,
-    actors: std::sync::Mutex<Vec<tokio::task::JoinHandle<()>>>,
+    supervisors: std::sync::Mutex<Vec<tokio::task::JoinHandle<()>>>,
 }
 
 impl WorkerPool {
     /// Starts `count` workers (at least one) in the background; requests wait for their start.
     pub fn start(launcher: WorkerLauncher, count: usize) -> WorkerPool {
         let stopping = watch::Sender::new(false);
-        let mut actors = Vec::new();
+        let mut supervisors = Vec::new();
         let workers = (0..count.max(1))
             .map(|index| {
                 let (jobs, receiver) = mpsc::channel(256);
                 let state = Arc::new(WorkerState::default());
-                actors.push(tokio::spawn(run_actor(index, launcher.clone(), receiver, state.clone(), stopping.subscribe())));
+                supervisors.push(tokio::spawn(supervise_worker(index, launcher.clone(), receiver, state.clone(), stopping.subscribe())));
                 WorkerHandle { index, jobs, state }
             })
             .collect();
-        WorkerPool { workers, launcher, transient: TransientPids::default(), stopping, actors: std::sync::Mutex::new(actors) }
+        WorkerPool { workers, launcher, transient: TransientPids::default(), stopping, supervisors: std::sync::Mutex::new(supervisors) }
     }
 
     /// The workers whose current reset, step or close has run longer than `after` (stuck, or very
@@ -322,9 +323,9 @@ impl WorkerPool {
         // stands: nothing it computes is needed any more.
         let transient = self.transient_pids();
         transient.iter().copied().for_each(kill);
-        let actors = std::mem::take(&mut *self.actors.lock().expect("actor list lock"));
-        for actor in actors {
-            let _ = actor.await;
+        let supervisors = std::mem::take(&mut *self.supervisors.lock().expect("supervisor list lock"));
+        for supervisor in supervisors {
+            let _ = supervisor.await;
         }
         let deadline = std::time::Instant::now() + Duration::from_secs(1);
         while transient.iter().any(|&pid| alive(pid)) && std::time::Instant::now() < deadline {
@@ -403,7 +404,7 @@ fn alive(pid: u32) -> bool {
     !matches!(state, None | Some("Z" | "X"))
 }
 
-async fn run_actor(
+async fn supervise_worker(
     index: usize,
     launcher: WorkerLauncher,
     mut jobs: mpsc::Receiver<Job>,

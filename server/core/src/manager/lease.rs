@@ -13,7 +13,7 @@ use crate::error::CoreError;
 use crate::principal::Principal;
 
 /// When a session was last used, and what keeps it in use now: any call on it renews the lease, an
-/// open stream or acting channel holds it.
+/// open stream or shared-stepping channel holds it.
 #[derive(Debug)]
 pub struct Lease {
     /// Milliseconds after the manager's start.
@@ -21,7 +21,7 @@ pub struct Lease {
     pub(super) holds: AtomicUsize,
     /// When a holder last moved (a batch taken by its client), milliseconds after the manager's start.
     pub(super) progress_ms: AtomicU64,
-    /// Turns true when the session is closed, for what holds the lease (streams, acting channels).
+    /// Turns true when the session is closed, for what holds the lease (streams, shared-stepping channels).
     pub(super) closed: watch::Sender<bool>,
 }
 
@@ -47,7 +47,7 @@ impl LeaseHold {
     /// Resolves once the session is closed (by its client, its lease or shutdown): what holds it
     /// should end and free what it has.
     /// The future owns its subscription: a long-lived holder makes it once and polls it again and
-    /// again (an acting channel, between requests).
+    /// again (a shared-stepping channel, between requests).
     pub fn session_closed(&self) -> impl std::future::Future<Output = ()> + Send + 'static {
         let mut closed = self.lease.closed.subscribe();
         async move {

@@ -31,7 +31,7 @@ pub struct Limits {
     pub session_idle_timeout_s: u64,
     /// Seconds an open stream may go unused and still keep its session from counting as idle: a
     /// sample stream whose client took no batch (an unread stream: its batches wait in flow
-    /// control), an acting channel or dm_env_rpc join whose client sent no request. Past it the
+    /// control), a shared-stepping channel or dm_env_rpc join whose client sent no request. Past it the
     /// session is idle since its last call or batch, and session_idle_timeout_s applies. 0: an open
     /// stream keeps its session however long it is unused.
     pub unread_stream_timeout_s: u64,

@@ -143,7 +143,7 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
         )
 }
 
-/// What the client does with a shared-memory acting channel it was given.
+/// What the client does with a shared-stepping channel it was given.
 #[derive(Clone, Debug)]
 pub enum ChannelUse {
     /// Never connects (the server gives up after its connect timeout).

@@ -1,6 +1,8 @@
-"""Same-host acting through shared memory (rpc ShareActing): the same results as gRPC, the same
-errors, and a server that keeps serving whatever a client does with the channel. The env contract
-itself also runs through shared memory (test_conformance.py, the *SharedMemory classes)."""
+"""Shared stepping: a session reset and stepped through shared memory (rpc ShareActing): the same
+results as gRPC, the same errors, and a server that keeps serving whatever a client does with the
+channel. The env contract itself also runs through shared memory (test_conformance.py, the
+*SharedMemory classes). The channel's socket over the fake simulators (a silent connection, a
+session closed under its channel) is tested in server/radserve/tests/shared_stepping.rs."""
 
 import mmap
 import os

@@ -1,4 +1,4 @@
-//! Same-host acting: a session reset and stepped through shared memory, with a Unix socket as the
+//! Shared stepping: a session reset and stepped through shared memory, with a Unix socket as the
 //! doorbell.
 //!
 //! Through a Python gRPC client a step's request and reply cost the client ~0.8 ms of CPU and the
@@ -29,7 +29,7 @@ use crate::handoff::{HandoffSocket, PeerPolicy};
 use crate::{convert, proto};
 
 /// Bytes 0..16 of the region; the token follows.
-pub const ACTING_MAGIC: &[u8; 16] = b"radserve-acting\0";
+pub const SHARED_STEPPING_MAGIC: &[u8; 16] = b"radserve-acting\0";
 /// The magic and token, padded to a cache line.
 const HEADER_BYTES: usize = 64;
 const ARRAY_ALIGN: usize = 64;
@@ -44,7 +44,7 @@ const REQUEST_BYTES: usize = 16;
 
 /// Byte offsets of the arrays in the region, for a session of `num_envs` envs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ActingLayout {
+pub struct SteppingLayout {
     pub num_envs: usize,
     pub action_bytes: usize,
     pub obs_bytes: usize,
@@ -63,9 +63,9 @@ pub struct ActingLayout {
     pub len: usize,
 }
 
-impl ActingLayout {
+impl SteppingLayout {
     /// `action_bytes` and `obs_bytes` are one env's action and (stacked, viewed) observation.
-    pub fn new(num_envs: usize, action_bytes: usize, obs_bytes: usize) -> ActingLayout {
+    pub fn new(num_envs: usize, action_bytes: usize, obs_bytes: usize) -> SteppingLayout {
         let mut end = HEADER_BYTES;
         let mut place = |bytes: usize| {
             let offset = end;
@@ -82,7 +82,7 @@ impl ActingLayout {
         let episode_length = place(num_envs * 8);
         let mask = place(num_envs);
         let env_seeds = place(num_envs * 8);
-        ActingLayout {
+        SteppingLayout {
             num_envs,
             action_bytes,
             obs_bytes,
@@ -118,11 +118,11 @@ impl Drop for ChannelClaim {
 }
 
 /// A channel waiting for its client; `serve` runs it to its end.
-pub struct ActingChannel {
+pub struct SteppingChannel {
     manager: Arc<SessionManager>,
     /// Who opened it: every request on it acts as that principal.
     caller: Principal,
-    layout: ActingLayout,
+    layout: SteppingLayout,
     memory: MemFile,
     token: [u8; 16],
     /// Until the client took the memory (closed then).
@@ -142,25 +142,25 @@ pub async fn open(
     session_id: &str,
     open: &OpenChannels,
     peers: PeerPolicy,
-) -> Result<(proto::SharedActingChannel, ActingChannel)> {
+) -> Result<(proto::SharedActingChannel, SteppingChannel)> {
     let layout = {
         let session = manager.get(&caller, session_id)?;
         let session = session.lock().await;
-        ActingLayout::new(session.num_envs(), session.frame_spec.action.num_bytes(), session.observation_space.num_bytes())
+        SteppingLayout::new(session.num_envs(), session.frame_spec.action.num_bytes(), session.observation_space.num_bytes())
     };
     let claim = {
         let mut sessions = open.0.lock().expect("channel set lock");
         if !sessions.insert(session_id.to_string()) {
             return Err(ServiceError::AlreadyOpen(format!(
-                "session {session_id} already has a shared-memory acting channel; close that one (or its \
+                "session {session_id} already has a shared-stepping channel; close that one (or its \
                  process) first"
             )));
         }
         ChannelClaim { open: open.clone(), session_id: session_id.to_string() }
     };
     let memory_reservation = manager
-        .reserve_memory(&caller, layout.len as u64, &format!("a shared-memory acting channel of {} bytes", layout.len))?;
-    let (memory, Header { token, .. }) = MemFile::create_with_header(c"radserve-acting", layout.len, ACTING_MAGIC)
+        .reserve_memory(&caller, layout.len as u64, &format!("a shared-stepping channel of {} bytes", layout.len))?;
+    let (memory, Header { token, .. }) = MemFile::create_with_header(c"radserve-acting", layout.len, SHARED_STEPPING_MAGIC)
         .map_err(|error| radserve_core::error::resource_error("creating the acting memory", &error))?;
     let socket = HandoffSocket::bind().map_err(|error| ServiceError::Internal(format!("binding the acting socket: {error}")))?;
     let description = proto::SharedActingChannel {
@@ -180,24 +180,24 @@ pub async fn open(
     };
     let lease = manager.hold(&caller, session_id)?;
     let channel =
-        ActingChannel { manager, caller, layout, memory, token, socket: Some(socket), peers, _claim: claim, lease, _memory: memory_reservation };
+        SteppingChannel { manager, caller, layout, memory, token, socket: Some(socket), peers, _claim: claim, lease, _memory: memory_reservation };
     Ok((description, channel))
 }
 
-impl ActingChannel {
+impl SteppingChannel {
     /// Waits for the client (the first connection of an allowed user that presents the token
     /// within `CONNECT_TIMEOUT`), hands it the memory, then answers its requests until it
     /// disconnects or the session is closed; then its memory, socket and connection are freed.
     pub async fn serve(mut self, session_id: String) {
         let closed = self.lease.session_closed();
         tokio::pin!(closed);
-        let socket = self.socket.take().expect("an acting channel is served once");
+        let socket = self.socket.take().expect("a shared-stepping channel is served once");
         let accepted = tokio::select! {
             stream = socket.hand_over(self.token, self.memory.fd(), &self.peers) => stream,
             () = &mut closed => None,
         };
         let Some(mut stream) = accepted else {
-            debug!(session = log_id(&session_id), "no client took the acting channel");
+            debug!(session = log_id(&session_id), "no client took the shared-stepping channel");
             return;
         };
         let mut request = [0u8; REQUEST_BYTES];
@@ -221,7 +221,7 @@ impl ActingChannel {
                 break;
             }
         }
-        debug!(session = log_id(&session_id), "acting channel closed");
+        debug!(session = log_id(&session_id), "shared-stepping channel closed");
     }
 
     /// One request: Ok holds the answer's records (simulator errors of ended episodes, the envs' infos).
@@ -257,7 +257,7 @@ struct Request {
 }
 
 impl Request {
-    fn read(request: &[u8; REQUEST_BYTES], memory: &[u8], layout: &ActingLayout) -> Result<Request> {
+    fn read(request: &[u8; REQUEST_BYTES], memory: &[u8], layout: &SteppingLayout) -> Result<Request> {
         let seed = match request[1] {
             0 => None,
             1 => Some(u64::from_le_bytes(request[8..16].try_into().expect("8 bytes"))),
@@ -282,7 +282,7 @@ impl Request {
 struct Exchange<'a> {
     session: &'a mut Session,
     memory: &'a mut [u8],
-    layout: ActingLayout,
+    layout: SteppingLayout,
 }
 
 impl Exchange<'_> {
@@ -371,7 +371,7 @@ impl Exchange<'_> {
 
 /// Writes a step's (or recv's) outcome into the region at the envs' rows (only `rows`' envs when
 /// given: a recv's ready envs) and returns the answer's records.
-fn write_outcome(memory: &mut [u8], layout: &ActingLayout, mut outcome: StepOutcome, rows: Option<&[bool]>) -> Result<Vec<u8>> {
+fn write_outcome(memory: &mut [u8], layout: &SteppingLayout, mut outcome: StepOutcome, rows: Option<&[bool]>) -> Result<Vec<u8>> {
     check_len("observations", outcome.obs.len(), layout.num_envs * layout.obs_bytes)?;
     let obs_bytes = layout.obs_bytes;
     for env in (0..layout.num_envs).filter(|&env| rows.is_none_or(|rows| rows[env])) {
@@ -431,7 +431,7 @@ mod tests {
 
     #[test]
     fn arrays_are_aligned_and_do_not_overlap() {
-        let layout = ActingLayout::new(3, 6 * 4, 9 * 84 * 84 + 1);
+        let layout = SteppingLayout::new(3, 6 * 4, 9 * 84 * 84 + 1);
         let arrays = [
             (layout.actions, 3 * 24),
             (layout.obs, 3 * layout.obs_bytes),

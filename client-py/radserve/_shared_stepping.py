@@ -1,4 +1,4 @@
-"""The client end of a shared-memory acting channel (rpc ShareActing; protocol in the proto's
+"""The client end of a shared-stepping channel (rpc ShareActing; protocol in the proto's
 SharedActingChannel): actions are written into memory the server maps, a 16-byte request goes over
 a Unix socket, and after an 8-byte answer the results are read where the server wrote them."""
 
@@ -27,11 +27,11 @@ class Answer(NamedTuple):
     errors: "dict[int, str]"
     step_infos: list
     reset_infos: list
-_HINT = ("shared-memory acting needs the client on the server's host, in its network namespace, as a user the "
+_HINT = ("shared stepping needs the client on the server's host, in its network namespace, as a user the "
          "server allows; use delivery='grpc' otherwise")
 
 
-class SharedActing:
+class SharedStepping:
     """Arrays over the channel's memory, and the socket that says when they may be read."""
 
     def __init__(self, channel: "pb.SharedActingChannel", num_envs: int, obs_space, action_dtype, action_shape,
@@ -72,7 +72,7 @@ class SharedActing:
         try:
             self._socket.sendall(_REQUEST.pack(kind, seed is not None, flags, seed or 0))
         except OSError as error:
-            raise self._lost(f"the server's acting channel is gone: {error}") from None
+            raise self._lost(f"the server's shared-stepping channel is gone: {error}") from None
 
     def receive(self) -> Answer:
         """Waits for the answer to the request sent and returns its records, or raises the server's
@@ -101,9 +101,9 @@ class SharedActing:
             try:
                 more = self._socket.recv(size - len(data))
             except OSError as error:
-                raise self._lost(f"the server's acting channel failed: {error}") from None
+                raise self._lost(f"the server's shared-stepping channel failed: {error}") from None
             if not more:
-                raise self._lost("the server closed the acting channel (it stopped, or the session was closed)")
+                raise self._lost("the server closed the shared-stepping channel (it stopped, or the session was closed)")
             data += more
         return data
 

@@ -1,6 +1,7 @@
-//! The shared-memory acting channel's socket, over the fake simulators: a silent connection does
+//! The shared-stepping channel's socket, over the fake simulators: a silent connection does
 //! not hold up the rightful client, and a channel (its memory, socket and connection) is freed when
-//! its session closes.
+//! its session closes. Shared stepping against the real simulators (results, errors, the memory's
+//! protection) is tested in tests/test_shared_stepping.py.
 
 mod common;
 
