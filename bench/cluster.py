@@ -52,7 +52,7 @@ def measure(addresses: str, delivery: str = "grpc") -> dict:
     pixels.reset(seed=0)
     for _ in range(120):
         pixels.step(pixels.action_space.sample())
-    with client.sample_batches(pixels.session_id, BATCH, augment="crop(84)", min_size=BATCH, prefetch=2,
+    with pixels.sample_batches(BATCH, augment="crop(84)", min_size=BATCH, prefetch=2,
                                delivery=delivery) as stream:
         batch = next(stream)
         assert batch.obs.shape == (BATCH, 9, 84, 84) and batch.next_obs.shape == (BATCH, 9, 84, 84)

@@ -122,7 +122,7 @@ def measure(binary, directory, rate, capacity, interval):
         if begin - last_check > 0.2:
             last_check = begin
             if snapshot_end is None:
-                age = client.describe_session(envs.session_id).replay["snapshot"]["age_seconds"]
+                age = client.describe_session(envs.session_id).replay.snapshot.age_seconds
                 if age is not None:
                     snapshot_end = time.time() - age
             elif begin > snapshot_end + 3:
@@ -139,7 +139,7 @@ def measure(binary, directory, rate, capacity, interval):
     quiet_seconds = max(1e-9, snapshot_start - 0.5 - filled)
     quiet_batches = sum(1 for at in seen if filled <= at < snapshot_start - 0.5) / quiet_seconds
     during_batches = sum(1 for at in seen if snapshot_start <= at <= snapshot_end) / max(1e-9, duration)
-    size = client.describe_session(envs.session_id).replay["size"]
+    size = client.describe_session(envs.session_id).replay.size
     client.close()
     running.process.send_signal(signal.SIGKILL)
     running.process.wait()
@@ -161,8 +161,8 @@ def measure(binary, directory, rate, capacity, interval):
     tick = time.perf_counter()
     restored = session(client, capacity, "bench")
     restore_wall = time.perf_counter() - tick
-    restored_transitions = restored.info.replay["snapshot"]["restored_transitions"]
-    disk_bytes = restored.info.replay["snapshot"]["disk_bytes"]
+    restored_transitions = restored.info.replay.snapshot.restored_transitions
+    disk_bytes = restored.info.replay.snapshot.disk_bytes
     restore_seconds = metric(metrics_address, "radserve_snapshot_restore_duration_seconds")
     restored.close(discard_snapshot=True)
     client.close()

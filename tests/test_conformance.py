@@ -59,7 +59,7 @@ class EnvContract:
                 assert obs.shape == envs.observation_space.shape and obs.dtype == envs.single_observation_space.dtype
                 assert rewards.shape == (self.num_envs,) and rewards.dtype == np.float64
                 assert terminated.shape == truncated.shape == (self.num_envs,) and terminated.dtype == bool
-            assert envs.describe().total_env_steps == 3 * self.num_envs
+            assert envs.describe()[0].total_env_steps == 3 * self.num_envs
         finally:
             envs.close()
 
@@ -154,9 +154,9 @@ class EnvContract:
                 match = "NaN"
             with pytest.raises(radserve.InvalidArgumentError, match=match):
                 envs.step(bad)
-            assert envs.describe().total_env_steps == 0
+            assert envs.describe()[0].total_env_steps == 0
             envs.step(self.random_actions(envs, rng))
-            assert envs.describe().total_env_steps == self.num_envs
+            assert envs.describe()[0].total_env_steps == self.num_envs
         finally:
             envs.close()
 

@@ -43,7 +43,7 @@ def test_huge_ids_come_back_as_the_real_error(client):
         envs = client.make_vec("gym/CartPole-v1", replay_capacity=100)
         try:
             envs.reset()
-            client.sample_batches(envs.session_id, batch_size=1, augment="|".join(["noise"] * 100))
+            envs.sample_batches(batch_size=1, augment="|".join(["noise"] * 100))
         finally:
             envs.close()
 
@@ -105,7 +105,7 @@ def test_list_sessions_reports_what_each_session_holds(client):
         summary = next(s for s in client.list_sessions() if s.session_id == envs.session_id)
         assert (summary.env_id, summary.num_envs, summary.open_streams) == ("gym/CartPole-v1", 3, 0)
         # The replay buffer, the envs at their family's cost, their frame buffers.
-        assert summary.memory_bytes > client.describe_session(envs.session_id).replay["memory_bytes"]
+        assert summary.memory_bytes > client.describe_session(envs.session_id).replay.memory_bytes
         assert 0 <= summary.idle_seconds < 5 and summary.age_seconds >= summary.idle_seconds
         assert summary.idle_timeout_seconds == 300
     finally:

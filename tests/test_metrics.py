@@ -48,7 +48,7 @@ def test_a_real_server_exposes_what_its_sessions_do():
         envs.reset(seed=0)
         for _ in range(25):
             envs.step(np.zeros(4, np.int64))
-        stream = client.sample_batches(envs.session_id, 8, max_batches=3)
+        stream = envs.sample_batches(8, max_batches=3)
         assert len(list(stream)) == 3
 
         families = scrape(port)

@@ -62,7 +62,7 @@ def test_sampled_transitions_are_the_ones_the_client_saw(client, cartpole):
     envs, seen = cartpole
     episodes = sum(t["terminated"] or t["truncated"] for t in seen.values())
     assert episodes >= 10, "random CartPole episodes end often"
-    with client.sample_batches(envs.session_id, 256, max_batches=4, seed=1) as stream:
+    with envs.sample_batches(256, max_batches=4, seed=1) as stream:
         batches = list(stream)
     assert [b.index for b in batches] == [0, 1, 2, 3]
     checked = set()
@@ -86,18 +86,18 @@ def test_sampled_transitions_are_the_ones_the_client_saw(client, cartpole):
 def test_replay_statistics(client, cartpole):
     envs, seen = cartpole
     replay = client.describe_session(envs.session_id).replay
-    assert replay["capacity"] == 5000 and replay["inserts"] == len(seen) == replay["size"]
-    assert replay["frames_per_transition"] <= 1.1
-    assert replay["samples"] >= 4 * 256 and replay["batches"] >= 4
-    with client.sample_batches(envs.session_id, 64, max_batches=3) as stream:
+    assert replay.capacity == 5000 and replay.inserts == len(seen) == replay.size
+    assert replay.frames_per_transition <= 1.1
+    assert replay.samples >= 4 * 256 and replay.batches >= 4
+    with envs.sample_batches(64, max_batches=3) as stream:
         assert len(list(stream)) == 3
-    rate = client.describe_session(envs.session_id).replay["batches_per_second"]
+    rate = client.describe_session(envs.session_id).replay.batches_per_second
     assert rate > 0, "3 batches just now: a rate over the last 5 seconds"
 
 
 def test_pixel_transitions_and_crop(client, cheetah):
     envs, seen = cheetah
-    with client.sample_batches(envs.session_id, 32, max_batches=1) as stream:
+    with envs.sample_batches(32, max_batches=1) as stream:
         (plain,) = list(stream)
     assert plain.obs.shape == (32, 9, 100, 100) and plain.action.shape == (32, 6)
     for i, key in samples(plain):
@@ -105,7 +105,7 @@ def test_pixel_transitions_and_crop(client, cheetah):
         np.testing.assert_array_equal(plain.next_obs[i], seen[key]["next_obs"])
         np.testing.assert_array_equal(plain.action[i], seen[key]["action"].astype(np.float32))
 
-    with client.sample_batches(envs.session_id, 32, augment="crop(84)", max_batches=2, seed=4) as stream:
+    with envs.sample_batches(32, augment="crop(84)", max_batches=2, seed=4) as stream:
         batches = list(stream)
     offsets = set()
     for batch in batches:
@@ -135,7 +135,7 @@ def translate_offset(full, translated):
 def test_translate_and_draw_sharing(client, cheetah):
     envs, seen = cheetah
     for sharing, same in [("reference", True), ("independent", False)]:
-        with client.sample_batches(envs.session_id, 16, augment="translate(108)", sharing=sharing, max_batches=1) as s:
+        with envs.sample_batches(16, augment="translate(108)", sharing=sharing, max_batches=1) as s:
             (batch,) = list(s)
         assert batch.obs.shape == (16, 9, 108, 108)
         pairs = [(translate_offset(seen[key]["obs"], batch.obs[i]), translate_offset(seen[key]["next_obs"], batch.next_obs[i]))
@@ -144,7 +144,7 @@ def test_translate_and_draw_sharing(client, cheetah):
             assert all(a == b for a, b in pairs), "RAD shares translate draws between obs and next_obs"
         else:
             assert any(a != b for a, b in pairs)
-    with client.sample_batches(envs.session_id, 16, augment="crop(84)", sharing="shared", max_batches=1) as s:
+    with envs.sample_batches(16, augment="crop(84)", sharing="shared", max_batches=1) as s:
         (batch,) = list(s)
     for i, key in samples(batch):
         # A shared crop cuts obs and next_obs at one offset: their common frames agree.
@@ -153,7 +153,7 @@ def test_translate_and_draw_sharing(client, cheetah):
 
 def test_state_amplitude_scaling_is_shared_by_obs_and_next_obs(client, cartpole):
     envs, seen = cartpole
-    with client.sample_batches(envs.session_id, 64, augment="ras_s(0.5, 1.5)", max_batches=1) as stream:
+    with envs.sample_batches(64, augment="ras_s(0.5, 1.5)", max_batches=1) as stream:
         (batch,) = list(stream)
     for i, key in samples(batch):
         obs, next_obs = seen[key]["obs"], seen[key]["next_obs"]
@@ -184,11 +184,23 @@ def test_bad_requests_are_refused_before_the_stream(client, cartpole, cheetah):
             client.sample_batches(**kwargs)
 
 
+def test_the_clients_sample_batches_by_id_is_a_deprecated_alias(client, cartpole):
+    """`client.sample_batches(session_id, ...)` (0.1's call) warns and gives the env's stream."""
+    envs = cartpole[0]
+    with envs.sample_batches(16, max_batches=2, seed=3) as stream:
+        expected = [batch.action.copy() for batch in stream]
+    with pytest.warns(DeprecationWarning, match="envs.sample_batches"):
+        stream = client.sample_batches(envs.session_id, 16, max_batches=2, seed=3)
+    with stream:
+        got = [batch.action.copy() for batch in stream]
+    assert len(got) == len(expected) == 2 and all(np.array_equal(a, b) for a, b in zip(got, expected))
+
+
 def test_sessions_without_replay_and_over_budget(client):
     envs = client.make_vec("gym/CartPole-v1", num_envs=1)
     try:
         with pytest.raises(radserve.FailedPreconditionError, match="keeps no replay buffer"):
-            client.sample_batches(envs.session_id, 8)
+            envs.sample_batches(8)
     finally:
         envs.close()
     with pytest.raises(radserve.InvalidArgumentError, match="replay budget"):  # above the whole budget
@@ -197,20 +209,20 @@ def test_sessions_without_replay_and_over_budget(client):
 
 def wait_for_streams(client, session_id, count, timeout=1.0):
     deadline = time.monotonic() + timeout
-    while client.describe_session(session_id).replay["active_streams"] != count:
+    while client.describe_session(session_id).replay.active_streams != count:
         assert time.monotonic() < deadline, f"expected {count} active sample streams within {timeout} s"
         time.sleep(0.02)
 
 
 def test_a_client_that_leaves_releases_its_producer(client, cartpole):
     envs, _ = cartpole
-    stream = client.sample_batches(envs.session_id, 16, prefetch=2)
+    stream = envs.sample_batches(16, prefetch=2)
     next(stream)
     wait_for_streams(client, envs.session_id, 1)
     stream.close()
     wait_for_streams(client, envs.session_id, 0)
     # Also while the producer waits for data that never comes (min_size above what acting inserted).
-    waiting = client.sample_batches(envs.session_id, 16, min_size=4000)
+    waiting = envs.sample_batches(16, min_size=4000)
     wait_for_streams(client, envs.session_id, 1)
     waiting.close()
     wait_for_streams(client, envs.session_id, 0)
@@ -221,12 +233,12 @@ def test_rollout_minibatches_cover_every_step_and_env_once_per_epoch(client):
     envs = client.make_vec("procgen/bigfish", num_envs=num_envs, seed=2, rollout_steps=steps, autoreset_mode="SameStep")
     try:
         with pytest.raises(radserve.FailedPreconditionError, match="needs 32 steps"):
-            client.sample_batches(envs.session_id, 16, source="rollout")
+            envs.sample_batches(16, source="rollout")
         seen = act(envs, steps + 5)  # the rollout is the last 32 of the 37 steps
-        assert client.describe_session(envs.session_id).replay["rollout_steps"] == steps
+        assert client.describe_session(envs.session_id).replay.rollout_steps == steps
         with pytest.raises(radserve.FailedPreconditionError, match="not a replay buffer"):
-            client.sample_batches(envs.session_id, 16)
-        stream = client.sample_batches(envs.session_id, 16, source="rollout", epochs=2, augment="crop(56)",
+            envs.sample_batches(16)
+        stream = envs.sample_batches(16, source="rollout", epochs=2, augment="crop(56)",
                                        per_env_augmentation=True)
         visits, offsets = [], {}
         for batch in stream:
@@ -262,7 +274,7 @@ def test_acting_through_the_evaluation_view_while_replay_keeps_raw_frames(client
         raw_obs, *_ = raw.step(actions)
         view_obs, *_ = viewed.step(actions)
         np.testing.assert_array_equal(view_obs, raw_obs[:, :, 8:92, 8:92])
-        with client.sample_batches(viewed.session_id, 2, max_batches=1, min_size=1) as stream:
+        with viewed.sample_batches(2, max_batches=1, min_size=1) as stream:
             (batch,) = list(stream)
         assert batch.obs.shape == (2, 9, 100, 100), "replay keeps the rendered frames"
     finally:
@@ -284,20 +296,20 @@ def test_acting_through_the_evaluation_view_while_replay_keeps_raw_frames(client
 def test_outputs_too_large_and_too_many_streams_are_refused(client, cheetah):
     envs, _ = cheetah
     with pytest.raises(radserve.InvalidArgumentError, match="the most allowed is 67108864"):
-        client.sample_batches(envs.session_id, 8, augment="translate(100000)")
+        envs.sample_batches(8, augment="translate(100000)")
     with pytest.raises(radserve.InvalidArgumentError, match="the most allowed is 1073741824"):
-        client.sample_batches(envs.session_id, 100, augment="translate(2000)")
+        envs.sample_batches(100, augment="translate(2000)")
     with pytest.raises(radserve.InvalidArgumentError, match="the most allowed"):
         client.make_vec("dmc/cheetah-run", num_envs=1, observation_view="center_translate(100000)")
     # 66 batches of 512 translated obs + next_obs (107.5 MB each) would be 7 GB held by one stream.
     for delivery in ("grpc", "shared_memory"):
         with pytest.raises(radserve.InvalidArgumentError, match=r"would hold 7094697984 bytes .*prefetch 64 \+ 2.*limits.stream_memory_bytes"):
-            client.sample_batches(envs.session_id, 512, augment="translate(108)", prefetch=64, delivery=delivery)
-    streams = [client.sample_batches(envs.session_id, 4, min_size=1000) for _ in range(4)]  # never reached: waits
+            envs.sample_batches(512, augment="translate(108)", prefetch=64, delivery=delivery)
+    streams = [envs.sample_batches(4, min_size=1000) for _ in range(4)]  # never reached: waits
     try:
         wait_for_streams(client, envs.session_id, 4)
         with pytest.raises(radserve.ResourceExhaustedError, match="already has 4 sample streams open"):
-            client.sample_batches(envs.session_id, 4)
+            envs.sample_batches(4)
     finally:
         for stream in streams:
             stream.close()
@@ -314,18 +326,18 @@ def test_shared_memory_batches_equal_the_grpc_ones(client, cheetah, source):
     """Same request, same seed: the batches read in place from shared memory are the batches the
     byte stream delivers, field by field (obs and next_obs from the slots, the rest inline)."""
     if source == "replay":
-        envs, session = None, cheetah[0].session_id
+        envs, sampled = None, cheetah[0]
         request = dict(augment="crop(84)|flip(p=0.5)", max_batches=5, seed=9, prefetch=1)
     else:
         envs = client.make_vec("procgen/bigfish", num_envs=3, seed=4, rollout_steps=8, autoreset_mode="SameStep")
         act(envs, 8)
-        session = envs.session_id
+        sampled = envs
         # 24 transitions in batches of 10: the last batch of each epoch is short.
         request = dict(augment="crop(56)", source="rollout", epochs=2, seed=9, include_next_obs=True)
     try:
-        with client.sample_batches(session, 10, **request) as stream:
+        with sampled.sample_batches(10, **request) as stream:
             expected = [copies(batch) for batch in stream]
-        stream = client.sample_batches(session, 10, delivery="shared_memory", **request)
+        stream = sampled.sample_batches(10, delivery="shared_memory", **request)
         assert isinstance(stream, radserve.SharedBatchStream)
         got = []
         for batch in stream:
@@ -352,7 +364,7 @@ def test_shared_memory_slots_are_reused_only_after_release(client, cheetah):
     """A batch's observations stay intact while the client holds it, even with the producer running
     ahead; slots cycle once released, and a client that leaves frees the producer and the memory."""
     envs, _ = cheetah
-    stream = client.sample_batches(envs.session_id, 8, augment="crop(84)", prefetch=2, seed=1,
+    stream = envs.sample_batches(8, augment="crop(84)", prefetch=2, seed=1,
                                    delivery="shared_memory")
     assert stream.slots == 4
     first = next(stream)
@@ -372,9 +384,9 @@ def test_shared_memory_slots_are_reused_only_after_release(client, cheetah):
 def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
     envs, _ = cheetah
     with pytest.raises(radserve.InvalidArgumentError, match="a batch of 1001 .* the most allowed|between 1 and the replay capacity"):
-        client.sample_batches(envs.session_id, 1001, delivery="shared_memory")
+        envs.sample_batches(1001, delivery="shared_memory")
     with pytest.raises(ValueError, match="delivery must be one of"):
-        client.sample_batches(envs.session_id, 8, delivery="pigeon")
+        envs.sample_batches(8, delivery="pigeon")
 
     # The first request must say what to sample.
     method = client.transports[0].channel.stream_stream("/radserve.v1.RadServe/SampleBatchesShared",
@@ -406,8 +418,8 @@ def test_shared_memory_refusals_and_fallback(client, cheetah, monkeypatch):
 
     monkeypatch.setattr(radserve.batches, "map_region", unreachable)
     with pytest.raises(radserve.SharedMemoryError, match="cannot receive"):
-        client.sample_batches(envs.session_id, 8, delivery="shared_memory")
-    with client.sample_batches(envs.session_id, 8, delivery="auto", max_batches=1) as stream:
+        envs.sample_batches(8, delivery="shared_memory")
+    with envs.sample_batches(8, delivery="auto", max_batches=1) as stream:
         assert isinstance(stream, radserve.BatchStream)
         assert next(stream).obs.shape == (8, 9, 100, 100)
     wait_for_streams(client, envs.session_id, 0)

@@ -122,8 +122,8 @@ def test_sharded_batches_have_the_size_asked_for_and_say_where_they_came_from(sh
             envs.step(envs.action_space.sample())
         infos = envs.describe()
         assert [info.num_envs for info in infos] == [3, 2, 2]
-        assert [info.replay["capacity"] for info in infos] == [300, 200, 200]
-        with sharded.sample_batches(envs.session_id, 32, augment="crop(56)", seed=4, max_batches=3) as stream:
+        assert [info.replay.capacity for info in infos] == [300, 200, 200]
+        with envs.sample_batches(32, augment="crop(56)", seed=4, max_batches=3) as stream:
             assert stream.shares == {servers[0].address: 14, servers[1].address: 9, servers[2].address: 9}
             batches = list(stream)
         assert len(batches) == 3
@@ -170,7 +170,7 @@ def test_a_lost_server_is_named_or_survived_and_comes_back(servers):
         assert infos["_final_obs"][lost].all()
         assert second.active.tolist() == (~lost).tolist()
         # Sampling keeps its batch size on the two servers left.
-        stream = lenient.sample_batches(second.session_id, 16, min_size=16)
+        stream = second.sample_batches(16, min_size=16)
         batch = next(stream)
         assert len(batch) == 16 and set(batch.server.tolist()) == {0, 2}
         for _ in range(3):
@@ -230,7 +230,7 @@ def test_a_lost_server_comes_back_to_the_servers_acting(servers):
     try:
         envs.set_policy(model, head="categorical")
         envs.start_acting(seed=5, steps_per_second=600.0)
-        stream = client.sample_batches(envs.session_id, 12, min_size=12)
+        stream = envs.sample_batches(12, min_size=12)
         assert set(next(stream).server.tolist()) <= {0, 1, 2}
         victim.process.send_signal(signal.SIGKILL)
         victim.process.wait()

@@ -101,9 +101,9 @@ def test_errors_are_the_same_and_change_nothing(client):
             envs.step(np.array([[0.0], [7.0]], np.float32))
         with pytest.raises(radserve.InvalidArgumentError, match="seed"):
             envs.reset(seed=-1)
-        assert envs.describe().total_env_steps == 0
+        assert envs.describe()[0].total_env_steps == 0
         assert envs.step(np.zeros((2, 1), np.float32))[0].shape == (2, 3)
-        assert envs.describe().total_env_steps == 2
+        assert envs.describe()[0].total_env_steps == 2
     finally:
         envs.close()
 
@@ -170,7 +170,7 @@ def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client
         assert code == INVALID_ARGUMENT and "outside" in message
         actions[:] = [1, 0]
         assert _ask(sock, REQUEST.pack(b"S", 0, 0)) == (0, "")
-        assert envs.describe().total_env_steps == 2
+        assert envs.describe()[0].total_env_steps == 2
         # EnvPool's asynchronous requests: malformed ones, then refused on a synchronous session.
         flagged = struct.Struct("<cBB5xQ")  # kind, has-seed, flags (1: mask, 2: per-env seeds), seed
         code, message = _ask(sock, flagged.pack(b"A", 0, 1, 0))
@@ -181,7 +181,7 @@ def test_the_raw_protocol_answers_malformed_requests_and_checks_the_token(client
         assert code == INVALID_ARGUMENT and "no seed" in message
         code, message = _ask(sock, flagged.pack(b"V", 0, 0, 0))
         assert code == INVALID_ARGUMENT and "steps every env at once" in message
-        assert envs.describe().total_env_steps == 2
+        assert envs.describe()[0].total_env_steps == 2
         del obs, actions
         memory.close()
         # The channel ends with its connection; then the session can open another.

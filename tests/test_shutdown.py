@@ -54,7 +54,7 @@ def _busy_server(notice, drain):
     # second of the shutdown misses the stream's status (docs/operations.md, Shutdown).
     with grpc.insecure_channel(server.address) as channel:
         wait_serving(channel, "radserve.v1.RadServe")
-    stream = client.sample_batches(envs.session_id, batch_size=4)
+    stream = envs.sample_batches(batch_size=4)
     next(iter(stream))
     return server, client, envs, stream
 

@@ -39,7 +39,7 @@ def _snapshot_of_everything(client, session_id, timeout=20.0):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         replay = client.describe_session(session_id).replay
-        if replay["snapshot"]["age_seconds"] is not None and replay["snapshot"]["pending_frames"] == 0:
+        if replay.snapshot.age_seconds is not None and replay.snapshot.pending_frames == 0:
             return replay
         time.sleep(0.1)
     raise AssertionError(f"no snapshot of everything {session_id} recorded within {timeout} s: {replay}")
@@ -58,15 +58,15 @@ def test_a_named_replay_survives_sigkill_and_restart(tmp_path):
             envs = client.make_vec(ENV, num_envs=4, seed=3, replay_capacity=2000, name="cartpole-sac",
                                    autoreset_mode="SameStep")
             assert envs.info.name == "cartpole-sac"
-            assert envs.info.replay["snapshot"] == {"restored_transitions": 0, "disk_bytes": 0, "age_seconds": None,
-                                                    "pending_frames": 0}
+            assert envs.info.replay.snapshot == radserve.SnapshotInfo(restored_transitions=0, disk_bytes=0,
+                                                                       age_seconds=None, pending_frames=0)
             with pytest.raises(radserve.AlreadyExistsError, match="cartpole-sac"):
                 client.make_vec(ENV, num_envs=4, seed=3, replay_capacity=2000, name="cartpole-sac")
             envs.reset(seed=3)
             _steps(envs, 150)
             saved = _snapshot_of_everything(client, envs.session_id)
-            assert saved["size"] == 600 and saved["snapshot"]["disk_bytes"] > 0
-            with client.sample_batches(envs.session_id, 32) as stream:
+            assert saved.size == 600 and saved.snapshot.disk_bytes > 0
+            with envs.sample_batches(32) as stream:
                 before = next(stream)
         _kill(server)
 
@@ -75,21 +75,21 @@ def test_a_named_replay_survives_sigkill_and_restart(tmp_path):
             envs = client.make_vec(ENV, num_envs=4, seed=3, replay_capacity=2000, name="cartpole-sac",
                                    autoreset_mode="SameStep")
             replay = envs.info.replay
-            assert replay["size"] == saved["size"], "the replay is back before the first step"
-            assert replay["snapshot"]["restored_transitions"] == saved["size"]
+            assert replay.size == saved.size, "the replay is back before the first step"
+            assert replay.snapshot.restored_transitions == saved.size
             assert envs.info.total_env_steps == 600
             # Batches come at once, from the transitions recorded before the kill.
-            with client.sample_batches(envs.session_id, 32, seed=1) as stream:
+            with envs.sample_batches(32, seed=1) as stream:
                 batch = next(stream)
             assert batch.obs.shape == before.obs.shape and batch.step_index.max() < 150
             envs.reset(seed=3)
             _steps(envs, 20)
-            assert client.describe_session(envs.session_id).replay["size"] == saved["size"] + 80
+            assert client.describe_session(envs.session_id).replay.size == saved.size + 80
             envs.close()
             # Another session under the same name (other num_envs): the snapshot is set aside, the
             # session starts empty, and the old files stay beside it.
             other = client.make_vec(ENV, num_envs=2, seed=3, replay_capacity=2000, name="cartpole-sac")
-            assert other.info.replay["size"] == 0
+            assert other.info.replay.size == 0
             _snapshot_of_everything(client, other.session_id)
             owner = next(path for path in tmp_path.iterdir())
             names = sorted(path.name for path in owner.iterdir())
@@ -116,7 +116,7 @@ def test_a_sharded_learner_gets_a_killed_servers_replay_back(tmp_path):
         victim = servers[1]
         with radserve.Client(victim.address) as direct:
             saved = _snapshot_of_everything(direct, envs.shards[1].env.session_id)
-        stream = client.sample_batches(envs.session_id, 24, min_size=24)
+        stream = envs.sample_batches(24, min_size=24)
         assert set(next(stream).server.tolist()) == {0, 1, 2}
         _kill(victim)
 
@@ -135,7 +135,7 @@ def test_a_sharded_learner_gets_a_killed_servers_replay_back(tmp_path):
         assert envs.active.all(), "the restarted server was not reconnected"
         with radserve.Client(victim.address) as direct:
             replay = direct.describe_session(envs.shards[1].env.session_id).replay
-        assert replay["snapshot"]["restored_transitions"] >= saved["size"] > 0
+        assert replay.snapshot.restored_transitions >= saved.size > 0
         # Its share comes from the restored replay: no need to refill it first.
         seen: set = set()
         deadline = time.monotonic() + 20
@@ -169,8 +169,8 @@ def test_a_failed_snapshot_is_a_warning_and_a_metric_and_the_previous_one_stays(
             saved = _snapshot_of_everything(client, envs.session_id)
             families = scrape(port)
             assert value(families, "radserve_snapshots", "_total") >= 1
-            assert value(families, "radserve_snapshot_bytes", "_total") >= saved["snapshot"]["disk_bytes"] > 0
-            assert value(families, "radserve_snapshot_disk_bytes") == saved["snapshot"]["disk_bytes"]
+            assert value(families, "radserve_snapshot_bytes", "_total") >= saved.snapshot.disk_bytes > 0
+            assert value(families, "radserve_snapshot_disk_bytes") == saved.snapshot.disk_bytes
             assert value(families, "radserve_snapshot_failures", "_total") == 0
             assert value(families, "radserve_snapshot_age_seconds") < 5
 
@@ -184,17 +184,17 @@ def test_a_failed_snapshot_is_a_warning_and_a_metric_and_the_previous_one_stays(
                 time.sleep(0.1)
             assert value(scrape(port), "radserve_snapshot_failures", "_total") >= 1
             _steps(envs, 5)  # the server keeps serving
-            assert client.describe_session(envs.session_id).replay["snapshot"]["disk_bytes"] == saved["snapshot"]["disk_bytes"]
+            assert client.describe_session(envs.session_id).replay.snapshot.disk_bytes == saved.snapshot.disk_bytes
             directory.unlink()
             kept.rename(directory)
             latest = _snapshot_of_everything(client, envs.session_id)
-            assert latest["size"] == saved["size"] + 50
+            assert latest.size == saved.size + 50
         _kill(server)
         server = _server(tmp_path)
         with radserve.Client(server.address) as client:
             envs = client.make_vec(ENV, num_envs=2, seed=0, replay_capacity=1000, name="metered",
                                    autoreset_mode="SameStep")
-            assert envs.info.replay["snapshot"]["restored_transitions"] == latest["size"]
+            assert envs.info.replay.snapshot.restored_transitions == latest.size
     finally:
         server.stop()
 
@@ -243,7 +243,7 @@ def test_a_hostile_snapshot_directory_is_never_followed_and_shutdown_finishes(tm
         server = _server(snapshots, RADSERVE__SERVER__DRAIN_TIMEOUT_S="5")
         with radserve.Client(server.address) as client:
             envs = _named(client)
-            assert envs.info.replay["size"] == 0, "a linked directory is set aside, never restored from"
+            assert envs.info.replay.size == 0, "a linked directory is set aside, never restored from"
             assert sorted((path.name, path.read_bytes()) for path in elsewhere.iterdir()) == before
             assert any(path.is_symlink() and path.name.startswith("hostile.rejected-") for path in directory.parent.iterdir())
             envs.reset(seed=1)
@@ -269,7 +269,7 @@ def test_a_hostile_snapshot_directory_is_never_followed_and_shutdown_finishes(tm
         with radserve.Client(server.address) as client:
             started = time.monotonic()
             envs = _named(client)
-            assert envs.info.replay["size"] == 0 and time.monotonic() - started < 10
+            assert envs.info.replay.size == 0 and time.monotonic() - started < 10
             assert _vm_hwm_bytes(server.process.pid) < 1 << 30, "the server read the link"
             envs.close()
         _kill(server)
@@ -289,7 +289,7 @@ def test_a_hostile_snapshot_directory_is_never_followed_and_shutdown_finishes(tm
         with radserve.Client(server.address) as client:
             started = time.monotonic()
             envs = _named(client)
-            assert envs.info.replay["size"] == 0 and time.monotonic() - started < 10, "a FIFO is refused at once"
+            assert envs.info.replay.size == 0 and time.monotonic() - started < 10, "a FIFO is refused at once"
             envs.reset(seed=1)
             _steps(envs, 5)
             _snapshot_of_everything(client, envs.session_id)
@@ -304,6 +304,6 @@ def test_a_hostile_snapshot_directory_is_never_followed_and_shutdown_finishes(tm
         assert server.process.wait(timeout=15) == 0
         assert time.monotonic() - started < 8, "shutdown outlived its drain time"
         assert fifo.is_file() and not fifo.is_fifo(), "the FIFO was replaced by the segment"
-        assert saved["size"] > 0
+        assert saved.size > 0
     finally:
         server.stop()

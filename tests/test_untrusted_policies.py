@@ -124,7 +124,7 @@ def test_a_model_cannot_read_the_servers_files(hostile_server):
                 envs.set_policy(policies.sparse_exfiltration((4,), 2, location=location), head="categorical")
             answers.append(str(refused.value))
         assert answers[0] == answers[1]
-        assert envs.acting() is None, "nothing was set"
+        assert envs.acting()[0] is None, "nothing was set"
 
 
 def test_memory_bombs_are_refused_or_fail_their_actor_within_the_charged_memory(hostile_server):
@@ -146,7 +146,7 @@ def test_memory_bombs_are_refused_or_fail_their_actor_within_the_charged_memory(
             envs.set_policy(policies.memory_bomb((4,), 2, "pad", pad_scale=float(1 << 34)), head="categorical")
             envs.start_acting()
             deadline = time.monotonic() + 60
-            while (info := envs.acting()).state == "acting":
+            while (info := envs.acting()[0]).state == "acting":
                 assert time.monotonic() < deadline, info
                 time.sleep(0.05)
         assert info.state == "failed" and str(POLICY_MEMORY) in info.error, info
@@ -211,7 +211,7 @@ def test_random_models_are_refused_or_act_within_the_charged_memory(hostile_serv
                     continue
                 envs.start_acting(max_env_steps=20)
                 deadline = time.monotonic() + 60
-                while (info := envs.acting()).state == "acting":
+                while (info := envs.acting()[0]).state == "acting":
                     assert time.monotonic() < deadline, (seed, info)
                     time.sleep(0.02)
                 outcomes[seed] = info.state

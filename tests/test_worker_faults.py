@@ -180,7 +180,7 @@ def test_an_async_session_whose_worker_died_answers_an_error_then_steps_after_as
         assert len(ids) == 2, failed.value
         for _ in range(10):
             ids = envs.step(np.zeros(len(ids), dtype=np.int64), ids)[4]["env_id"]
-        assert envs.describe().total_env_steps >= 18
+        assert envs.describe()[0].total_env_steps >= 18
         other.step(np.zeros(2, dtype=np.int64))
     finally:
         envs.close()

@@ -28,13 +28,13 @@ from .errors import (
 from .server import LocalServer
 from .sharded import ShardedBatchStream, ShardedVectorEnv
 from .actors import ActingInfo, LoadedPolicy
-from .types import EnvInfo, ServerInfo, SessionInfo, SessionSummary
+from .types import Batches, EnvInfo, ReplayInfo, ServerInfo, SessionEnv, SessionInfo, SessionSummary, SnapshotInfo
 from .vector import RemoteVectorEnv
 
 __all__ = [
     "__version__", "Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream",
     "SharedBatchStream", "RemoteVectorEnv", "ShardedVectorEnv", "ShardedBatchStream", "LocalServer", "TlsConfig",
-    "resolve_addresses", "ActingInfo", "LoadedPolicy",
+    "resolve_addresses", "ActingInfo", "LoadedPolicy", "Batches", "SessionEnv", "ReplayInfo", "SnapshotInfo",
     "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",
     "UnauthenticatedError", "PermissionDeniedError", "DeadlineExceededError", "AlreadyExistsError",

@@ -5,11 +5,15 @@ let it step the session's envs, so the learner only streams batches.
                            observation_view="center_crop(84)")
     envs.set_policy(actor, example_obs, head="gaussian_tanh")      # torch module: exported here
     envs.start_acting(random_steps=1000, samples_per_insert=..., min_size=1000)
-    for batch in client.sample_batches(envs.session_id, ...):      # batch.policy_version: staleness
+    for batch in envs.sample_batches(256, ...):                    # batch.policy_version: staleness
         ...update...
         if update % 10 == 0:
             envs.set_policy(actor, example_obs)                   # next version, taken between steps
     envs.stop_acting()
+
+Every call that goes to the env's servers (set_policy, start_acting, stop_acting, acting,
+wait_acting) returns a list in server order, one answer per server: one item for a plain env, one
+per shard for a sharded one, None for a server lost now.
 
 Heads (see the proto's PolicyHead): "gaussian_tanh" (outputs mean, log_std), "categorical" (logits,
 optionally value), "deterministic_noise" (action in [-1, 1]; `noise=(std_start, std_end, std_steps,
@@ -19,6 +23,7 @@ clip)`, DrQ-v2's schedule).
 from __future__ import annotations
 
 import io
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -127,10 +132,13 @@ def loaded(response: "pb.SetPolicyResponse") -> LoadedPolicy:
 
 
 def start_request(session_id: str, *, random_steps: int = 0, steps_per_second: "float | None" = None,
-                  eval: bool = False, samples_per_insert: "float | None" = None, error_buffer: float = 0.0,
+                  deterministic: bool = False, samples_per_insert: "float | None" = None, error_buffer: float = 0.0,
                   min_size: int = 0, seed: "int | None" = None, max_episodes: "int | None" = None,
                   max_env_steps: "int | None" = None) -> "pb.StartActingRequest":
-    request = pb.StartActingRequest(session_id=session_id, random_steps=int(random_steps), eval=bool(eval),
+    """StartActing's request. `deterministic` acts without exploration (tanh(mean), argmax, no
+    noise: the proto's `eval`), for evaluation; `samples_per_insert`, `error_buffer` and `min_size`
+    are Reverb's rate limiter against the learner's sampling."""
+    request = pb.StartActingRequest(session_id=session_id, random_steps=int(random_steps), eval=bool(deterministic),
                                     error_buffer=float(error_buffer), min_size=int(min_size))
     if steps_per_second is not None:
         request.steps_per_second = float(steps_per_second)
@@ -170,12 +178,21 @@ class ActingMixin:
         position) of their new sessions. A sharded env that goes on without a lost server says."""
         return []
 
+    def _per_server(self, answers: "list[tuple[int, Any]]") -> list:
+        """Answers by server position as a list in server order, None where a server gave none."""
+        ordered: list = [None] * self._acting_servers
+        for position, answer in answers:
+            ordered[position] = answer
+        return ordered
+
     def set_policy(self, policy: Any, example_obs: Any = None, *, head: str = "gaussian_tanh",
-                   version: "int | None" = None, noise: "tuple[float, float, int, float] | None" = None) -> LoadedPolicy:
+                   version: "int | None" = None,
+                   noise: "tuple[float, float, int, float] | None" = None) -> "list[LoadedPolicy | None]":
         """Sends a policy: ONNX bytes, or a torch module exported with `example_obs` (a batch of
         observations). `version` defaults to one more than the last this env sent; a running actor
         takes the new version between two steps. Refused models raise InvalidArgumentError with the
-        server's reason (the operator it does not support, the shape it expected).
+        server's reason (the operator it does not support, the shape it expected). Returns what each
+        server read of the model, in server order (None for a server lost now).
 
         On a sharded env that goes on without a lost server (`on_server_loss="continue"`), this is
         also when a lost server is tried again: one that is back gets a new session, this policy and,
@@ -188,9 +205,8 @@ class ActingMixin:
             model = export_onnx(policy, example_obs)
         version = self._policy_version + 1 if version is None else version
         returned = self._acting_returned()
-        answer = None
-        for transport, session_id, _, _ in self._acting_sessions():
-            answer = transport.call("SetPolicy", set_policy_request(session_id, model, head, version, noise))
+        answers = [(position, loaded(transport.call("SetPolicy", set_policy_request(session_id, model, head, version, noise))))
+                   for transport, session_id, _, position in self._acting_sessions()]
         self._policy_version = version
         # Only while the others act: an actor that ended on its own budget (a PPO rollout's
         # steps_per_env) is started again by the learner, which would find this one acting.
@@ -198,7 +214,7 @@ class ActingMixin:
                 info is not None and info.state == "acting" for info in self._acting_answers()):
             for target in returned:
                 self._start_on(target, self._acting_settings)
-        return loaded(answer)
+        return self._per_server(answers)
 
     @staticmethod
     def _start_on(target, settings: dict) -> "pb.ActingInfo":
@@ -211,36 +227,61 @@ class ActingMixin:
             settings["max_env_steps"] = steps_per_env * num_envs
         return transport.call("StartActing", start_request(session_id, **settings))
 
-    def start_acting(self, *, steps_per_env: "int | None" = None, **settings) -> "ActingInfo":
+    def start_acting(self, *, steps_per_env: "int | None" = None, **settings) -> "list[ActingInfo | None]":
         """Starts the server's actor on this env's session(s): see `radserve.actors.start_request` for
-        the settings (random_steps, steps_per_second, eval, samples_per_insert, error_buffer,
-        min_size, seed, max_episodes, max_env_steps; each server's own, a seed offset by the server's
-        position). `steps_per_env=T` stops every env after T steps, one rollout of a PPO learner:
-        `max_env_steps` of T times each server's envs. Step and reset are refused while it acts."""
+        the settings (random_steps, steps_per_second, deterministic, samples_per_insert,
+        error_buffer, min_size, seed, max_episodes, max_env_steps; each server's own, a seed offset
+        by the server's position). `steps_per_env=T` stops every env after T steps, one rollout of a
+        PPO learner: `max_env_steps` of T times each server's envs. Step and reset are refused while
+        it acts. Returns each server's actor as it started, in server order."""
         if steps_per_env is not None:
             if isinstance(steps_per_env, bool) or not isinstance(steps_per_env, int) or steps_per_env < 1:
                 raise InvalidArgumentError(f"steps_per_env must be a positive integer, got {steps_per_env!r}")
             if settings.get("max_env_steps") is not None:
                 raise InvalidArgumentError("give steps_per_env or max_env_steps, not both")
+        if "eval" in settings:
+            raise InvalidArgumentError("start_acting(eval=...) is start_acting(deterministic=...) since radserve 0.2.0")
         settings = dict(settings, steps_per_env=steps_per_env)
-        answer = None
-        for target in self._acting_sessions():
-            answer = self._start_on(target, settings)
+        answers = [(target[3], ActingInfo.from_proto(self._start_on(target, settings))) for target in self._acting_sessions()]
         self._acting_settings = settings
-        return ActingInfo.from_proto(answer)
+        return self._per_server(answers)
 
-    def stop_acting(self) -> "list[ActingInfo] | ActingInfo":
-        """Stops the actor after its current step; the env is the learner's to step again."""
+    def stop_acting(self) -> "list[ActingInfo | None]":
+        """Stops the actor after its current step; the env is the learner's to step again. Returns
+        each server's actor as it stopped, in server order."""
         self._acting_settings = None
-        answers = [ActingInfo.from_proto(transport.call("StopActing", pb.StopActingRequest(session_id=session_id)))
-                   for transport, session_id, _, _ in self._acting_sessions()]
-        return answers[0] if len(answers) == 1 else answers
+        return self._per_server([
+            (position, ActingInfo.from_proto(transport.call("StopActing", pb.StopActingRequest(session_id=session_id))))
+            for transport, session_id, _, position in self._acting_sessions()])
 
-    def acting(self) -> "list[ActingInfo | None] | ActingInfo | None":
-        """The actor's state on each server, in the order of the servers (None where no policy was
-        ever set, and for a server lost now)."""
-        answers = self._acting_answers()
-        return answers[0] if len(answers) == 1 else answers
+    def acting(self) -> "list[ActingInfo | None]":
+        """The actor on each server, in server order (None where no policy was ever set, and for a
+        server lost now)."""
+        return self._acting_answers()
+
+    def wait_acting(self, timeout: "float | None" = None, *, env_steps: "int | None" = None,
+                    episodes: "int | None" = None, poll: float = 0.05) -> "list[ActingInfo | None]":
+        """Waits until no server's actor acts any more (each stopped: its max_env_steps or
+        max_episodes reached, StopActing, or failed), or, given `env_steps` or `episodes`, until the
+        actors have taken that many env steps or ended that many episodes since their start (summed
+        over the servers). Returns the actors as `acting()` does. Raises RuntimeError when an actor
+        failed (with the server's reason) and TimeoutError past `timeout` seconds."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            answers = self._acting_answers()
+            infos = [info for info in answers if info is not None]
+            failed = [info.error for info in infos if info.state == "failed"]
+            if failed:
+                raise RuntimeError(f"a server's actor failed: {failed[0]}")
+            if not any(info.state == "acting" for info in infos):
+                return answers
+            if env_steps is not None and sum(info.env_steps for info in infos) >= env_steps:
+                return answers
+            if episodes is not None and sum(info.episodes for info in infos) >= episodes:
+                return answers
+            if deadline is not None and time.monotonic() >= deadline:
+                raise TimeoutError(f"the actors still act after {timeout} s: {answers}")
+            time.sleep(poll)
 
     def _acting_answers(self) -> "list[ActingInfo | None]":
         answers: "list[ActingInfo | None]" = [None] * self._acting_servers

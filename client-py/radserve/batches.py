@@ -15,7 +15,7 @@ from __future__ import annotations
 import mmap
 import queue
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Any, Iterator
 
 import grpc
 import numpy as np
@@ -23,7 +23,8 @@ import numpy as np
 from ._convert import NUMPY_DTYPES
 from ._proto import radserve_pb2 as pb
 from ._shm import receive_server_memory
-from .errors import SharedMemoryError, from_rpc_error
+from ._transport import check_delivery
+from .errors import InvalidArgumentError, SharedMemoryError, from_rpc_error
 
 FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index", "t",
           "policy_version", "log_prob", "value")
@@ -295,3 +296,63 @@ def open_batch_stream(transport, request: "pb.SampleBatchesRequest", delivery: s
         return BatchStream(call, transport.error)
 
     return transport.negotiate(delivery, shared, streamed)
+
+
+_SOURCES = {"replay": pb.SOURCE_REPLAY, "rollout": pb.SOURCE_ROLLOUT}
+
+
+def sample_request(session_id: str, batch_size: int, *, augment: str = "none", sharing: str = "reference",
+                   prefetch: int = 2, seed: int = 0, min_size: "int | None" = None,
+                   samples_per_insert: "float | None" = None, error_buffer: float = 0.0,
+                   max_batches: "int | None" = None, chunk_bytes: int = 0, source: str = "replay", epochs: int = 1,
+                   per_env_augmentation: bool = False,
+                   include_next_obs: "bool | None" = None) -> "pb.SampleBatchesRequest":
+    """SampleBatches' request (see `SamplingMixin.sample_batches` for the settings)."""
+    if sharing not in SHARING:
+        raise InvalidArgumentError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
+    if source not in _SOURCES:
+        raise InvalidArgumentError(f"source must be one of {sorted(_SOURCES)}, got {source!r}")
+    return pb.SampleBatchesRequest(
+        session_id=session_id, batch_size=batch_size, pipeline_text=augment, sharing=SHARING[sharing],
+        prefetch=prefetch, seed=seed, min_size=min_size, samples_per_insert=samples_per_insert,
+        error_buffer=error_buffer, max_batches=max_batches, chunk_bytes=chunk_bytes, source=_SOURCES[source],
+        epochs=epochs, per_env_augmentation=per_env_augmentation, include_next_obs=include_next_obs)
+
+
+class SamplingMixin:
+    """`sample_batches` for a vector env whose session keeps a buffer: each env opens its stream
+    (`_open_batches`), one server's or every server's."""
+
+    session_id: str
+
+    def _open_batches(self, request: "pb.SampleBatchesRequest", delivery: str):  # pragma: no cover - the env's
+        raise NotImplementedError
+
+    def sample_batches(self, batch_size: int, *, delivery: str = "grpc", **settings: Any):
+        """Stream minibatches sampled uniformly from this env's replay buffer and augmented on the
+        server: an iterator of `radserve.Batch` (numpy arrays), produced `prefetch` ahead (a
+        `radserve.Batches`).
+
+        `augment` is a pipeline in text form (`"crop(84)"`, `"translate(108)|grayscale"`, `"none"`;
+        see docs/augmentations.md); `sharing` says whether obs and next_obs share draws
+        (`"reference"`: as RAD's code, `"shared"`, `"independent"`). Sampling waits for `min_size`
+        transitions (default: one batch) and, with `samples_per_insert` (and `error_buffer`), keeps
+        to Reverb's SampleToInsertRatio, counted from `min_size` on, against the envs' inserts.
+
+        `source="rollout"` serves a rollout session's last rollout instead: `epochs` passes, each
+        visiting every (t, env) once in a fresh random order (batches carry `t` and `env_index` to
+        pair with the values and advantages the learner computed), augmentation drawn per sample or,
+        with `per_env_augmentation`, once per env for the whole rollout; the stream then ends.
+
+        `delivery="shared_memory"` is for a learner on the server's host: the server writes the
+        observations into memory this process maps and only descriptors travel (no 32 MB through a
+        socket); the arrays are then views valid until the next batch is taken (see
+        `radserve.SharedBatchStream`). `"auto"` uses shared memory when it can be mapped and the
+        gRPC byte stream otherwise; `"grpc"` (the default) always streams the bytes. A sharded env
+        draws from every server's replay (`radserve.ShardedBatchStream`).
+        Errors in the request are raised before the first batch. `close()` the stream (or use it in a
+        `with` block) to stop it early. Other settings: `prefetch`, `seed`, `max_batches`,
+        `chunk_bytes`, `include_next_obs`.
+        """
+        check_delivery(delivery)
+        return self._open_batches(sample_request(self.session_id, batch_size, **settings), delivery)

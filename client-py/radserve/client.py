@@ -1,5 +1,6 @@
 """The radserve client: environments listed, sessions created, vector environments handed out."""
 
+import warnings
 import weakref
 from typing import Any
 
@@ -7,10 +8,10 @@ from . import _convert
 from ._proto import radserve_pb2 as pb
 from ._security import TlsConfig
 from ._transport import Transport, check_delivery, resolve, wait_serving
-from .batches import SHARING, open_batch_stream
+from .batches import open_batch_stream, sample_request
 from .errors import InvalidArgumentError, RadServeError
-from .sharded import SERVER_LOSS, ShardedBatchStream, ShardedVectorEnv
-from .types import EnvInfo, ServerInfo, SessionInfo, SessionSummary
+from .sharded import SERVER_LOSS, ShardedVectorEnv
+from .types import Batches, EnvInfo, ServerInfo, SessionEnv, SessionInfo, SessionSummary
 from .vector import open_vector_env
 
 __all__ = ["Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary"]
@@ -24,7 +25,8 @@ class Client:
 
     Several servers (a list, or `dns:///name:port` for every address a name resolves to, such as a
     Kubernetes headless Service) make sharded sessions: `make_vec` spreads the envs over the servers
-    and `sample_batches` draws from every server's replay (see `radserve.ShardedVectorEnv`):
+    and `envs.sample_batches` draws from every server's replay (see `radserve.ShardedVectorEnv`).
+    Either way `make_vec` returns a `radserve.SessionEnv`, with the same shapes:
 
     >>> client = radserve.Client(["radserve-0.radserve:50051", "radserve-1.radserve:50051"])
     >>> client = radserve.Client("dns:///radserve.training.svc.cluster.local:50051")
@@ -137,7 +139,7 @@ class Client:
         channels_last: bool = False,
         name: str = "",
         **options: Any,
-    ):
+    ) -> SessionEnv:
         """Creates a session of `num_envs` environments and returns it as a gymnasium VectorEnv.
 
         `autoreset_mode` is gymnasium's (`gymnasium.vector.AutoresetMode` or its value): "NextStep"
@@ -155,7 +157,7 @@ class Client:
         per step; raises SharedMemoryError elsewhere), `"auto"` does so when it can and uses gRPC
         otherwise; the env's `delivery` attribute says which it got.
         With `replay_capacity`, the server records every transition into a replay buffer of that many
-        transitions, to be sampled with `sample_batches(envs.session_id, ...)`; with `rollout_steps`,
+        transitions, to be sampled with `envs.sample_batches(batch_size, ...)`; with `rollout_steps`,
         it keeps the last that many steps of every env as a rollout (`source="rollout"`).
         `observation_view="center_crop(84)"` (or `"center_translate(108)"`) returns observations
         through RAD's evaluation view, matching what the learner trains on; replay keeps raw frames.
@@ -192,74 +194,18 @@ class Client:
             return envs
         return open_vector_env(self._transport, request, **settings)
 
-    def sample_batches(
-        self,
-        session_id: str,
-        batch_size: int,
-        *,
-        augment: str = "none",
-        sharing: str = "reference",
-        prefetch: int = 2,
-        seed: int = 0,
-        min_size: "int | None" = None,
-        samples_per_insert: "float | None" = None,
-        error_buffer: float = 0.0,
-        max_batches: "int | None" = None,
-        chunk_bytes: int = 0,
-        source: str = "replay",
-        epochs: int = 1,
-        per_env_augmentation: bool = False,
-        include_next_obs: "bool | None" = None,
-        delivery: str = "grpc",
-    ):
-        """Stream minibatches sampled uniformly from the session's replay buffer and augmented on
-        the server: an iterator of `radserve.Batch` (numpy arrays), produced `prefetch` ahead.
-
-        `augment` is a pipeline in text form (`"crop(84)"`, `"translate(108)|grayscale"`, `"none"`;
-        see docs/augmentations.md); `sharing` says whether obs and next_obs share draws
-        (`"reference"`: as RAD's code, `"shared"`, `"independent"`). Sampling waits for `min_size`
-        transitions (default: one batch) and, with `samples_per_insert`, for acting to keep up.
-
-        `source="rollout"` serves a rollout session's last rollout instead: `epochs` passes, each
-        visiting every (t, env) once in a fresh random order (batches carry `t` and `env_index` to
-        pair with the values and advantages the learner computed), augmentation drawn per sample or,
-        with `per_env_augmentation`, once per env for the whole rollout; the stream then ends.
-
-        `delivery="shared_memory"` is for a learner on the server's host: the server writes the
-        observations into memory this process maps and only descriptors travel (no 32 MB through a
-        socket); the arrays are then views valid until the next batch is taken (see
-        `radserve.SharedBatchStream`). `"auto"` uses shared memory when it can be mapped and the
-        gRPC byte stream otherwise; `"grpc"` (the default) always streams the bytes.
-        Errors in the request are raised before the first batch. `close()` the stream (or use it in a
-        `with` block) to stop it early.
-        """
-        check_delivery(delivery)
-        if sharing not in SHARING:
-            raise InvalidArgumentError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
-        sources = {"replay": pb.SOURCE_REPLAY, "rollout": pb.SOURCE_ROLLOUT}
-        if source not in sources:
-            raise InvalidArgumentError(f"source must be one of {sorted(sources)}, got {source!r}")
-        request = pb.SampleBatchesRequest(
-            session_id=session_id,
-            batch_size=batch_size,
-            pipeline_text=augment,
-            sharing=SHARING[sharing],
-            prefetch=prefetch,
-            seed=seed,
-            min_size=min_size,
-            samples_per_insert=samples_per_insert,
-            error_buffer=error_buffer,
-            max_batches=max_batches,
-            chunk_bytes=chunk_bytes,
-            source=sources[source],
-            epochs=epochs,
-            per_env_augmentation=per_env_augmentation,
-            include_next_obs=include_next_obs,
-        )
+    def sample_batches(self, session_id: str, batch_size: int, *, delivery: str = "grpc", **settings: Any) -> Batches:
+        """`envs.sample_batches(batch_size, ...)` by session id: the same stream (see
+        `RemoteVectorEnv.sample_batches` for the settings). Deprecated since 0.2.0, kept through 0.2:
+        sample from the env, which needs no id (a sharded env's id was a synthetic `sharded-...`
+        only this call resolved)."""
+        warnings.warn("Client.sample_batches(session_id, ...) is deprecated since radserve 0.2.0: use "
+                      "envs.sample_batches(batch_size, ...)", DeprecationWarning, stacklevel=2)
         sharded = self._sharded.get(session_id)
         if sharded is not None:
-            return ShardedBatchStream(sharded, request, delivery)
-        return open_batch_stream(self._for_session(session_id), request, delivery)
+            return sharded.sample_batches(batch_size, delivery=delivery, **settings)
+        check_delivery(delivery)
+        return open_batch_stream(self._for_session(session_id), sample_request(session_id, batch_size, **settings), delivery)
 
     def describe_session(self, session_id: str) -> SessionInfo:
         transport = self._for_session(session_id)

@@ -37,9 +37,10 @@ from gymnasium.vector.utils import batch_space
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport
 from .actors import ActingMixin
-from .batches import FIELDS, Batch, open_batch_stream
+from .batches import FIELDS, Batch, SamplingMixin, open_batch_stream
 from .infos import merge_infos
 from .errors import InvalidArgumentError, NotFoundError, RadServeError, UnavailableError
+from .types import SessionInfo
 from .vector import RemoteVectorEnv, check_reset_mask, check_seeds, open_vector_env
 
 SERVER_LOSS = ("raise", "continue")
@@ -84,14 +85,16 @@ class Shard:
         return slice(self.start, self.start + self.size)
 
 
-class ShardedVectorEnv(ActingMixin, VectorEnv):
+class ShardedVectorEnv(ActingMixin, SamplingMixin, VectorEnv):
     """`num_envs` environments spread over several radserve servers, stepped concurrently (one
     outstanding step per server) and returned as one gymnasium VectorEnv in env order.
 
     Everything `RemoteVectorEnv` does (autoreset modes, seeds, reset masks, infos, deliveries)
     applies per server; the arrays and info dicts are those of one session. `shards` says which
-    server holds which envs; `session_id` names the sharded session to `Client.sample_batches`.
-    See the module's documentation for what happens when a server is lost.
+    server holds which envs; `sample_batches` draws from every server's replay. Calls that go to
+    every server (`describe`, `set_policy`, `start_acting`, `stop_acting`, `acting`) return a list
+    in shard order, None for a server lost now, as a plain env's return a list of one. See the
+    module's documentation for what happens when a server is lost.
     """
 
     def __init__(self, transports: "list[Transport]", request: "pb.CreateSessionRequest", *, stream: bool = False,
@@ -199,9 +202,13 @@ class ShardedVectorEnv(ActingMixin, VectorEnv):
         kinds = {shard.env.delivery for shard in self.shards if shard.env is not None and not shard.lost}
         return kinds.pop() if len(kinds) == 1 else "mixed"
 
-    def describe(self) -> "list":
-        """Each live shard's SessionInfo, in env order."""
-        return [shard.env.describe() for shard in self.shards if shard.env is not None and not shard.lost]
+    def describe(self) -> "list[SessionInfo | None]":
+        """Each shard's session as its server sees it, in shard (env) order; None for a lost one."""
+        return [None if shard.env is None or shard.lost else shard.env.describe()[0] for shard in self.shards]
+
+    def _open_batches(self, request: "pb.SampleBatchesRequest", delivery: str) -> "ShardedBatchStream":
+        self._check_open()
+        return ShardedBatchStream(self, request, delivery)
 
     # --- acting -------------------------------------------------------------------------------
 
@@ -475,10 +482,10 @@ class ShardedBatchStream:
 
     def _holds(self, shard: Shard, share: int) -> bool:
         try:
-            info = shard.env.describe()
+            info = shard.env.describe()[0]
         except RadServeError:
             return False
-        return info.replay is not None and info.replay["size"] >= share
+        return info.replay is not None and info.replay.size >= share
 
     def _lost(self, shard: Shard, error: RadServeError) -> None:
         result = self._envs._lose(shard, error) if not shard.lost else shard

@@ -5,12 +5,16 @@ sessions all import them from here (none of those imports another to get them).
 """
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, Iterator, Protocol, runtime_checkable
 
 from gymnasium import spaces
 
 from . import _convert
 from ._proto import radserve_pb2 as pb
+
+if TYPE_CHECKING:
+    from .actors import ActingInfo, LoadedPolicy
+    from .batches import Batch
 
 
 @dataclass(frozen=True)
@@ -30,9 +34,63 @@ class ServerInfo:
 
     address: str
     version: str
-    """its release, e.g. "0.1.0" (`radserve --version`)"""
+    """its release, e.g. "0.2.0" (`radserve --version`)"""
     api: str
     """the gRPC API it implements, "radserve.v1" """
+
+
+@dataclass(frozen=True)
+class SnapshotInfo:
+    """A named session's replay snapshot on a server that snapshots (`[replay] snapshot_dir`)."""
+
+    restored_transitions: int
+    """transitions restored from it when the session was created"""
+    disk_bytes: int
+    age_seconds: "float | None"
+    """since the snapshot on disk was written (None: none was yet)"""
+    pending_frames: int
+    """frames recorded since the snapshot on disk was written"""
+
+    @staticmethod
+    def from_proto(message: "pb.ReplaySnapshot") -> "SnapshotInfo":
+        return SnapshotInfo(restored_transitions=message.restored_transitions, disk_bytes=message.disk_bytes,
+                            age_seconds=message.age_seconds if message.HasField("age_seconds") else None,
+                            pending_frames=message.pending_frames)
+
+
+@dataclass(frozen=True)
+class ReplayInfo:
+    """A session's replay buffer or rollout, as DescribeSession reports it."""
+
+    capacity: int
+    size: int
+    """transitions that can be sampled now"""
+    inserts: int
+    samples: int
+    batches: int
+    batches_per_second: float
+    memory_bytes: int
+    frames_per_transition: float
+    active_streams: int
+    rollout_steps: "int | None" = None
+    """a rollout's steps per env (None: a replay buffer)"""
+    snapshot: "SnapshotInfo | None" = None
+
+    @staticmethod
+    def from_proto(message: "pb.ReplayInfo") -> "ReplayInfo":
+        return ReplayInfo(
+            capacity=message.capacity,
+            size=message.size,
+            inserts=message.inserts,
+            samples=message.samples,
+            batches=message.batches,
+            batches_per_second=message.batches_per_second,
+            memory_bytes=message.memory_bytes,
+            frames_per_transition=message.frames_per_transition,
+            active_streams=message.active_streams,
+            rollout_steps=message.rollout_steps or None,
+            snapshot=SnapshotInfo.from_proto(message.snapshot) if message.HasField("snapshot") else None,
+        )
 
 
 @dataclass(frozen=True)
@@ -48,11 +106,11 @@ class SessionInfo:
     autoreset_mode: str
     total_env_steps: int
     episodes_completed: int
-    replay: "dict | None" = None
+    replay: "ReplayInfo | None" = None
     # The name it was created with ("": none).
     name: str = ""
-    # Its server-side actor (radserve.actors.ActingInfo), once a policy was set.
-    acting: "Any" = None
+    # Its server-side actor, once a policy was set.
+    acting: "ActingInfo | None" = None
 
     @staticmethod
     def from_proto(message: "pb.SessionInfo") -> "SessionInfo":
@@ -69,30 +127,7 @@ class SessionInfo:
             autoreset_mode=message.autoreset_mode,
             total_env_steps=message.total_env_steps,
             episodes_completed=message.episodes_completed,
-            replay={
-                "capacity": message.replay.capacity,
-                "size": message.replay.size,
-                "inserts": message.replay.inserts,
-                "samples": message.replay.samples,
-                "batches": message.replay.batches,
-                "batches_per_second": message.replay.batches_per_second,
-                "memory_bytes": message.replay.memory_bytes,
-                "frames_per_transition": message.replay.frames_per_transition,
-                "active_streams": message.replay.active_streams,
-                "rollout_steps": message.replay.rollout_steps or None,
-                # A named session's snapshot on a server that snapshots (`[replay] snapshot_dir`).
-                "snapshot": {
-                    "restored_transitions": message.replay.snapshot.restored_transitions,
-                    "disk_bytes": message.replay.snapshot.disk_bytes,
-                    "age_seconds": message.replay.snapshot.age_seconds
-                    if message.replay.snapshot.HasField("age_seconds") else None,
-                    "pending_frames": message.replay.snapshot.pending_frames,
-                }
-                if message.replay.HasField("snapshot")
-                else None,
-            }
-            if message.HasField("replay")
-            else None,
+            replay=ReplayInfo.from_proto(message.replay) if message.HasField("replay") else None,
             name=message.name,
             acting=ActingInfo.from_proto(message.acting) if message.HasField("acting") else None,
         )
@@ -132,3 +167,51 @@ class SessionSummary:
             server=server,
             name=message.name,
         )
+
+
+@runtime_checkable
+class Batches(Protocol):
+    """What `sample_batches` returns, from one server or several: an iterator of `radserve.Batch`
+    that stops early on `close()` (or at the end of a `with` block)."""
+
+    def __iter__(self) -> "Iterator[Batch]": ...
+
+    def __next__(self) -> "Batch": ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> "Batches": ...
+
+    def __exit__(self, *exc_info: Any) -> Any: ...
+
+
+@runtime_checkable
+class SessionEnv(Protocol):
+    """What `Client.make_vec` returns, on one server (`RemoteVectorEnv`) or several
+    (`ShardedVectorEnv`): a gymnasium VectorEnv on a server-side session, with the same shapes either
+    way. Calls that go to every server return a list in server order (None for a server lost now)."""
+
+    num_envs: int
+    session_id: str
+    policy_version: int
+    """the last policy version this env sent with set_policy (0: none)"""
+
+    def reset(self, *, seed: Any = None, options: "dict | None" = None) -> Any: ...
+
+    def step(self, actions: Any) -> Any: ...
+
+    def describe(self) -> "list[SessionInfo | None]": ...
+
+    def sample_batches(self, batch_size: int, **settings: Any) -> Batches: ...
+
+    def set_policy(self, policy: Any, example_obs: Any = None, **settings: Any) -> "list[LoadedPolicy | None]": ...
+
+    def start_acting(self, **settings: Any) -> "list[ActingInfo | None]": ...
+
+    def stop_acting(self) -> "list[ActingInfo | None]": ...
+
+    def acting(self) -> "list[ActingInfo | None]": ...
+
+    def wait_acting(self, timeout: "float | None" = None, **until: Any) -> "list[ActingInfo | None]": ...
+
+    def close(self, **kwargs: Any) -> None: ...

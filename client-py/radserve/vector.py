@@ -12,6 +12,7 @@ from gymnasium.vector.utils import batch_space
 from . import _convert
 from ._shared_stepping import Answer, SharedStepping
 from .actors import ActingMixin
+from .batches import SamplingMixin, open_batch_stream
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport, check_delivery
 from .errors import FailedPreconditionError, InvalidArgumentError, RadServeError
@@ -109,7 +110,7 @@ def _ended_episodes(step: "pb.StepResponse"):
             {episode.env_index: episode.error for episode in episodes if episode.error})
 
 
-class RemoteVectorEnv(ActingMixin, VectorEnv):
+class RemoteVectorEnv(ActingMixin, SamplingMixin, VectorEnv):
     """`num_envs` environments living in a radserve server, stepped together.
 
     Autoreset follows gymnasium's `AutoresetMode` (`metadata["autoreset_mode"]`), chosen at
@@ -582,10 +583,14 @@ class RemoteVectorEnv(ActingMixin, VectorEnv):
     def _acting_sessions(self):
         return [(self._transport, self.session_id, self.num_envs, 0)]
 
-    def describe(self):
-        """The session as the server sees it (steps taken, episodes completed, options)."""
-        return SessionInfo.from_proto(
-            self._transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=self.session_id)))
+    def describe(self) -> "list[SessionInfo | None]":
+        """The session as the server sees it (steps taken, episodes completed, options, its replay
+        and actor): a list of one, as a sharded env's has one per server."""
+        return [SessionInfo.from_proto(
+            self._transport.call("DescribeSession", pb.DescribeSessionRequest(session_id=self.session_id)))]
+
+    def _open_batches(self, request: "pb.SampleBatchesRequest", delivery: str):
+        return open_batch_stream(self._transport, request, delivery)
 
     def close(self, *, timeout: "float | None" = None, discard_snapshot: bool = False, **kwargs):
         """Closes the session on the server (waiting at most `timeout` s for it to answer). A named

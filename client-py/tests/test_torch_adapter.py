@@ -15,7 +15,7 @@ def test_batches_become_tensors_sharing_memory_on_cpu():
         envs.reset()
         for _ in range(20):
             envs.step(envs.action_space.sample())
-        with client.sample_batches(envs.session_id, 8, max_batches=2) as stream:
+        with envs.sample_batches(8, max_batches=2) as stream:
             converted = list(radserve_torch.tensors(stream))
     assert [b.index for b in converted] == [0, 1]
     batch = converted[0]

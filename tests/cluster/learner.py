@@ -40,7 +40,7 @@ class Learner:
         self.envs.reset(seed=0)
         for _ in range(20):
             self._step()
-        self.stream = self.lenient.sample_batches(self.envs.session_id, 32, augment="crop(56)", min_size=32,
+        self.stream = self.envs.sample_batches(32, augment="crop(56)", min_size=32,
                                                   delivery="auto")
         batches = [next(self.stream) for _ in range(3)]
         return {"servers": self.envs.servers, "sizes": [shard.size for shard in self.envs.shards],
@@ -78,9 +78,9 @@ class Learner:
         """Waits (not stepping) until shard's server has a snapshot of everything recorded so far."""
         deadline = time.monotonic() + float(timeout)
         while time.monotonic() < deadline:
-            replay = self.envs.shards[int(shard)].env.describe().replay
-            if replay["snapshot"]["age_seconds"] is not None and replay["snapshot"]["pending_frames"] == 0:
-                return {"size": replay["size"], "disk_bytes": replay["snapshot"]["disk_bytes"]}
+            replay = self.envs.shards[int(shard)].env.describe()[0].replay
+            if replay.snapshot.age_seconds is not None and replay.snapshot.pending_frames == 0:
+                return {"size": replay.size, "disk_bytes": replay.snapshot.disk_bytes}
             time.sleep(0.2)
         raise TimeoutError(f"no snapshot of shard {shard} within {timeout} s")
 
@@ -91,7 +91,7 @@ class Learner:
             self._step()
             steps += 1
             time.sleep(0.05)
-        restored = [info.replay["snapshot"]["restored_transitions"] for info in self.envs.describe()]
+        restored = [info.replay.snapshot.restored_transitions for info in self.envs.describe()]
         # The returned server's replay is restored: it takes its share again without refilling.
         seen: "set[int]" = set()
         while seen != {0, 1, 2} and time.monotonic() < deadline:
@@ -175,7 +175,7 @@ class Learner:
         envs.reset(seed=0)
         for _ in range(20):
             envs.step(envs.action_space.sample())
-        with client.sample_batches(envs.session_id, 16, augment="crop(56)", delivery="shared_memory") as stream:
+        with envs.sample_batches(16, augment="crop(56)", delivery="shared_memory") as stream:
             batch = next(stream)
             kind = type(stream).__name__
         envs.close()

@@ -174,7 +174,8 @@ class RadServeServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Reset(self, request, context):
-        """Vectorized acting, one request per call.
+        """Stepping (the client steps the session's envs; "acting" is the server-side actor's, below):
+        vectorized, one request per call.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -187,7 +188,7 @@ class RadServeServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Act(self, request_iterator, context):
-        """Vectorized acting over one bidirectional stream: each request gets exactly one response, in order.
+        """Stepping over one bidirectional stream: each request gets exactly one response, in order.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -219,9 +220,10 @@ class RadServeServicer:
         raise NotImplementedError('Method not implemented!')
 
     def ShareActing(self, request, context):
-        """Same-host acting through shared memory: the reply names a memory region (actions in, step results
-        out) and a Unix socket that carries only a small doorbell message per reset or step, so no
-        observation and no protobuf travels per step. Protocol in SharedActingChannel. The channel lives
+        """Shared stepping (the RPC keeps its v1 name): a session reset and stepped by a client on the same
+        host through shared memory. The reply names a memory region (actions in, step results out) and
+        a Unix socket that carries only a small doorbell message per reset or step, so no observation
+        and no protobuf travels per step. Protocol in SharedActingChannel. The channel lives
         as long as the socket connection and its session (closing the session closes the connection);
         one per session at a time.
         """
@@ -252,7 +254,7 @@ class RadServeServicer:
         raise NotImplementedError('Method not implemented!')
 
     def SetPolicy(self, request, context):
-        """Server-side actors: the learner sends its policy and the server steps the session's envs with
+        """The server-side actor ("acting" means only this): the learner sends its policy and the server steps the session's envs with
         it, recording into the session's buffer, so the learner only streams batches.
         SetPolicy loads an ONNX model (torch.onnx.export of the actor) for the session and checks it
         at once: a model with an operator outside the supported list, external data, an input that does
@@ -266,8 +268,8 @@ class RadServeServicer:
 
     def StartActing(self, request, context):
         """Starts the session's actor with its newest policy: it resets the envs if they need it, then
-        steps every env continuously. While it acts, Reset, Step and the other acting calls on the
-        session are refused with FAILED_PRECONDITION.
+        steps every env continuously. While it acts, Reset, Step and the other stepping calls on the
+        session (Act, the asynchronous calls, shared stepping) are refused with FAILED_PRECONDITION.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
