@@ -40,12 +40,10 @@ import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import record  # noqa: E402  (bench/record.py: the results file)
 import vs_envpool  # noqa: E402  (the same workloads, EnvPool virtualenv and timing)
 

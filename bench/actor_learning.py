@@ -29,11 +29,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "client-py" / "examples"))
-from runs import read_metrics  # noqa: E402  (the examples' bookkeeping)
 
-sys.path.insert(0, str(ROOT / "bench"))
-import record  # noqa: E402
+import record
+
+read_metrics = record.example("runs").read_metrics  # the examples' run bookkeeping
 
 EXAMPLE = ROOT / "client-py" / "examples" / "sac_pixels.py"
 FIGURE = ROOT / "docs" / "learning" / "actors.png"

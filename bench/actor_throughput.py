@@ -13,19 +13,17 @@ bench/results/actor_throughput.json.
 """
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "bench"))
-import policies  # noqa: E402
-import record  # noqa: E402
+import record
 
-import radserve  # noqa: E402
+policies = record.tests_helper("policies")
+
+import radserve
 
 # (env id, make_vec options, the model for the env's spaces, head): a pixel task whose simulator
 # dominates a step (dm_control renders each frame), and one whose simulator is cheap (ProcGen), where
@@ -99,12 +97,12 @@ def server_side(client, config: str, num_envs: int, seconds: float, seed: int) -
         envs.set_policy(model_for(envs, CONFIGS[config][2]), head=CONFIGS[config][2])
         envs.start_acting(seed=seed)
         # The first steps include the reset and ONNX Runtime's first runs: measure after them.
-        while envs.acting().env_steps < 2 * num_envs:
+        while envs.acting()[0].env_steps < 2 * num_envs:
             time.sleep(0.05)
-        first = envs.acting()
+        first = envs.acting()[0]
         begin, cpu = time.perf_counter(), time.process_time()
         time.sleep(seconds)
-        last = envs.acting()
+        last = envs.acting()[0]
         elapsed, cpu = time.perf_counter() - begin, time.process_time() - cpu
         envs.stop_acting()
         steps = last.env_steps - first.env_steps

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import record  # noqa: E402  (bench/record.py: the results file)
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -131,7 +131,6 @@ def main() -> None:
         print(json.dumps(measure(*args.measure, seconds=args.seconds)))
         return
 
-    sys.path.insert(0, str(ROOT / "bench"))
     import record
     from cluster import in_learner_container, server_containers
 

@@ -10,7 +10,6 @@ with 2 threads, as it does in a 2-worker server.
 """
 
 import argparse
-import importlib
 import statistics
 import sys
 import time
@@ -33,10 +32,9 @@ WORKLOADS = [
 
 def worker_module():
     """The worker's entry points, from the package the worker embeds."""
-    package_dir = str(ROOT / "server" / "sim" / "python")
-    if package_dir not in sys.path:
-        sys.path.insert(0, package_dir)
-    return importlib.import_module("radserve_worker.adapters")
+    import record
+
+    return record.worker_module("adapters")
 
 
 def group(worker, family, name, options, n, raw):

@@ -15,13 +15,11 @@ import statistics
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
 import radserve
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import record  # noqa: E402  (bench/record.py: the results file)
 
 ATTACK = "|".join(["color_jitter"] * 8)  # eight stages: the most a pipeline may have
@@ -82,7 +80,7 @@ def measure(binary, seconds):
         # The attacker: 512 samples of eight colour-jitter stages per batch, read as fast as it comes.
         attack_counts = {"attack": 0}
         attack_stop = threading.Event()
-        attack = client.sample_batches(other.session_id, batch_size=512, augment=ATTACK, delivery="auto")
+        attack = other.sample_batches(batch_size=512, augment=ATTACK, delivery="auto")
         attacker = threading.Thread(target=drain, args=(attack, attack_stop, attack_counts, "attack"))
         attacker.start()
         time.sleep(1.0)

@@ -24,7 +24,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import record  # noqa: E402  (bench/record.py: the results file)
 
 # label, env id, envs, options
@@ -39,12 +38,11 @@ def serve_measurements(client_dir: str, binary: str) -> None:
     """A variant's process: one server; then per line of stdin (JSON) either ["open", env_id,
     num_envs, options, delivery] (a session, reset and warmed up; the previous one closed) or
     ["run", steps] (answered with the seconds and CPU seconds they took)."""
-    sys.path.insert(0, client_dir)
+    # The variant's client: its package loaded from its directory, not the installed one.
     import numpy as np
+    import record
 
-    import radserve
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    radserve = record.load(Path(client_dir) / "radserve", "radserve", package=True)
     from vs_envpool import cpu_seconds, descendants
 
     with radserve.LocalServer(workers=2, binary=binary, env={"RADSERVE__SIM__VENV": sys.prefix}) as server:

@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "client-py" / "examples"))
-from runs import plot_curves, read_metrics  # noqa: E402  (the examples' bookkeeping)
 
-sys.path.insert(0, str(ROOT / "bench"))
-import record  # noqa: E402  (bench/record.py: the results file)
+import record  # bench/record.py: the results file
+
+runs = record.example("runs")  # the examples' run bookkeeping
+plot_curves, read_metrics = runs.plot_curves, runs.read_metrics
 
 EXAMPLES = ROOT / "client-py" / "examples"
 FIGURES = ROOT / "docs" / "learning"

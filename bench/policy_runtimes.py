@@ -16,10 +16,9 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "bench"))
-import policies  # noqa: E402
-import record  # noqa: E402
+import record
+
+policies = record.tests_helper("policies")
 
 CRATE = ROOT / "bench" / "policy_runtimes"
 

@@ -11,7 +11,6 @@ StatefulSet's probes had (1 s) and have (3 s).
 
 import argparse
 import statistics
-import sys
 import tempfile
 import threading
 import time
@@ -21,10 +20,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "bench"))
-import k8s_harness as harness  # noqa: E402
-import record  # noqa: E402
+import record
+
+harness = record.tests_helper("k8s_harness")
 
 PERIOD_S = 0.5
 ENV, NUM_ENVS, BATCH = "dmc/cartpole-swingup", 8, 128
@@ -50,7 +48,7 @@ def load(address: str, stop: threading.Event, counts: dict) -> None:
         envs.reset(seed=0)
         for _ in range(40):
             envs.step(envs.action_space.sample())
-        stream = client.sample_batches(envs.session_id, BATCH, augment="crop(84)", min_size=BATCH, prefetch=2)
+        stream = envs.sample_batches(BATCH, augment="crop(84)", min_size=BATCH, prefetch=2)
         batches = iter(stream)
         counts["ready"].set()
         while not stop.is_set():

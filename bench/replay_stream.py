@@ -23,13 +23,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import radserve  # noqa: E402
 import record  # noqa: E402  (bench/record.py: the results file)
 from radserve.proto import radserve_pb2 as pb  # noqa: E402
@@ -95,7 +92,7 @@ def main() -> None:
         for _ in range(args.steps):
             envs.step(envs.action_space.sample())
         replay = client.describe_session(envs.session_id).replay
-        stored = replay["size"]
+        stored = replay.size
         print(f"replay: {stored} transitions from {args.steps} steps of {args.envs} envs; "
               f"{replay['memory_bytes'] / replay['capacity']:.0f} bytes per transition of capacity "
               f"({replay['frames_per_transition']:.4f} frames per transition)")
@@ -108,10 +105,10 @@ def main() -> None:
                 served, ceiling, shared = [], [], []
                 with RecordedServer(recorded) as stand_in:
                     for _ in range(args.rounds):
-                        rate_, size = rate(client.sample_batches(envs.session_id, args.batch, **common), args.batches)
+                        rate_, size = rate(envs.sample_batches(args.batch, **common), args.batches)
                         served.append(rate_)
                         ceiling.append(rate(stand_in.stream(), args.batches)[0])
-                        shared.append(rate(client.sample_batches(envs.session_id, args.batch, delivery="shared_memory",
+                        shared.append(rate(envs.sample_batches(args.batch, delivery="shared_memory",
                                                                  **common), args.batches)[0])
                 rows.append((name, "obs+next_obs" if next_obs else "obs only", size, served, ceiling, shared))
         envs.close()
@@ -142,8 +139,8 @@ def main() -> None:
                        f"rounds (their range); the server with 2 workers and {args.envs} envs."}
     reference_bytes = 2 * 9 * 100 * 100 + 6 * 4 + 4 + 1
     memory = {"id": "replay_memory", "columns": ["buffer", "bytes per transition", "frames per transition"],
-              "rows": [["radserve (frames stored once)", record.cell(replay["memory_bytes"] / replay["capacity"]),
-                        record.cell(replay["frames_per_transition"], digits=4)],
+              "rows": [["radserve (frames stored once)", record.cell(replay.memory_bytes / replay.capacity),
+                        record.cell(replay.frames_per_transition, digits=4)],
                        ["reference (obs and next_obs stacks stored)", record.cell(reference_bytes), record.cell(6)]],
               "note": "cheetah-run frames of 3x100x100, stacks of 3."}
     for row in table_rows:

@@ -15,17 +15,15 @@ from __future__ import annotations
 
 import argparse
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "client-py"))
-import radserve  # noqa: E402
-from radserve.server import find_binary  # noqa: E402
-import record  # noqa: E402  (bench/record.py: the results file)
+import radserve
+import record  # bench/record.py: the results file
+from radserve.server import find_binary
 
 
 def secured_server(folder: Path) -> "tuple[radserve.LocalServer, dict]":

@@ -23,11 +23,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import radserve  # noqa: E402
-import record  # noqa: E402  (bench/record.py: the results file)
-from _procs import worker_pids  # noqa: E402
+import radserve
+import record  # bench/record.py: the results file
+
+worker_pids = record.tests_helper("_procs").worker_pids
 
 KINDS = ["grpc-acting", "shm-acting", "procgen-replay", "state-replay", "rollout"]
 # Counters per client slot: env steps, batches, errors, refusals (RESOURCE_EXHAUSTED while the
@@ -71,11 +70,11 @@ def client_main(address, slot, sessions, counters, seed):
 
     def sample(kind, envs):
         if kind == "procgen-replay":
-            stream = client.sample_batches(envs.session_id, batch_size=32, augment="crop(56)", max_batches=8)
+            stream = envs.sample_batches(batch_size=32, augment="crop(56)", max_batches=8)
         elif kind == "state-replay":
-            stream = client.sample_batches(envs.session_id, batch_size=64, augment="ras_m", max_batches=8)
+            stream = envs.sample_batches(batch_size=64, augment="ras_m", max_batches=8)
         else:
-            stream = client.sample_batches(envs.session_id, batch_size=32, source="rollout", epochs=1)
+            stream = envs.sample_batches(batch_size=32, source="rollout", epochs=1)
         count(BATCHES, sum(1 for _ in stream))
 
     kinds = [KINDS[(slot + i) % len(KINDS)] for i in range(sessions)]

@@ -42,7 +42,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 import record  # noqa: E402  (bench/record.py: the results file)
 
 ROOT = Path(__file__).resolve().parents[1]

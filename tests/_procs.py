@@ -48,3 +48,44 @@ def wait_serving(channel, service: str = "", timeout: float = 300) -> None:
             != health_pb2.HealthCheckResponse.SERVING:
         assert time.monotonic() < deadline, f"{service or 'the server'} not SERVING within {timeout} s"
         time.sleep(0.2)
+
+
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def load(path: Path, name: str, package: bool = False):
+    """The module (or, `package`, the package) at `path`, loaded from its file under `name`, once:
+    what is neither installed nor beside the tests (the examples, scripts/, the worker's package)
+    is reached this way, and nothing here edits sys.path."""
+    import importlib.util
+    import sys
+
+    if name in sys.modules:
+        return sys.modules[name]
+    if package:
+        spec = importlib.util.spec_from_file_location(name, path / "__init__.py", submodule_search_locations=[str(path)])
+    else:
+        spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # the examples import `runs` by name: it must be this module
+    spec.loader.exec_module(module)
+    return module
+
+
+def worker_module(name: str):
+    """A module of the worker's package (server/sim/python/radserve_worker), the one the worker embeds."""
+    import importlib
+
+    load(_ROOT / "server" / "sim" / "python" / "radserve_worker", "radserve_worker", package=True)
+    return importlib.import_module(f"radserve_worker.{name}")
+
+
+def script(name: str):
+    """scripts/<name>.py (docs_tables)."""
+    return load(_ROOT / "scripts" / f"{name}.py", name)
+
+
+def example(name: str):
+    """An example program's module (client-py/examples/<name>.py), loaded from its file: the
+    examples are files a learner copies, not a package."""
+    return load(_ROOT / "client-py" / "examples" / f"{name}.py", name)

@@ -5,26 +5,21 @@ values); a client's step is refused while the server acts; bad models are refuse
 Models are built with onnx.helper (tests/policies.py), so no torch is needed here. Over gRPC on the
 fake simulators: server/radserve/tests/actors.rs; the actor's loop alone: core/src/actor/tests.rs."""
 
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-import radserve
 from radserve import FailedPreconditionError, InvalidArgumentError
+from radserve.training import evaluate, evaluate_on_servers
 
 import policies
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "client-py" / "examples"))
-from runs import evaluate, evaluate_on_servers  # noqa: E402  (the examples' evaluation, learner- and server-side)
 
 
 def wait_for(envs, done, timeout=120.0):
     deadline = time.monotonic() + timeout
     while True:
-        info = envs.acting()
+        info = envs.acting()[0]
         if done(info):
             return info
         assert time.monotonic() < deadline, f"the actor never got there: {info}"
@@ -38,9 +33,9 @@ def test_rad_actor_acts_on_dm_control_pixels_and_batches_carry_its_version(clien
         channels, size, _ = envs.single_observation_space.shape
         action_dim = envs.single_action_space.shape[0]
         model = policies.rad_actor(frames=channels, size=size, action_dim=action_dim)
-        loaded = envs.set_policy(model, head="gaussian_tanh")
+        (loaded,) = envs.set_policy(model, head="gaussian_tanh")
         assert loaded.version == 1 and "Conv" in loaded.ops and "LayerNormalization" in loaded.ops
-        started = envs.start_acting(random_steps=8)
+        (started,) = envs.start_acting(random_steps=8)
         assert started.state == "acting"
         with pytest.raises(FailedPreconditionError, match="StopActing"):
             envs.step(np.zeros((4, action_dim), dtype=np.float32))
@@ -48,7 +43,7 @@ def test_rad_actor_acts_on_dm_control_pixels_and_batches_carry_its_version(clien
         assert info.acting_version == 1 and info.head == "gaussian_tanh" and info.inference_seconds > 0
         low, high = envs.single_action_space.low, envs.single_action_space.high
         versions = set()
-        with client.sample_batches(envs.session_id, batch_size=32, augment="crop(84)", max_batches=3) as stream:
+        with envs.sample_batches(batch_size=32, augment="crop(84)", max_batches=3) as stream:
             for batch in stream:
                 assert batch.obs.shape == (32, channels, 84, 84)
                 assert batch.policy_version.dtype == np.int32
@@ -57,9 +52,9 @@ def test_rad_actor_acts_on_dm_control_pixels_and_batches_carry_its_version(clien
                 # The two random steps (8 env steps over 4 envs) carry no version.
                 assert np.all((batch.policy_version == -1) == (batch.step_index < 2))
         assert 1 in versions
-        stopped = envs.stop_acting()
+        (stopped,) = envs.stop_acting()
         assert stopped.state == "stopped" and stopped.env_steps >= 64
-        assert envs.describe().total_env_steps == stopped.env_steps
+        assert envs.describe()[0].total_env_steps == stopped.env_steps
         obs, *_ = envs.step(np.zeros((4, action_dim), dtype=np.float32))
         assert obs.shape == (4, channels, size, size)
     finally:
@@ -74,7 +69,7 @@ def test_a_state_policy_acts_on_gymnasium_mujoco(client):
         envs.start_acting(max_env_steps=200)
         info = wait_for(envs, lambda info: info.state != "acting")
         assert (info.state, info.env_steps, info.acting_version) == ("stopped", 200, 7)
-        assert envs.describe().replay["size"] == 200
+        assert envs.describe()[0].replay.size == 200
     finally:
         envs.close()
 
@@ -87,7 +82,7 @@ def test_a_categorical_policy_fills_a_procgen_rollout_with_log_probs_and_values(
         envs.set_policy(model, head="categorical")
         envs.start_acting(max_env_steps=64, seed=9)
         wait_for(envs, lambda info: info.state != "acting")
-        batches = list(client.sample_batches(envs.session_id, batch_size=64, source="rollout"))
+        batches = list(envs.sample_batches(batch_size=64, source="rollout"))
         assert len(batches) == 1
         batch = batches[0]
         assert np.all(batch.policy_version == 1)
@@ -121,7 +116,7 @@ def test_bad_models_are_refused_with_the_reason_and_change_nothing(client):
             envs.set_policy(policies.conv_categorical(shape, n), head="gaussian_tanh")
         with pytest.raises(FailedPreconditionError, match="SetPolicy before StartActing"):
             envs.start_acting()
-        assert envs.acting() is None
+        assert envs.acting()[0] is None
         obs, _ = envs.reset(seed=0)
         assert obs.shape == (2, *shape)
     finally:
@@ -137,7 +132,7 @@ def test_a_nan_policy_stops_its_actor_with_the_error_in_describe(client):
         envs.start_acting()
         info = wait_for(envs, lambda info: info.state != "acting")
         assert info.state == "failed" and "not finite" in info.error
-        assert envs.describe().acting.state == "failed"
+        assert envs.describe()[0].acting.state == "failed"
         envs.reset(seed=0)
     finally:
         envs.close()
@@ -153,17 +148,17 @@ def test_steps_per_env_acts_one_rollout_and_returns_name_their_env(client):
                 envs.start_acting(steps_per_env=bad)
         with pytest.raises(InvalidArgumentError, match="not both"):
             envs.start_acting(steps_per_env=8, max_env_steps=24)
-        assert envs.acting().state == "idle"
+        assert envs.acting()[0].state == "idle"
         for rollout in range(2):
             envs.start_acting(steps_per_env=8, seed=rollout)
             info = wait_for(envs, lambda info: info.state != "acting")
             assert (info.state, info.env_steps) == ("stopped", 24)
             assert len(info.recent_envs) == len(info.recent_returns) and set(info.recent_envs) <= {0, 1, 2}
-            (batch,) = client.sample_batches(envs.session_id, batch_size=24, source="rollout")
+            (batch,) = envs.sample_batches(batch_size=24, source="rollout")
             # One whole rollout, every (t, env) once, all acted by the policy.
             assert sorted(zip(batch.t.tolist(), batch.env_index.tolist())) == [(t, e) for t in range(8) for e in range(3)]
             assert np.all(batch.policy_version == 1)
-        assert envs.describe().total_env_steps == 48
+        assert envs.describe()[0].total_env_steps == 48
     finally:
         envs.close()
 
@@ -185,7 +180,7 @@ def test_evaluating_on_the_servers_gives_the_learner_side_evaluation(client):
         returns = evaluate_on_servers(there, model, "categorical", 7, seed=21)
         assert len(returns) == 7 and len(set(returns)) > 1, returns
         assert returns == expected
-        assert there.acting().state == "stopped"
+        assert there.acting()[0].state == "stopped"
     finally:
         here.close()
         there.close()

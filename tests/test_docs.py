@@ -19,8 +19,9 @@ def test_tables_and_the_configuration_reference_are_rendered_from_their_sources(
 
 def test_a_stale_table_is_found(tmp_path):
     """The check itself fails on a page whose table differs from its results file."""
-    sys.path.insert(0, str(ROOT / "scripts"))
-    import docs_tables
+    from _procs import script
+
+    docs_tables = script("docs_tables")
 
     rendered = docs_tables.tables()
     assert rendered, "bench/results/ holds no table"

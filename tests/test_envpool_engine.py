@@ -34,7 +34,7 @@ def test_spaces_match_the_native_engine(client):
         try:
             assert envpool.single_observation_space == native.single_observation_space, env_id
             assert envpool.single_action_space == native.single_action_space, env_id
-            assert envpool.describe().options["engine"] == "envpool"
+            assert envpool.describe()[0].options["engine"] == "envpool"
         finally:
             native.close()
             envpool.close()
@@ -221,14 +221,9 @@ def test_what_envpool_cannot_host_is_refused_with_the_reason(client):
 def _worker_module():
     """The worker's entry points (server/sim/python/radserve_worker/adapters.py), from the package the
     worker embeds."""
-    import importlib
-    import sys
-    from pathlib import Path
+    from _procs import worker_module
 
-    package_dir = str(Path(__file__).resolve().parents[1] / "server" / "sim" / "python")
-    if package_dir not in sys.path:
-        sys.path.insert(0, package_dir)
-    return importlib.import_module("radserve_worker.adapters")
+    return worker_module("adapters")
 
 
 PROCGEN_DEFAULTS = {"num_levels": 0, "start_level": 0, "distribution_mode": "easy", "restrict_themes": False,
@@ -453,7 +448,7 @@ def test_async_sessions_give_each_env_the_trajectory_a_synchronous_session_gives
                     np.testing.assert_array_equal(final, want[4], err_msg=where)
                     ended += 1
         assert ended >= num_envs, "CartPole's episodes end within 40 steps of these actions"
-        assert envs.describe().total_env_steps > 0
+        assert envs.describe()[0].total_env_steps > 0
     finally:
         envs.close()
 

@@ -19,8 +19,9 @@ import pytest
 if os.environ.get("RADSERVE_REQUIRE_TORCH") != "1":
     pytest.importorskip("torch", reason="the learners need the torch extra (make torch)")
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "client-py" / "examples"))
-from runs import read_metrics  # noqa: E402
+from _procs import example
+
+read_metrics = example("runs").read_metrics
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "client-py" / "examples"
 

@@ -7,12 +7,12 @@ takes a gradient step on each batch where this one only checks and counts it.
     python client-py/examples/augmented_batches.py --env dmc/cheetah-run --batches 300
 """
 
-import argparse
 import threading
 import time
 from dataclasses import dataclass
 
 import numpy as np
+import tyro
 from tqdm import tqdm
 
 import radserve
@@ -46,13 +46,6 @@ class Args:
     """worker processes of the started server (0: one per core)"""
 
 
-def parse_args() -> Args:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    for name, default in vars(Args()).items():
-        parser.add_argument(f"--{name.replace('_', '-')}", type=type(default), default=default)
-    return Args(**vars(parser.parse_args()))
-
-
 def act(envs, stop: threading.Event, counters: dict, seed: int) -> None:
     """Random actions until told to stop; the server records every transition."""
     rng = np.random.default_rng(seed)
@@ -76,7 +69,7 @@ def run(args: Args, address: str) -> None:
     actor = threading.Thread(target=act, args=(envs, stop, counters, args.seed), daemon=True)
     actor.start()
     start = time.perf_counter()
-    stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.augment,
+    stream = envs.sample_batches(args.batch_size, augment=args.augment,
                                    min_size=args.initial_steps, max_batches=args.batches, seed=args.seed,
                                    delivery=args.delivery)
     try:
@@ -101,7 +94,7 @@ def run(args: Args, address: str) -> None:
 
 
 def main() -> None:
-    args = parse_args()
+    args = tyro.cli(Args, description=__doc__)
     if args.address:
         run(args, args.address)
         return

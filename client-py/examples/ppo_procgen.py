@@ -34,12 +34,13 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+import tyro
 from tqdm import tqdm
 
 import radserve
 from radserve.torch import to_tensors
-from runs import (ActedProgress, RunLog, episode_stats, evaluate, evaluate_on_servers, evaluation_view, parse_args, plot_curves,
-                  run_name, select_device)
+from radserve.training import ActorProgress, episode_stats, evaluate, evaluate_on_servers, evaluation_view
+from runs import RunLog, plot_curves, run_name, select_device
 
 
 @dataclass
@@ -248,12 +249,18 @@ def train(args: Args, address: str) -> RunLog:
         logits, _ = agent(torch.as_tensor(np.array(obs), device=device))
         return torch.distributions.Categorical(logits=logits).sample().cpu().numpy()
 
+    def returns_here() -> "list[float]":
+        return evaluate(eval_envs, policy, args.eval_episodes)
+
+    def returns_on_servers() -> "list[float]":
+        return evaluate_on_servers(eval_envs, policy_model(agent, obs_shape), "categorical", args.eval_episodes,
+                                   seed=args.seed + 10_000, deterministic=False)
+
+    # Where evaluation episodes are acted: chosen once, as the rollouts' actor below.
+    evaluation_returns = returns_here if args.actor == "learner" else returns_on_servers
+
     def run_evaluation(steps: int) -> float:
-        if args.actor == "server":
-            returns = evaluate_on_servers(eval_envs, policy_model(agent, obs_shape), "categorical", args.eval_episodes,
-                                          seed=args.seed + 10_000, deterministic=False)
-        else:
-            returns = evaluate(eval_envs, policy, args.eval_episodes)
+        returns = evaluation_returns()
         log.scalars(steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
         log.flush()
         if args.checkpoint:
@@ -266,10 +273,10 @@ def train(args: Args, address: str) -> RunLog:
     values = torch.zeros((args.num_steps, args.num_envs), device=device)
     rewards = torch.zeros((args.num_steps, args.num_envs), device=device)
     dones = torch.zeros((args.num_steps, args.num_envs), device=device)
-    progress = ActedProgress(envs)
+    progress = ActorProgress(envs)
     last_return, steps = float("nan"), 0
 
-    def act_here(obs: np.ndarray) -> "tuple[np.ndarray, list[tuple[int, dict]]]":
+    def act_here(obs: np.ndarray, update: int) -> "tuple[np.ndarray, list[tuple[int, dict]]]":
         """A rollout acted here: the server records every env's observations as the rollout, we
         keep the rest. Returns the observations after it and the episodes that ended (env steps, scalars)."""
         ended = []
@@ -288,7 +295,7 @@ def train(args: Args, address: str) -> RunLog:
                       for r, length in episode_stats(infos)]
         return obs, ended
 
-    def act_on_servers(update: int) -> "tuple[np.ndarray, list[tuple[int, dict]]]":
+    def act_on_servers(_obs: None, update: int) -> "tuple[np.ndarray, list[tuple[int, dict]]]":
         """A rollout acted by the servers: the current policy is sent, each env acts num_steps steps
         with it (the servers record the rollout with each action's log-probability and value), then one
         pass over the rollout, in the acting view, gives what act_here keeps (rewards normalized in
@@ -296,17 +303,11 @@ def train(args: Args, address: str) -> RunLog:
         envs.set_policy(policy_model(agent, obs_shape), head="categorical")
         envs.start_acting(steps_per_env=args.num_steps, seed=args.seed * 1_000_003 + update)
         progress.restarted()
-        ended = []
-        while True:
-            time.sleep(0.02)
-            acted, new = progress.poll()
-            ended += [(steps + acted, {"charts/episodic_return": r}) for _, r in new]
-            if not progress.acting:  # that answer already held the last episodes
-                break
+        ended = [(steps + acted, {"charts/episodic_return": r}) for acted, _, r in progress.until_stopped()]
         raw_rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
         raw_dones = np.zeros((args.num_steps, args.num_envs), dtype=bool)
         last_obs = np.zeros((args.num_envs, *obs_shape), dtype=np.uint8)
-        with client.sample_batches(envs.session_id, minibatch_size, source="rollout", augment=view or "none",
+        with envs.sample_batches(minibatch_size, source="rollout", augment=view or "none",
                                    include_next_obs=True, seed=update, delivery=args.delivery) as stream:
             for batch in stream:
                 t, env = batch.t.astype(np.int64), batch.env_index.astype(np.int64)
@@ -322,6 +323,8 @@ def train(args: Args, address: str) -> RunLog:
             dones[t] = torch.as_tensor(raw_dones[t], dtype=torch.float32, device=device)
         return last_obs, ended
 
+    # Who acts the rollouts: chosen once; the loop below reads the same either way.
+    act = act_here if args.actor == "learner" else act_on_servers
     obs = envs.reset()[0] if args.actor == "learner" else None
     last_eval = run_evaluation(0)
     next_eval = args.eval_every
@@ -331,7 +334,7 @@ def train(args: Args, address: str) -> RunLog:
         for update in range(num_updates):
             if args.anneal_lr:
                 optimizer.param_groups[0]["lr"] = args.learning_rate * (1.0 - update / num_updates)
-            obs, ended = act_here(obs) if args.actor == "learner" else act_on_servers(update)
+            obs, ended = act(obs, update)
             for at, episode in ended:
                 last_return = episode["charts/episodic_return"]
                 log.scalars(at, **episode)
@@ -352,7 +355,7 @@ def train(args: Args, address: str) -> RunLog:
                 returns = advantages + values
 
             # Learn: the server shuffles the rollout into minibatches and augments their observations.
-            stream = client.sample_batches(envs.session_id, minibatch_size, source="rollout", epochs=args.update_epochs,
+            stream = envs.sample_batches(minibatch_size, source="rollout", epochs=args.update_epochs,
                                            augment=args.aug, per_env_augmentation=args.per_env_augmentation,
                                            seed=args.seed * 1_000_003 + update, delivery=args.delivery)
             clip_fractions, approx_kls = [], []
@@ -413,7 +416,7 @@ def train(args: Args, address: str) -> RunLog:
 
 
 def main() -> None:
-    args = parse_args(Args, __doc__)
+    args = tyro.cli(Args, description=__doc__)
     if args.address:
         train(args, args.address)
         return

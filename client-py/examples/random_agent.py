@@ -4,11 +4,11 @@ vectorized dm_control pixel environment through it with random actions.
     python client-py/examples/random_agent.py --env dmc/cheetah-run --num-envs 4 --steps 2000
 """
 
-import argparse
 import time
 from dataclasses import dataclass
 
 import numpy as np
+import tyro
 from tqdm import tqdm
 
 import radserve
@@ -32,13 +32,6 @@ class Args:
     """seconds to wait for every server to answer SERVING before starting (a learner started beside its servers, as a Kubernetes Job is); 0: only the connection is waited for, 10 s"""
     workers: int = 0
     """worker processes of the started server (0: one per core)"""
-
-
-def parse_args() -> Args:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    for name, default in vars(Args()).items():
-        parser.add_argument(f"--{name.replace('_', '-')}", type=type(default), default=default)
-    return Args(**vars(parser.parse_args()))
 
 
 def run(args: Args, address: str) -> None:
@@ -70,7 +63,7 @@ def run(args: Args, address: str) -> None:
 
 
 def main() -> None:
-    args = parse_args()
+    args = tyro.cli(Args, description=__doc__)
     if args.address:
         run(args, args.address)
         return

@@ -28,12 +28,13 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+import tyro
 from tqdm import tqdm
 
 import radserve
 from radserve.torch import to_tensors
-from runs import (RunLog, episode_stats, evaluate, evaluate_on_servers, evaluation_view, learn_while_servers_act, parse_args,
-                  plot_curves, run_name, select_device)
+from radserve.training import episode_stats, evaluate, evaluate_on_servers, evaluation_view, learn_while_servers_act
+from runs import RunLog, plot_curves, run_name, select_device
 
 
 @dataclass
@@ -371,7 +372,7 @@ def train(args: Args, address: str) -> RunLog:
 
     # The server samples uniformly from its replay buffer once it holds the initial steps' transitions,
     # augments obs and next_obs, and keeps `prefetch` minibatches ready.
-    stream = client.sample_batches(envs.session_id, args.batch_size, augment=aug, seed=args.seed, prefetch=args.prefetch,
+    stream = envs.sample_batches(args.batch_size, augment=aug, seed=args.seed, prefetch=args.prefetch,
                                    min_size=min(args.init_steps * args.num_envs, args.replay_capacity),
                                    delivery=args.delivery)
     batches = iter(stream)
@@ -458,7 +459,7 @@ def train_server_side(args: Args, client, envs, eval_envs, agent: RadSac, log: R
                                       seed=args.seed + 10_000)
         return record_evaluation(args, log, agent, evaluations, env_steps, returns)
 
-    stream = client.sample_batches(envs.session_id, args.batch_size, augment=aug, seed=args.seed, prefetch=args.prefetch,
+    stream = envs.sample_batches(args.batch_size, augment=aug, seed=args.seed, prefetch=args.prefetch,
                                    min_size=min_size, samples_per_insert=ratio, error_buffer=slack, delivery=args.delivery)
     with stream:
         learn_while_servers_act(envs, stream, update=lambda batch: agent.update(to_tensors(batch, device)),
@@ -469,7 +470,7 @@ def train_server_side(args: Args, client, envs, eval_envs, agent: RadSac, log: R
 
 
 def main() -> None:
-    args = parse_args(Args, __doc__)
+    args = tyro.cli(Args, description=__doc__)
     if args.actor not in ("learner", "server"):
         raise SystemExit(f"--actor must be learner or server, got {args.actor!r}")
     if args.address:

@@ -30,12 +30,13 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from gymnasium import spaces
+import tyro
 from tqdm import tqdm
 
 import radserve
 from radserve.torch import to_tensors
-from runs import (RunLog, episode_stats, evaluate, evaluate_on_servers, learn_while_servers_act, parse_args, plot_curves,
-                  run_name, select_device)
+from radserve.training import episode_stats, evaluate, evaluate_on_servers, learn_while_servers_act
+from runs import RunLog, plot_curves, run_name, select_device
 
 
 @dataclass
@@ -317,7 +318,7 @@ def train(args: Args, address: str) -> RunLog:
             log.close()
         return finish(args, log, steps, last_eval)
 
-    stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.aug, seed=args.seed,
+    stream = envs.sample_batches(args.batch_size, augment=args.aug, seed=args.seed,
                                    prefetch=args.prefetch, min_size=args.learning_starts, delivery=args.delivery)
     batches = iter(stream)
     obs, _ = envs.reset()
@@ -385,7 +386,7 @@ def train_server_side(args: Args, client, envs, eval_envs, agent: Sac, log: RunL
         returns = evaluate_on_servers(eval_envs, policy(), head, args.eval_episodes, seed=args.seed + 10_000)
         return record_evaluation(args, log, agent, steps, returns)
 
-    stream = client.sample_batches(envs.session_id, args.batch_size, augment=args.aug, seed=args.seed,
+    stream = envs.sample_batches(args.batch_size, augment=args.aug, seed=args.seed,
                                    prefetch=args.prefetch, min_size=min_size, samples_per_insert=ratio,
                                    error_buffer=slack, delivery=args.delivery)
     with stream:
@@ -405,7 +406,7 @@ def record_evaluation(args: Args, log: RunLog, agent: Sac, steps: int, returns: 
 
 
 def main() -> None:
-    args = parse_args(Args, __doc__)
+    args = tyro.cli(Args, description=__doc__)
     if args.actor not in ("learner", "server"):
         raise SystemExit(f"--actor must be learner or server, got {args.actor!r}")
     if args.address:

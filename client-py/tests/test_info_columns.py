@@ -16,8 +16,24 @@ from radserve import _convert
 from radserve._proto import radserve_pb2 as pb
 from radserve.infos import env_infos, vector_infos
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "server" / "sim" / "python"))
-from radserve_worker.common import info_columns  # noqa: E402  (the worker's package, beside the server)
+
+
+def _worker_common():
+    """The worker's `common` module (server/sim/python/radserve_worker, the package the worker
+    embeds), loaded from its files: it is not installed, and nothing here edits sys.path."""
+    import importlib
+    import importlib.util
+
+    package = Path(__file__).resolve().parents[2] / "server" / "sim" / "python" / "radserve_worker"
+    if "radserve_worker" not in sys.modules:
+        spec = importlib.util.spec_from_file_location("radserve_worker", package / "__init__.py",
+                                                      submodule_search_locations=[str(package)])
+        sys.modules["radserve_worker"] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules["radserve_worker"])
+    return importlib.import_module("radserve_worker.common")
+
+
+info_columns = _worker_common().info_columns
 
 KINDS = {"python": pb.INFO_KIND_PYTHON, "scalar": pb.INFO_KIND_SCALAR, "array": pb.INFO_KIND_ARRAY,
          "text": pb.INFO_KIND_TEXT, "json": pb.INFO_KIND_JSON}

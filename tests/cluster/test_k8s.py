@@ -11,16 +11,13 @@ are made with the image (`docker run --rm IMAGE token`), as the runbook says.
 """
 
 import os
-import sys
 import time
 import uuid
-from pathlib import Path
 
 import kubernetes_validate
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import k8s_harness as harness  # noqa: E402
+import k8s_harness as harness  # tests/ is on sys.path: tests/cluster is a package of tests/ (pytest's rootdir)
 
 TAG = os.environ.get("RADSERVE_TAG", "dev")
 JOB_LIMIT_S = 1200
