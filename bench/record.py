@@ -23,42 +23,37 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 
 
-def load(path: Path, name: "str | None" = None, package: bool = False):
-    """The module (or, `package`, the package) at `path`, loaded from its file under `name`: a
-    benchmark's way to the tests' helpers (`tests/policies.py`, `tests/k8s_harness.py`), the
-    examples' `runs.py` and the worker's package, none of which is installed, without editing
-    sys.path."""
+def _support():
+    """tests/_procs.py, the tests' support, loaded from its file (it loads the rest the same way)."""
     import importlib.util
 
-    name = name or path.stem
-    if name in sys.modules:
-        return sys.modules[name]
-    if package:
-        spec = importlib.util.spec_from_file_location(name, path / "__init__.py", submodule_search_locations=[str(path)])
-    else:
-        spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+    if "_procs" not in sys.modules:
+        spec = importlib.util.spec_from_file_location("_procs", ROOT / "tests" / "_procs.py")
+        sys.modules["_procs"] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules["_procs"])
+    return sys.modules["_procs"]
+
+
+def load(path: Path, name: str, package: bool = False):
+    """The module (or package) at `path` under `name`: a benchmark's way to what is not installed
+    (the tests' helpers, the examples' runs.py, the worker's package, another client's checkout),
+    without editing sys.path."""
+    return _support().load(path, name, package)
 
 
 def tests_helper(name: str):
     """tests/<name>.py (policies, k8s_harness, _procs)."""
-    return load(ROOT / "tests" / f"{name}.py")
+    return load(ROOT / "tests" / f"{name}.py", name)
 
 
 def example(name: str):
     """client-py/examples/<name>.py (runs: the examples' run bookkeeping)."""
-    return load(ROOT / "client-py" / "examples" / f"{name}.py")
+    return _support().example(name)
 
 
 def worker_module(name: str = "adapters"):
     """A module of the worker's package (server/sim/python/radserve_worker), the one the worker embeds."""
-    import importlib
-
-    load(ROOT / "server" / "sim" / "python" / "radserve_worker", "radserve_worker", package=True)
-    return importlib.import_module(f"radserve_worker.{name}")
+    return _support().worker_module(name)
 
 
 def machine() -> dict:

@@ -94,8 +94,8 @@ def main() -> None:
         replay = client.describe_session(envs.session_id).replay
         stored = replay.size
         print(f"replay: {stored} transitions from {args.steps} steps of {args.envs} envs; "
-              f"{replay['memory_bytes'] / replay['capacity']:.0f} bytes per transition of capacity "
-              f"({replay['frames_per_transition']:.4f} frames per transition)")
+              f"{replay.memory_bytes / replay.capacity:.0f} bytes per transition of capacity "
+              f"({replay.frames_per_transition:.4f} frames per transition)")
         for name, augment in [("crop", "crop(84)"), ("translate", "translate(108)")]:
             for next_obs in (True, False):
                 common = dict(augment=augment, prefetch=4, include_next_obs=next_obs)

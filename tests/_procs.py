@@ -1,12 +1,12 @@
-"""Process helpers for the tests that signal a server's workers, and waiting for a server's health."""
+"""The tests' support: process helpers for the tests that signal a server's workers, waiting for a
+server's health, and loading what is neither installed nor beside the tests (the examples, scripts/,
+the worker's package) from its files. Benchmarks reach the same through bench/record.py."""
 
 import os
 import signal
 import time
 from contextlib import contextmanager
 from pathlib import Path
-
-from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 
 def _read(path: Path) -> bytes:
@@ -42,6 +42,8 @@ def stopped(pid):
 def wait_serving(channel, service: str = "", timeout: float = 300) -> None:
     """Asks grpc.health.v1 about `service` over `channel` until it answers SERVING: a server is
     NOT_SERVING until its catalog is built, tens of seconds after it starts."""
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
     stub = health_pb2_grpc.HealthStub(channel)
     deadline = time.monotonic() + timeout
     while stub.Check(health_pb2.HealthCheckRequest(service=service), timeout=10).status \

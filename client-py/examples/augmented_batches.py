@@ -88,7 +88,7 @@ def run(args: Args, address: str) -> None:
     replay = client.describe_session(envs.session_id).replay
     elapsed = time.perf_counter() - start
     print(f"{args.batches} augmented batches in {elapsed:.1f} s while acting {counters['steps']} steps; "
-          f"replay holds {replay['size']} transitions at {replay['frames_per_transition']:.3f} frames each")
+          f"replay holds {replay.size} transitions at {replay.frames_per_transition:.3f} frames each")
     envs.close()
     client.close()
 

@@ -186,7 +186,7 @@ impl TokensFile {
 pub struct AugmentConfig {
     /// Threads that sample and augment minibatches; 0 means one per core.
     pub threads: usize,
-    /// Niceness of the augmentation threads (0..=19): above 0, acting (the gRPC handlers, the simulator
+    /// Niceness of the augmentation threads (0..=19): above 0, stepping (the gRPC handlers, the simulator
     /// workers) gets the cores first when both want them, and augmentation takes what is left.
     pub nice: i32,
     /// Run the augmentation threads in Linux's SCHED_IDLE class: they get a core only when no other
