@@ -11,7 +11,7 @@ def run_example(name, *args):
     return subprocess.run([sys.executable, str(EXAMPLES / name), *args], capture_output=True, text=True, timeout=240)
 
 
-def test_the_demo_draws_augmented_batches_while_acting():
+def test_the_demo_draws_augmented_batches_while_stepping():
     result = run_example("augmented_batches.py", "--batches", "5", "--batch-size", "16", "--initial-steps", "20",
                          "--num-envs", "2", "--workers", "1")
     assert result.returncode == 0, result.stderr[-2000:]

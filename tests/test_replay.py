@@ -261,7 +261,7 @@ def test_rollout_minibatches_cover_every_step_and_env_once_per_epoch(client):
         envs.close()
 
 
-def test_acting_through_the_evaluation_view_while_replay_keeps_raw_frames(client):
+def test_stepping_through_the_evaluation_view_while_replay_keeps_raw_frames(client):
     raw = client.make_vec("dmc/walker-walk", num_envs=2, seed=8, render_profile="fast")
     viewed = client.make_vec("dmc/walker-walk", num_envs=2, seed=8, render_profile="fast",
                              observation_view="center_crop(84)", replay_capacity=100)

@@ -11,7 +11,7 @@ from ._proto import radserve_pb2 as pb
 from ._shm import receive_server_memory
 from .errors import UnavailableError, from_status
 
-_MAGIC = b"radserve-acting\0"
+_MAGIC = b"radserve-acting\0"  # the wire's magic, unchanged since v1
 _REQUEST = struct.Struct("<cBB5xQ")
 _ANSWER = struct.Struct("<II")
 # An OK answer's records: env index, kind, length of the bytes that follow: kind 0 an env's simulator
@@ -41,7 +41,7 @@ class SharedStepping:
         self._explain_loss = explain_loss
         # The same connection carries the memory's descriptor, then the doorbells.
         self._memory, self._socket = receive_server_memory(
-            channel.socket, channel.token, channel.size, _MAGIC, "acting memory", _HINT)
+            channel.socket, channel.token, channel.size, _MAGIC, "shared-stepping memory", _HINT)
         n = num_envs
         obs_dtype = np.dtype(obs_space.dtype)
 

@@ -1,4 +1,4 @@
-"""Mapping memory a radserve server shares with a client on its host (minibatches, acting).
+"""Mapping memory a radserve server shares with a client on its host (minibatches, shared stepping).
 
 The server never names the memory: the client connects to the abstract Unix socket the server
 described over gRPC, sends the 16-byte token it was given, and receives the memory's file

@@ -153,7 +153,7 @@ class Client:
         Environment i is seeded with `seed + i`. `options` override the env's defaults (see
         `list_envs()[...].default_options`), e.g. `pixels=False`, `frame_stack=3`, `num_levels=200`.
         With `stream=True`, reset and step go over one bidirectional stream instead of unary calls.
-        `delivery="shared_memory"` acts through memory shared with a server on this host (no message
+        `delivery="shared_memory"` steps through memory shared with a server on this host (no message
         per step; raises SharedMemoryError elsewhere), `"auto"` does so when it can and uses gRPC
         otherwise; the env's `delivery` attribute says which it got.
         With `replay_capacity`, the server records every transition into a replay buffer of that many

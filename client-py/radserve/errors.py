@@ -67,9 +67,9 @@ class UnimplementedError(RadServeError):
 
 
 class SharedMemoryError(RadServeError):
-    """Shared memory (minibatches or acting) cannot be used here: the server's memory could not be
-    handed over (the client is on another host, in another network namespace, or runs as a user the
-    server does not allow)."""
+    """Shared memory (minibatches or shared stepping) cannot be used here: the server's memory could
+    not be handed over (the client is on another host, in another network namespace, or runs as a
+    user the server does not allow)."""
 
 
 _BY_CODE = {

@@ -210,7 +210,7 @@ class ShardedVectorEnv(ActingMixin, SamplingMixin, VectorEnv):
         self._check_open()
         return ShardedBatchStream(self, request, delivery)
 
-    # --- acting -------------------------------------------------------------------------------
+    # --- stepping -----------------------------------------------------------------------------
 
     def reset(self, *, seed: "int | list[int | None] | None" = None, options: "dict[str, Any] | None" = None):
         """As `RemoteVectorEnv.reset`: `seed` an int (env i gets seed + i), one per env, or None;

@@ -134,9 +134,10 @@ class RemoteVectorEnv(ActingMixin, SamplingMixin, VectorEnv):
     `infos["_radserve_episode"]`), and `infos["radserve_error"][i]` the simulator's message when it
     raised or its worker died (mask `infos["_radserve_error"]`).
 
-    Delivery: "grpc" acts through unary calls (or one bidirectional stream with `stream=True`);
-    "shared_memory" acts through memory shared with a server on the same host (rpc ShareActing: the
-    actions and results never become messages, a 16-byte request per step goes over a Unix socket);
+    Delivery: "grpc" steps through unary calls (or one bidirectional stream with `stream=True`);
+    "shared_memory" steps through memory shared with a server on the same host (shared stepping,
+    rpc ShareActing: the actions and results never become messages, a 16-byte request per step goes
+    over a Unix socket);
     "auto" uses shared memory when it can be mapped and gRPC otherwise. `delivery` says which is used.
 
     Observations are this env's own writable arrays (gymnasium's `copy=True`), whichever delivery.

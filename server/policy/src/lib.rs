@@ -158,7 +158,8 @@ impl ActionSpec {
 #[derive(Clone, Debug, PartialEq)]
 pub struct PolicySpec {
     pub head: Head,
-    /// Intra-op threads of ONNX Runtime for this model (1: inference on the acting task's thread).
+    /// Intra-op threads of ONNX Runtime for this model (1: inference on the runtime process's main
+    /// thread).
     pub threads: usize,
 }
 

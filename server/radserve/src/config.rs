@@ -190,8 +190,8 @@ pub struct AugmentConfig {
     /// workers) gets the cores first when both want them, and augmentation takes what is left.
     pub nice: i32,
     /// Run the augmentation threads in Linux's SCHED_IDLE class: they get a core only when no other
-    /// thread of the host wants it, so acting (the gRPC handlers, the simulator workers) never waits
-    /// behind augmentation; augmentation gets what acting leaves. Overrides nice.
+    /// thread of the host wants it, so stepping (the gRPC handlers, the simulator workers) never waits
+    /// behind augmentation; augmentation gets what stepping leaves. Overrides nice.
     pub idle: bool,
 }
 

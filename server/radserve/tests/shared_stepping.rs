@@ -77,7 +77,7 @@ async fn a_silent_connection_does_not_hold_up_the_client() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn closing_a_session_frees_its_acting_channel() {
+async fn closing_a_session_frees_its_shared_stepping_channel() {
     let (server, simulators) = start_fake_server(Limits::default(), 1).await;
     let mut client = RadServeClient::new(connect(&server.address).await);
     let mut cycle = |client: &mut RadServeClient<Channel>| {

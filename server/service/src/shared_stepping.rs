@@ -161,8 +161,8 @@ pub async fn open(
     let memory_reservation = manager
         .reserve_memory(&caller, layout.len as u64, &format!("a shared-stepping channel of {} bytes", layout.len))?;
     let (memory, Header { token, .. }) = MemFile::create_with_header(c"radserve-acting", layout.len, SHARED_STEPPING_MAGIC)
-        .map_err(|error| radserve_core::error::resource_error("creating the acting memory", &error))?;
-    let socket = HandoffSocket::bind().map_err(|error| ServiceError::Internal(format!("binding the acting socket: {error}")))?;
+        .map_err(|error| radserve_core::error::resource_error("creating the shared-stepping memory", &error))?;
+    let socket = HandoffSocket::bind().map_err(|error| ServiceError::Internal(format!("binding the shared-stepping socket: {error}")))?;
     let description = proto::SharedActingChannel {
         size: memory.len() as u64,
         token: token.to_vec(),

@@ -32,7 +32,7 @@ pub struct ReplayConfig {
     /// the previous one (and, once the files reach twice the buffer, every transition once).
     pub snapshot_interval_s: f64,
     /// Bytes per second all snapshots together may write (0: as fast as the disk takes them), so a
-    /// snapshot does not take the disk or the memory bandwidth from acting and sampling. A session's
+    /// snapshot does not take the disk or the memory bandwidth from stepping and sampling. A session's
     /// final snapshot (at close or shutdown) is not paced.
     pub snapshot_bytes_per_second: u64,
     /// A snapshot that cannot be used (damaged, truncated, of another format version, or of a

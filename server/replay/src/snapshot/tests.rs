@@ -261,7 +261,7 @@ fn a_failed_write_keeps_the_previous_snapshot_and_retries_the_same_frames() {
 }
 
 #[test]
-fn a_writer_lapped_by_acting_skips_what_was_overwritten() {
+fn a_writer_lapped_by_stepping_skips_what_was_overwritten() {
     // Frames overwritten between the snapshot's blocks: simulated by writing a snapshot of a buffer
     // whose ring has moved on since the last one (the increment starts below what is held).
     let mut recording = Recording::new(5, 30);

@@ -187,7 +187,7 @@ impl SnapshotWriter {
                 block.clear();
                 let count = {
                     let replay = buffer.read().expect("replay lock");
-                    // Lapped by acting: what was overwritten is gone; continue from what is held.
+                    // Lapped by stepping: what was overwritten is gone; continue from what is held.
                     first = first.max(replay.held_from(env));
                     if first >= target {
                         break;
