@@ -3,7 +3,7 @@
     make bench-augment            (or: .venv/bin/python bench/augment_speed.py)
 
 Both sides get batches of 512 samples of 3 stacked RGB frames (9x100x100 for crop / translate /
-window, 9x84x84 for the rest), uniform random bytes, uint8 in and uint8 out, on the same number of
+window, 9x84x84 for the rest, DrQ's shift and intensity among them), uniform random bytes, uint8 in and uint8 out, on the same number of
 threads. PyTorch is written here from the issue's semantics (per-sample parameters, the same for
 every frame of a stack), vectorized over the batch where PyTorch allows it (advanced indexing for
 crop/translate, one grouped conv2d for random convolution); it is not RAD's reference code, which is
@@ -183,6 +183,26 @@ def color_jitter(x: torch.Tensor, spread: float = 0.4, hue: float = 0.5) -> torc
     return (img * 255).round().clamp(0, 255).to(torch.uint8).view(b, c, h, w)
 
 
+def shift(x: torch.Tensor, pad: int) -> torch.Tensor:
+    """DrQ-v2's `RandomShiftsAug` (facebookresearch/drqv2 `drqv2.py`): replicate padding, then
+    `grid_sample` at integer shifts; uint8 in and out like the other cases."""
+    b, c, h, w = x.shape
+    padded = torch.nn.functional.pad(x.float(), (pad, pad, pad, pad), mode="replicate")
+    eps = 1.0 / (h + 2 * pad)
+    arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad)[:h]
+    arange = arange.unsqueeze(0).repeat(h, 1).unsqueeze(2)
+    base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0).repeat(b, 1, 1, 1)
+    shifts = torch.randint(0, 2 * pad + 1, size=(b, 1, 1, 2)).float() * 2.0 / (h + 2 * pad)
+    out = torch.nn.functional.grid_sample(padded, base_grid + shifts, padding_mode="zeros", align_corners=False)
+    return out.round().clamp(0, 255).to(torch.uint8)
+
+
+def intensity(x: torch.Tensor, scale: float) -> torch.Tensor:
+    """DrQ's `Intensity` (denisyarats/drq on Atari, SPR): one factor per sample."""
+    factor = 1.0 + scale * torch.randn(x.shape[0]).clamp(-2.0, 2.0)
+    return (x.float() * per_sample(x, factor)).round().clamp(0, 255).to(torch.uint8)
+
+
 def crop_grayscale(x: torch.Tensor) -> torch.Tensor:
     return grayscale(crop(x, 84), 0.3)
 
@@ -200,6 +220,8 @@ TORCH = {
     "conv": random_conv,
     "color_jitter(brightness=0.4,contrast=0.4,saturation=0.4,hue=0.5)": color_jitter,
     "crop(84)|grayscale(p=0.3)": crop_grayscale,
+    "shift(4)": lambda x: shift(x, 4),
+    "intensity(scale=0.05)": lambda x: intensity(x, 0.05),
 }
 
 

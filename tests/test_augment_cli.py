@@ -58,10 +58,10 @@ def test_preview_writes_a_grid_of_every_augmentation(tmp_path):
         capture_output=True, text=True, timeout=120, check=True,
     )
     rows = [line for line in result.stdout.splitlines() if line.startswith("row")]
-    assert len(rows) == 13 and "crop(84)" in rows[1] and "color_jitter" in rows[10]
+    assert len(rows) == 15 and "crop(84)" in rows[1] and "color_jitter" in rows[10] and "shift(5)" in rows[13]
     width, height, pixels = png_rows(out)
     tile, gutter = 108, 4
-    assert (width, height) == (3 * (tile + gutter) + gutter, 13 * (tile + gutter) + gutter)
+    assert (width, height) == (3 * (tile + gutter) + gutter, 15 * (tile + gutter) + gutter)
     # The grayscale row (row 4) is gray in every tile; the original row (row 0) is not.
     def tile_pixels(row, column):
         top, left = gutter + row * (tile + gutter) + 4, gutter + column * (tile + gutter) + 4
@@ -85,7 +85,7 @@ def test_bench_reports_every_case_with_its_shapes():
         capture_output=True, text=True, timeout=120, check=True,
     )
     cases = {row["pipeline"]: row for row in map(json.loads, result.stdout.splitlines())}
-    assert len(cases) == 12
+    assert len(cases) == 14
     assert cases["crop(84)"]["input"] == [9, 100, 100] and cases["crop(84)"]["output"] == [9, 84, 84]
     assert cases["translate(108)"]["output_bytes"] == 4 * 9 * 108 * 108
     assert all(row["seconds"] > 0 and row["copy_seconds"] > 0 for row in cases.values())

@@ -100,9 +100,12 @@ pub struct JitterParams {
 /// The parameters one stage uses for one sample.
 #[derive(Clone, Debug, PartialEq)]
 pub enum StageParams {
-    /// Where the output window starts in the input (crop, window) or where the input lands in the
-    /// output canvas (translate); also the fixed offsets of the centre views.
+    /// Where the output window starts in the input (crop, window; for shift, in the padded input) or
+    /// where the input lands in the output canvas (translate); also the fixed offsets of the centre
+    /// views.
     Offset { top: usize, left: usize },
+    /// A factor every pixel is multiplied by (intensity).
+    Factor(f32),
     /// Whether a probabilistic augmentation fires (grayscale, flip).
     Apply(bool),
     /// Counter-clockwise quarter turns, 0 when rotate does not fire.
@@ -125,6 +128,14 @@ pub(crate) fn draw(augmentation: &Augmentation, input: &FrameShape, rng: &mut Ch
     match *augmentation {
         Augmentation::Crop { size } | Augmentation::Window { size } => {
             StageParams::Offset { top: rng.random_range(0..=height - size), left: rng.random_range(0..=width - size) }
+        }
+        // Offsets into the padded frame: 0 shows its top (left) `pad` rows of repeated edge.
+        Augmentation::Shift { pad } => {
+            StageParams::Offset { top: rng.random_range(0..=2 * pad), left: rng.random_range(0..=2 * pad) }
+        }
+        // DrQ's `Intensity`: `1 + scale * clamp(randn, -2, 2)`.
+        Augmentation::Intensity { scale } => {
+            StageParams::Factor(1.0 + scale * standard_normal(rng).clamp(-2.0, 2.0))
         }
         Augmentation::Translate { size } => {
             StageParams::Offset { top: rng.random_range(0..=size - height), left: rng.random_range(0..=size - width) }

@@ -25,6 +25,8 @@ fn parameters(name: &str) -> &'static [(&'static str, f64)] {
     match name {
         "crop" | "window" | "center_crop" => &[("size", 84.0)],
         "translate" | "center_translate" => &[("size", 108.0)],
+        "shift" => &[("pad", 4.0)],
+        "intensity" => &[("scale", 0.05)],
         "grayscale" => &[("p", 0.3)],
         "flip" => &[("p", 0.2)],
         "rotate" => &[("p", 0.3)],
@@ -115,6 +117,8 @@ fn parse_stage(text: &str, part: &str, offset: usize) -> Result<Augmentation> {
         "window" => Augmentation::Window { size: integer(0)? },
         "center_crop" => Augmentation::CenterCrop { size: integer(0)? },
         "center_translate" => Augmentation::CenterTranslate { size: integer(0)? },
+        "shift" => Augmentation::Shift { pad: integer(0)? },
+        "intensity" => Augmentation::Intensity { scale: real(0) },
         "grayscale" => Augmentation::Grayscale { p: real(0) },
         "flip" => Augmentation::Flip { p: real(0) },
         "rotate" => Augmentation::Rotate { p: real(0) },
@@ -233,6 +237,14 @@ mod tests {
                 Augmentation::ColorJitter { brightness: 0.4, contrast: 0.4, saturation: 0.4, hue: 0.5 },
             ]
         );
+        // DrQ's and DrQ-v2's: a 4-pixel shift, intensity 0.05 (DrQ on Atari, SPR).
+        let drq = Pipeline::parse("shift|intensity|random_shift(2)").unwrap();
+        assert_eq!(
+            drq.stages(),
+            &[Augmentation::Shift { pad: 4 }, Augmentation::Intensity { scale: 0.05 }, Augmentation::Shift { pad: 2 }]
+        );
+        assert!(Pipeline::parse("shift(0)").unwrap_err().to_string().contains("pad must be at least 1"));
+        assert!(Pipeline::parse("intensity(0.6)").unwrap_err().to_string().contains("scale must be in [0, 0.5]"));
     }
 
     #[test]
@@ -252,7 +264,7 @@ mod tests {
 
     #[test]
     fn display_round_trips() {
-        for text in ["crop(84)|grayscale(p=0.3)", "translate(108)", "cutout_color(min=3,max=9)|flip(p=0.5)", "conv", "none",
+        for text in ["crop(84)|grayscale(p=0.3)", "translate(108)", "cutout_color(min=3,max=9)|flip(p=0.5)", "conv", "none", "shift(4)|intensity(scale=0.05)",
             "color_jitter(brightness=0.2,contrast=0.3,saturation=0.4,hue=0.1)", "ras_s(alpha=0.6,beta=1.4)|noise(std=0.5)"]
         {
             let pipeline = Pipeline::parse(text).unwrap();

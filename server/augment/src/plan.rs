@@ -48,6 +48,14 @@ fn stage_output(augmentation: &Augmentation, input: &FrameShape) -> Result<Frame
             }
             Ok(input.with_size(size, size))
         }
+        Augmentation::Shift { pad } => {
+            if pad >= height || pad >= width {
+                return does_not_fit(format!(
+                    "{augmentation}: a shift of up to {pad} pixels must be less than the {height}x{width} frame's sides"
+                ));
+            }
+            Ok(*input)
+        }
         Augmentation::Rotate { .. } => {
             if height != width {
                 return does_not_fit(format!("{augmentation} needs square frames, got {height}x{width}"));
@@ -62,9 +70,11 @@ fn stage_output(augmentation: &Augmentation, input: &FrameShape) -> Result<Frame
             }
             Ok(*input)
         }
-        Augmentation::Grayscale { .. } | Augmentation::Flip { .. } | Augmentation::RandomConv | Augmentation::ColorJitter { .. } => {
-            Ok(*input)
-        }
+        Augmentation::Grayscale { .. }
+        | Augmentation::Flip { .. }
+        | Augmentation::RandomConv
+        | Augmentation::ColorJitter { .. }
+        | Augmentation::Intensity { .. } => Ok(*input),
         Augmentation::AmplitudeScale { .. } | Augmentation::GaussianNoise { .. } => unreachable!("checked above"),
     }
 }
@@ -299,6 +309,8 @@ impl StatePlan {
                     Augmentation::Crop { .. }
                     | Augmentation::Translate { .. }
                     | Augmentation::Window { .. }
+                    | Augmentation::Shift { .. }
+                    | Augmentation::Intensity { .. }
                     | Augmentation::CenterCrop { .. }
                     | Augmentation::CenterTranslate { .. }
                     | Augmentation::Grayscale { .. }

@@ -46,6 +46,15 @@ pub fn apply_stage(
             let inside = (top..top + size).contains(&y) && (left..left + size).contains(&x);
             if inside { src[at(input, plane, y, x)] } else { 0 }
         }),
+        (&Augmentation::Shift { pad }, &StageParams::Offset { top, left }) => each_pixel(&mut dst, &|plane, y, x| {
+            // The padded frame repeats its edge: a coordinate outside the frame takes the nearest one.
+            let source_y = (y + top).saturating_sub(pad).min(input.height - 1);
+            let source_x = (x + left).saturating_sub(pad).min(input.width - 1);
+            src[at(input, plane, source_y, source_x)]
+        }),
+        (Augmentation::Intensity { .. }, &StageParams::Factor(factor)) => each_pixel(&mut dst, &|plane, y, x| {
+            (f32::from(src[at(input, plane, y, x)]) * factor).clamp(0.0, 255.0).round_ties_even() as u8
+        }),
         (Augmentation::Flip { .. }, &StageParams::Apply(fires)) => each_pixel(&mut dst, &|plane, y, x| {
             src[at(input, plane, y, if fires { width - 1 - x } else { x })]
         }),

@@ -19,6 +19,13 @@ pub enum Augmentation {
     Translate { size: usize },
     /// Keep a random `size x size` window (crop-like offsets), zero the rest; shape unchanged.
     Window { size: usize },
+    /// DrQ's and DrQ-v2's random shift (Kostrikov et al. 2020; Yarats et al. 2021, `RandomShiftsAug`):
+    /// the frame padded by `pad` pixels that repeat its edge, then cropped back to its own size at
+    /// offsets uniform in `[0, 2 * pad]`; shape unchanged.
+    Shift { pad: usize },
+    /// DrQ's and SPR's intensity augmentation on Atari: every pixel multiplied by
+    /// `1 + scale * clip(N(0, 1), -2, 2)`, one draw per sample, rounded to the nearest byte.
+    Intensity { scale: f32 },
     /// The centre `size x size` window: the evaluation view matching `Crop`.
     CenterCrop { size: usize },
     /// The frame centred in a zero canvas of `size x size`: the evaluation view matching `Translate`.
@@ -58,6 +65,8 @@ pub(crate) const NAMES: &[(&str, &[&str])] = &[
     ("crop", &["random_crop"]),
     ("translate", &[]),
     ("window", &[]),
+    ("shift", &["random_shift"]),
+    ("intensity", &[]),
     ("center_crop", &[]),
     ("center_translate", &[]),
     ("grayscale", &["gray"]),
@@ -79,6 +88,8 @@ impl Augmentation {
             Self::Crop { .. } => "crop",
             Self::Translate { .. } => "translate",
             Self::Window { .. } => "window",
+            Self::Shift { .. } => "shift",
+            Self::Intensity { .. } => "intensity",
             Self::CenterCrop { .. } => "center_crop",
             Self::CenterTranslate { .. } => "center_translate",
             Self::Grayscale { .. } => "grayscale",
@@ -101,6 +112,8 @@ impl Augmentation {
             Self::Crop { .. }
             | Self::Translate { .. }
             | Self::Window { .. }
+            | Self::Shift { .. }
+            | Self::Intensity { .. }
             | Self::CenterCrop { .. }
             | Self::CenterTranslate { .. }
             | Self::Grayscale { .. }
@@ -115,7 +128,8 @@ impl Augmentation {
 
     /// Whether transitions share this augmentation's draws between obs and next_obs by default.
     /// RAD's reference code shares them for translate and the state augmentations and draws crop
-    /// (and every other image augmentation) independently for the two.
+    /// (and every other image augmentation) independently for the two; DrQ and DrQ-v2 shift obs
+    /// and next_obs independently.
     pub fn shares_draws_by_default(&self) -> bool {
         matches!(
             self,
@@ -156,6 +170,18 @@ impl Augmentation {
                     return invalid(format!("min must not exceed max, got min={min} max={max}"));
                 }
             }
+            Self::Shift { pad } => {
+                if pad == 0 {
+                    return invalid("pad must be at least 1 pixel (DrQ's is 4), got 0".into());
+                }
+            }
+            Self::Intensity { scale } => {
+                if !(0.0..=0.5).contains(&scale) {
+                    return invalid(format!(
+                        "scale must be in [0, 0.5] (factors are 1 + scale * clip(N(0, 1), -2, 2)), got {scale}"
+                    ));
+                }
+            }
             Self::RandomConv => {}
             Self::ColorJitter { brightness, contrast, saturation, hue } => {
                 for (label, value) in [("brightness", brightness), ("contrast", contrast), ("saturation", saturation)] {
@@ -191,6 +217,8 @@ impl fmt::Display for Augmentation {
         match *self {
             Self::Crop { size } | Self::Translate { size } | Self::Window { size } | Self::CenterCrop { size }
             | Self::CenterTranslate { size } => write!(f, "{name}({size})"),
+            Self::Shift { pad } => write!(f, "{name}({pad})"),
+            Self::Intensity { scale } => write!(f, "{name}(scale={scale})"),
             Self::Grayscale { p } | Self::Flip { p } | Self::Rotate { p } => write!(f, "{name}(p={p})"),
             Self::Cutout { min, max } | Self::CutoutColor { min, max } => write!(f, "{name}(min={min},max={max})"),
             Self::RandomConv => write!(f, "{name}"),

@@ -11,9 +11,9 @@ use crate::plan::ImagePlan;
 use crate::shape::FrameShape;
 use crate::spec::Pipeline;
 
-/// The paper's cases: crop/translate/window on 100x100 renders, the rest on 84x84 crops, three
-/// stacked RGB frames per sample (the criterion benches and `radserve augment-bench` time these).
-pub const PAPER_CASES: [(&str, usize); 12] = [
+/// The paper's cases: crop/translate/window on 100x100 renders, the rest on 84x84 crops, and DrQ's
+/// shift and intensity on 84x84 renders, three stacked RGB frames per sample (the criterion benches and `radserve augment-bench` time these).
+pub const PAPER_CASES: [(&str, usize); 14] = [
     ("crop(84)", 100),
     ("translate(108)", 100),
     ("window(84)", 100),
@@ -25,6 +25,8 @@ pub const PAPER_CASES: [(&str, usize); 12] = [
     ("grayscale(p=1)", 84),
     ("conv", 84),
     ("color_jitter", 84),
+    ("shift(4)", 84),
+    ("intensity", 84),
     ("crop(84)|grayscale(p=0.3)", 100),
 ];
 

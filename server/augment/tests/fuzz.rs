@@ -17,7 +17,8 @@ fn name() -> impl Strategy<Value = String> {
         4 => prop::sample::select(vec![
             "crop", "random_crop", "translate", "window", "center_crop", "center_translate", "grayscale", "gray",
             "cutout", "cutout_color", "flip", "rotate", "conv", "rand_conv", "random_conv", "color_jitter", "jitter",
-            "ras_s", "ras_m", "noise", "gaussian_noise", "Center-Crop", "CROP", "none", "no_aug",
+            "ras_s", "ras_m", "noise", "gaussian_noise", "shift", "random_shift", "intensity", "Center-Crop", "CROP",
+            "none", "no_aug",
         ])
         .prop_map(str::to_owned),
         1 => "[a-z_-]{0,12}",
@@ -42,7 +43,7 @@ fn number() -> impl Strategy<Value = String> {
 fn argument() -> impl Strategy<Value = String> {
     prop_oneof![
         3 => number(),
-        2 => (prop::sample::select(vec!["size", "p", "min", "max", "brightness", "contrast", "saturation", "hue", "alpha", "beta", "std", "x", ""]), number())
+        2 => (prop::sample::select(vec!["size", "p", "min", "max", "brightness", "contrast", "saturation", "hue", "alpha", "beta", "std", "pad", "scale", "x", ""]), number())
             .prop_map(|(key, value)| format!("{key}={value}")),
     ]
 }
@@ -66,6 +67,8 @@ fn valid_stage() -> impl Strategy<Value = String> {
         (prop::sample::select(vec!["cutout", "cutout_color"]), 0u32..20, 0u32..20)
             .prop_map(|(name, a, b)| format!("{name}({},{})", a.min(b), a.max(b))),
         Just("conv".to_owned()),
+        (1u32..40).prop_map(|pad| format!("shift({pad})")),
+        (0.0f64..=0.5).prop_map(|scale| format!("intensity({scale})")),
         (p.clone(), p.clone(), p.clone(), 0.0f64..=0.5).prop_map(|(b, c, s, h)| format!("color_jitter({b},{c},{s},{h})")),
         (prop::sample::select(vec!["ras_s", "ras_m"]), 0.0f64..2.0, 0.0f64..2.0)
             .prop_map(|(name, a, b)| format!("{name}(alpha={},beta={})", a.min(b), a.max(b))),

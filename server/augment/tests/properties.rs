@@ -52,6 +52,57 @@ fn a_crop_is_a_sub_window_at_one_offset_for_the_whole_stack() {
 }
 
 #[test]
+fn a_shift_moves_the_whole_stack_by_at_most_pad_and_repeats_the_edge() {
+    let shift = plan("shift(4)", SHAPE);
+    let input = nonzero_batch(16 * SHAPE.sample_len(), 9);
+    let output = run(&shift, &input, &Draws::new(3));
+    assert_eq!(shift.output_shape(), SHAPE);
+    let mut moves = std::collections::HashSet::new();
+    for (src, dst) in input.chunks(SHAPE.sample_len()).zip(output.chunks(SHAPE.sample_len())) {
+        // The inner 92x92 of the output is the input moved by (dy, dx) in [-4, 4]^2.
+        let found: Vec<(usize, usize)> = (0..=8)
+            .flat_map(|top| (0..=8).map(move |left| (top, left)))
+            .filter(|&(top, left)| {
+                window_of(plane(src, &SHAPE, 0), 100, top, left, 92, 92) == window_of(plane(dst, &SHAPE, 0), 100, 4, 4, 92, 92)
+            })
+            .collect();
+        assert_eq!(found.len(), 1, "the inside is the input at one offset");
+        let (top, left) = found[0];
+        for index in 0..SHAPE.planes() {
+            let (source, shifted) = (plane(src, &SHAPE, index), plane(dst, &SHAPE, index));
+            for y in 0..100 {
+                for x in 0..100 {
+                    let source_y = (y + top).clamp(4, 103) - 4;
+                    let source_x = (x + left).clamp(4, 103) - 4;
+                    assert_eq!(shifted[y * 100 + x], source[source_y * 100 + source_x], "plane {index} at ({y}, {x})");
+                }
+            }
+        }
+        moves.insert((top, left));
+    }
+    assert!(moves.len() >= 10, "moves differ across the batch: {moves:?}");
+}
+
+#[test]
+fn intensity_scales_every_pixel_of_a_sample_by_one_factor() {
+    let intensity = plan("intensity(0.5)", SHAPE);
+    let input = nonzero_batch(8 * SHAPE.sample_len(), 4);
+    let output = run(&intensity, &input, &Draws::new(8));
+    let mut factors = Vec::new();
+    for (sample, (src, dst)) in input.chunks(SHAPE.sample_len()).zip(output.chunks(SHAPE.sample_len())).enumerate() {
+        let StageParams::Factor(factor) = intensity.draw(&Draws::new(8), sample as u64)[0] else { panic!() };
+        assert!((0.0..=2.0).contains(&factor), "{factor}");
+        for (a, b) in src.iter().zip(dst) {
+            let exact = f32::from(*a) * factor;
+            assert!((f32::from(*b) - exact.min(255.0)).abs() <= 0.5, "{a} * {factor} gave {b}");
+        }
+        factors.push(factor);
+    }
+    factors.dedup();
+    assert!(factors.len() > 4, "one factor per sample, varying: {factors:?}");
+}
+
+#[test]
 fn a_translate_holds_its_input_exactly_inside_zeros() {
     let translate = plan("translate(108)", SHAPE);
     let input = nonzero_batch(8 * SHAPE.sample_len(), 2);
@@ -94,7 +145,7 @@ fn every_frame_of_a_sample_gets_the_same_parameters() {
     let frame = nonzero_batch(SHAPE.frame_len(), 7);
     let input = frame.repeat(2 * SHAPE.frames); // 2 samples of 3 frames
     for text in ["crop(84)", "translate(108)", "window(70)", "grayscale(p=0.5)", "cutout", "cutout_color", "flip(p=0.5)",
-        "rotate(p=0.7)", "conv", "color_jitter", "crop(84)|color_jitter|rotate(p=1)"]
+        "rotate(p=0.7)", "conv", "color_jitter", "crop(84)|color_jitter|rotate(p=1)", "shift(4)", "intensity"]
     {
         let augment = plan(text, SHAPE);
         let out_shape = augment.output_shape();
@@ -208,6 +259,7 @@ fn shapes_that_do_not_fit_are_refused_before_any_batch() {
     assert!(message("rotate", FrameShape::new(3, 3, 84, 100)).contains("needs square frames, got 84x100"));
     assert!(message("grayscale", FrameShape::new(3, 1, 84, 84)).contains("needs RGB frames (3 channels per frame), got 1"));
     assert!(message("cutout(10, 40)", FrameShape::new(1, 3, 32, 32)).contains("must fit in the 32x32 frame"));
+    assert!(message("shift(32)", FrameShape::new(1, 3, 32, 32)).contains("must be less than the 32x32 frame's sides"));
     assert!(message("ras_s", SHAPE).contains("applies to state vectors, not images"));
     assert!(message("crop(84)|crop(90)", SHAPE).contains("needs frames of at least 90x90, got 84x84"));
     assert!(message("translate(1000000)", SHAPE).contains("the most allowed is 67108864"));

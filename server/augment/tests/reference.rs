@@ -66,7 +66,7 @@ fn geometric_kernels_equal_the_reference() {
         &[
             "crop(84)", "crop(31)", "crop(1)", "crop(17)", "center_crop(15)", "translate(108)", "translate(41)",
             "translate(17)", "center_translate(45)", "center_translate(120)", "window(84)", "window(13)",
-            "flip(p=1)", "flip(p=0.5)", "rotate(p=1)", "rotate(p=0.6)",
+            "flip(p=1)", "flip(p=0.5)", "rotate(p=1)", "rotate(p=0.6)", "shift(4)", "shift(1)", "shift(16)",
         ],
         0,
     );
@@ -79,14 +79,14 @@ fn rectangle_kernels_equal_the_reference() {
 
 #[test]
 fn colour_kernels_equal_the_reference() {
-    check_everywhere(&["grayscale(p=1)", "grayscale(p=0.5)", "conv"], 0);
+    check_everywhere(&["grayscale(p=1)", "grayscale(p=0.5)", "conv", "intensity", "intensity(0.5)"], 0);
     // Colour jitter's contrast mean is summed in another order than the reference: one level.
     check_everywhere(&["color_jitter", "color_jitter(0.9,0.9,0.9,0.5)"], 1);
 }
 
 #[test]
 fn non_rgb_stacks_take_the_channel_agnostic_kernels() {
-    for text in ["crop(9)", "translate(16)", "window(5)", "flip(p=1)", "rotate(p=1)", "cutout(2,4)"] {
+    for text in ["crop(9)", "translate(16)", "window(5)", "flip(p=1)", "rotate(p=1)", "cutout(2,4)", "shift(3)", "intensity"] {
         check(text, FrameShape::new(4, 1, 11, 11), 3, 0);
         check(text, FrameShape::new(2, 2, 13, 13), 2, 0);
     }
@@ -100,6 +100,8 @@ fn pipelines_equal_the_reference_stage_by_stage() {
         "crop(90)|cutout_color|conv",
         "crop(64)|translate(72)|window(50)",
         "cutout|color_jitter|crop(70)",
+        "shift(4)|intensity",
+        "crop(84)|shift(4)|conv",
     ] {
         let tolerance = if text.contains("jitter") { 1 } else { 0 };
         check(text, FrameShape::new(3, 3, 100, 100), 4, tolerance);

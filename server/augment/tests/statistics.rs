@@ -83,7 +83,7 @@ fn offsets(text: &str) -> (Vec<usize>, Vec<usize>) {
 
 #[test]
 fn offsets_are_uniform_over_every_position() {
-    for (text, high) in [("crop(84)", 16), ("translate(108)", 8), ("window(84)", 16), ("crop(99)", 1)] {
+    for (text, high) in [("crop(84)", 16), ("translate(108)", 8), ("window(84)", 16), ("crop(99)", 1), ("shift(4)", 8)] {
         let (tops, lefts) = offsets(text);
         assert_uniform_integers(&format!("{text} top"), &tops, 0, high);
         assert_uniform_integers(&format!("{text} left"), &lefts, 0, high);
@@ -123,6 +123,28 @@ fn cutout_sizes_and_positions_are_uniform_where_they_fit() {
         .collect();
     assert_uniform_reals("cutout_color fill", &fills, 0.0, 255.0);
     assert!(params("cutout", FRAME).iter().all(|p| matches!(p, StageParams::Rect { fill: [0, 0, 0], .. })));
+}
+
+#[test]
+fn intensity_factors_are_a_clipped_normal() {
+    // DrQ's `Intensity(scale=0.05)`: 1 + 0.05 * clamp(N(0, 1), -2, 2).
+    let factors: Vec<f64> = params("intensity", FRAME)
+        .iter()
+        .map(|p| match p {
+            StageParams::Factor(factor) => f64::from(*factor),
+            other => panic!("{other:?}"),
+        })
+        .collect();
+    let n = factors.len() as f64;
+    let z: Vec<f64> = factors.iter().map(|f| (f - 1.0) / 0.05).collect();
+    assert!(z.iter().all(|z| (-2.0 - 1e-4..=2.0 + 1e-4).contains(z)), "factors outside 1 +- 2 * scale");
+    let mean = z.iter().sum::<f64>() / n;
+    assert!(mean.abs() < 5.0 / n.sqrt(), "mean {mean}");
+    // The clipped tails hold P(|N| > 2) = 4.55% of the draws, at the bounds exactly.
+    let clipped = z.iter().filter(|z| z.abs() > 2.0 - 1e-4).count();
+    assert_rate("clipped", clipped, z.len(), 0.045_500);
+    let within = z.iter().filter(|z| z.abs() < 1.0).count();
+    assert_rate("|z| < 1", within, z.len(), 0.682_689);
 }
 
 #[test]

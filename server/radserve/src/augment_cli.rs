@@ -64,6 +64,8 @@ fn preview_pipelines(side: usize) -> Vec<String> {
         "color_jitter".into(),
         format!("center_crop({})", scaled(0.84)),
         format!("center_translate({})", scaled(1.08)),
+        format!("shift({})", scaled(4.0 / 84.0)),
+        "intensity".into(),
     ]
 }
 

@@ -35,6 +35,18 @@ multiversion! {
     fn grayscale_frame(src: &[u8], dst: &mut [u8]) => grayscale_body
 }
 
+multiversion! {
+    /// DrQ's intensity: every byte times `factor`, clamped to [0, 255] and rounded to nearest.
+    fn intensity(src: &[u8], dst: &mut [u8], factor: f32) => intensity_body
+}
+
+#[inline(always)]
+fn intensity_body(src: &[u8], dst: &mut [u8], factor: f32) {
+    for (out, value) in dst.iter_mut().zip(src) {
+        *out = round_byte((f32::from(*value) * factor).clamp(0.0, 255.0));
+    }
+}
+
 /// Round a float already clamped to [0, 255] to the nearest byte, ties to even. Adding 1.5 * 2^23
 /// leaves the rounded integer in the low mantissa bits; unlike `as u8` (a saturating conversion
 /// LLVM scalarizes), this vectorizes. Equal to `value.round_ties_even() as u8`.

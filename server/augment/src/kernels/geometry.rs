@@ -68,6 +68,27 @@ pub(super) fn window(src: &[u8], shape: &FrameShape, dst: &mut [u8], top: usize,
     }
 }
 
+/// DrQ's random shift: the frame padded by `pad` repeated edge pixels, cropped back to its own size
+/// at (top, left) of the padded frame. Each output row is a source row (clamped to the frame)
+/// moved by `left - pad` columns, its ends filled with the row's edge pixel.
+pub(super) fn shift(src: &[u8], shape: &FrameShape, dst: &mut [u8], pad: usize, top: usize, left: usize) {
+    let (height, width) = (shape.height, shape.width);
+    // Columns of the output taken from the left edge, from the row itself, from the right edge.
+    let moved = left as isize - pad as isize;
+    let (left_fill, start) = if moved < 0 { ((-moved) as usize, 0) } else { (0, moved as usize) };
+    let left_fill = left_fill.min(width);
+    let copied = (width - left_fill).min(width.saturating_sub(start));
+    for (plane_src, plane_dst) in src.chunks_exact(shape.plane_len()).zip(dst.chunks_exact_mut(shape.plane_len())) {
+        for (y, row_dst) in plane_dst.chunks_exact_mut(width).enumerate() {
+            let source_y = (y + top).saturating_sub(pad).min(height - 1);
+            let row_src = &plane_src[source_y * width..(source_y + 1) * width];
+            row_dst[..left_fill].fill(row_src[0]);
+            copy_row(&mut row_dst[left_fill..left_fill + copied], &row_src[start..start + copied]);
+            row_dst[left_fill + copied..].fill(row_src[width - 1]);
+        }
+    }
+}
+
 multiversion! {
     /// Mirror the width axis of every row.
     fn flip(src: &[u8], shape: &FrameShape, dst: &mut [u8]) => flip_body

@@ -149,6 +149,8 @@ pub(crate) fn run_stage(
         (Augmentation::Window { size }, StageParams::Offset { top, left }) => {
             geometry::window(src, input, dst, *top, *left, *size)
         }
+        (&Augmentation::Shift { pad }, StageParams::Offset { top, left }) => geometry::shift(src, input, dst, pad, *top, *left),
+        (Augmentation::Intensity { .. }, StageParams::Factor(factor)) => color::intensity(isa, src, dst, *factor),
         (Augmentation::Flip { .. }, StageParams::Apply(fires)) => {
             if *fires {
                 geometry::flip(isa, src, input, dst)
