@@ -29,12 +29,15 @@ pub enum Sharing {
     Independent,
 }
 
-/// The randomness of one call: a seed, which observation, and the sharing policy.
+/// The randomness of one call: a seed, which observation, the sharing policy, and the stream of
+/// draws (outputs with the same stream and part share their parameters stage by stage; a sample
+/// request's named views each get a stream of their own unless they share one).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Draws {
     pub seed: u64,
     pub part: TransitionPart,
     pub sharing: Sharing,
+    pub stream: u32,
 }
 
 impl Draws {
@@ -48,6 +51,10 @@ impl Draws {
 
     pub fn with_sharing(self, sharing: Sharing) -> Self {
         Self { sharing, ..self }
+    }
+
+    pub fn with_stream(self, stream: u32) -> Self {
+        Self { stream, ..self }
     }
 
     /// The generator of one stage for one sample. `key` names the sample: its index in the batch
@@ -64,6 +71,7 @@ impl Draws {
         seed[..8].copy_from_slice(&self.seed.to_le_bytes());
         seed[8..16].copy_from_slice(&(stage_index as u64).to_le_bytes());
         seed[16] = u8::from(separate_next);
+        seed[20..24].copy_from_slice(&self.stream.to_le_bytes());
         let mut rng = ChaCha8Rng::from_seed(seed);
         rng.set_stream(key);
         rng

@@ -162,6 +162,46 @@ pub struct TransitionRef {
     pub frame: u64,
 }
 
+/// The most steps one n-step return may sum (DrQ-v2 and Rainbow use 3, R2D2 5, Ape-X 3).
+pub const MAX_N_STEP: usize = 64;
+
+/// How a sampled transition's return is summed: up to `n_step` rewards from its step on, each
+/// discounted by `discount` once more than the one before.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Returns {
+    pub n_step: usize,
+    pub discount: f64,
+}
+
+impl Returns {
+    /// Checks the bounds: `n_step` in `1..=MAX_N_STEP`, `discount` in [0, 1].
+    pub fn new(n_step: usize, discount: f64) -> Result<Returns> {
+        if !(1..=MAX_N_STEP).contains(&n_step) {
+            return Err(ReplayError::InvalidArgument(format!("n_step must be between 1 and {MAX_N_STEP}, got {n_step}")));
+        }
+        if !(0.0..=1.0).contains(&discount) {
+            return Err(ReplayError::InvalidArgument(format!("discount must be in [0, 1], got {discount}")));
+        }
+        Ok(Returns { n_step, discount })
+    }
+}
+
+/// A transition's n-step window: the steps from it to the first that ended its episode, at most
+/// `n_step` of them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Window {
+    /// Rewards summed (1..=n_step).
+    pub steps: usize,
+    /// `sum_{k < steps} discount^k * reward_{t+k}`.
+    pub reward: f64,
+    /// The bootstrap's factor: `discount^steps`, or 0 when the episode terminated in the window.
+    pub discount: f64,
+    pub terminated: bool,
+    pub truncated: bool,
+    /// The frame the next observation's stack ends at: the one after the last summed step.
+    pub last_frame: u64,
+}
+
 /// Where draws come from: (oldest sampleable frame, frames written) per env.
 struct Candidates {
     ranges: Vec<(u64, u64)>,
@@ -448,6 +488,13 @@ impl ReplayBuffer {
 
     /// Draw `count` transitions uniformly with replacement.
     pub fn sample(&mut self, count: usize, rng: &mut impl Rng, out: &mut Vec<TransitionRef>) -> Result<()> {
+        self.sample_windows(count, 1, rng, out)
+    }
+
+    /// Draw `count` transitions uniformly with replacement among those whose `n_step` window is
+    /// complete (see [`ReplayBuffer::window`]): Acme's n-step adder inserts a transition once its
+    /// n steps are in, or its episode ended, and Reverb samples only what was inserted.
+    pub fn sample_windows(&mut self, count: usize, n_step: usize, rng: &mut impl Rng, out: &mut Vec<TransitionRef>) -> Result<()> {
         out.clear();
         let candidates = self.candidates();
         let no_transitions = || ReplayError::FailedPrecondition("the replay buffer holds no transitions yet".into());
@@ -460,7 +507,7 @@ impl ReplayBuffer {
             if attempts > 64 * count + 1024 && out.is_empty() {
                 return Err(no_transitions());
             }
-            out.extend(self.draw(&candidates, rng));
+            out.extend(self.draw(&candidates, rng).filter(|&transition| self.window_complete(transition, n_step)));
         }
         self.counters.samples += count as u64;
         self.counters.batches += 1;
@@ -502,11 +549,78 @@ impl ReplayBuffer {
     /// One transition drawn uniformly, as `sample` draws them, without counting it as sampled (it
     /// replaces one of a batch that the buffer no longer holds).
     pub fn draw_one(&self, rng: &mut impl Rng) -> Option<TransitionRef> {
+        self.draw_one_window(1, rng)
+    }
+
+    /// The same among transitions whose `n_step` window is complete.
+    pub fn draw_one_window(&self, n_step: usize, rng: &mut impl Rng) -> Option<TransitionRef> {
         let candidates = self.candidates();
         if candidates.total == 0 {
             return None;
         }
-        (0..1024).find_map(|_| self.draw(&candidates, rng))
+        (0..1024).find_map(|_| self.draw(&candidates, rng).filter(|&transition| self.window_complete(transition, n_step)))
+    }
+
+    /// Transitions that can be sampled now with `n_step` returns: those held, less the last
+    /// `n_step - 1` of each episode in progress, whose windows are not complete yet.
+    pub fn sampleable(&self, n_step: usize) -> usize {
+        let incomplete: usize = (0..self.layout.num_envs)
+            .filter(|&env| self.in_episode[env])
+            .map(|env| {
+                let oldest = self.oldest_sampleable(env);
+                (1..n_step as u64)
+                    .map_while(|back| self.written[env].checked_sub(back).filter(|frame| *frame >= oldest))
+                    .take_while(|&frame| self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0)
+                    .count()
+            })
+            .sum();
+        self.len().saturating_sub(incomplete)
+    }
+
+    fn window_complete(&self, transition: TransitionRef, n_step: usize) -> bool {
+        n_step <= 1 || self.walk_window(transition, n_step, 1.0).is_some()
+    }
+
+    /// The n-step window of a transition the buffer holds: from its step, up to `returns.n_step`
+    /// steps of its episode, ending early at the step that terminated or truncated it (or at the
+    /// last step recorded of an episode whose worker died). None while the window is incomplete:
+    /// its episode is in progress and fewer than `n_step` steps from it are recorded.
+    pub fn window(&self, transition: TransitionRef, returns: Returns) -> Option<Window> {
+        self.walk_window(transition, returns.n_step, returns.discount)
+    }
+
+    fn walk_window(&self, transition: TransitionRef, n_step: usize, discount: f64) -> Option<Window> {
+        let env = transition.env;
+        let mut window =
+            Window { steps: 0, reward: 0.0, discount: 1.0, terminated: false, truncated: false, last_frame: transition.frame };
+        for k in 0..n_step as u64 {
+            let frame = transition.frame + k;
+            if frame >= self.written[env] {
+                if self.in_episode[env] {
+                    return None; // more of this window is still to come
+                }
+                break; // the episode ended without a flag (its worker died)
+            }
+            let slot = self.slot(env, frame);
+            let flags = self.flags[slot];
+            if k > 0 && flags & FIRST_OF_EPISODE != 0 {
+                break;
+            }
+            window.reward += window.discount * f64::from(self.rewards[slot]);
+            window.discount *= discount;
+            window.steps += 1;
+            window.last_frame = frame;
+            if flags & TERMINATED != 0 {
+                window.terminated = true;
+                window.discount = 0.0;
+                break;
+            }
+            if flags & TRUNCATED != 0 {
+                window.truncated = true;
+                break;
+            }
+        }
+        Some(window)
     }
 
     /// The transitions of the last `steps` steps of every env, `[t][env]` (t = 0 the oldest),
@@ -554,6 +668,14 @@ impl ReplayBuffer {
     pub fn copy_observation(&self, transition: TransitionRef, next: bool, out: &mut [u8]) {
         let episode_start = self.episode_starts[self.slot(transition.env, transition.frame)];
         let last = if next { transition.frame } else { transition.frame - 1 };
+        self.copy_stack(transition.env, last, episode_start, out);
+    }
+
+    /// Copy the stack of a sampled transition's episode that ends at frame `last` into `out`
+    /// (`frame_stack * frame_bytes`): `transition.frame - 1` is its observation, `transition.frame`
+    /// its next observation, and a later frame of its window the observation n steps on.
+    pub fn copy_stack_ending(&self, transition: TransitionRef, last: u64, out: &mut [u8]) {
+        let episode_start = self.episode_starts[self.slot(transition.env, transition.frame)];
         self.copy_stack(transition.env, last, episode_start, out);
     }
 
@@ -608,6 +730,27 @@ impl ReplayBuffer {
             batch.policy_versions[index] = self.policy_versions[slot];
             batch.log_probs[index] = self.log_probs[slot];
             batch.values[index] = self.values[slot];
+            batch.last_frames[index] = transition.frame;
+        }
+    }
+}
+
+impl ReplayBuffer {
+    /// Replace the one-step reward and flags gathered for `refs` (the batch's transitions from
+    /// `start` on) by their n-step window's, and fill their discounts and last frames. A transition
+    /// whose window is incomplete (drawn before `returns` applied) keeps what its steps so far give.
+    pub fn gather_returns_at(&self, refs: &[TransitionRef], returns: Returns, batch: &mut TransitionMetadata, start: usize) {
+        for (index, transition) in refs.iter().enumerate() {
+            let index = start + index;
+            let window = self.window(*transition, returns).unwrap_or_else(|| {
+                self.walk_window(*transition, (self.written[transition.env] - transition.frame) as usize, returns.discount)
+                    .expect("a window up to the last frame written is complete")
+            });
+            batch.rewards[index] = window.reward as f32;
+            batch.discounts[index] = window.discount as f32;
+            batch.terminated[index] = u8::from(window.terminated);
+            batch.truncated[index] = u8::from(window.truncated);
+            batch.last_frames[index] = window.last_frame;
         }
     }
 }
@@ -630,6 +773,11 @@ pub struct TransitionMetadata {
     pub policy_versions: Vec<i32>,
     pub log_probs: Vec<f32>,
     pub values: Vec<f32>,
+    /// With n-step returns: the bootstrap's factor (see [`Window::discount`]).
+    pub discounts: Vec<f32>,
+    /// The frame each next observation's stack ends at (the transition's own next frame for one
+    /// step).
+    pub last_frames: Vec<u64>,
 }
 
 impl TransitionMetadata {
@@ -644,6 +792,8 @@ impl TransitionMetadata {
         self.policy_versions.resize(len, NO_POLICY);
         self.log_probs.resize(len, 0.0);
         self.values.resize(len, 0.0);
+        self.discounts.resize(len, 0.0);
+        self.last_frames.resize(len, 0);
     }
 }
 

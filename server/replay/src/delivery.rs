@@ -107,7 +107,7 @@ mod tests {
 
     #[test]
     fn released_slots_return_and_unknown_releases_are_refused() {
-        let ring = SharedRing::create(2, 64).unwrap();
+        let ring = SharedRing::create(2, &[64, 64]).unwrap();
         let mut held = HeldSlots::default();
         held.hold(7, ring.acquire(|| false).unwrap());
         held.hold(9, ring.acquire(|| false).unwrap());

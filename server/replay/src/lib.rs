@@ -13,11 +13,14 @@ mod shared;
 pub mod snapshot;
 
 pub use buffer::{
-    check_capacity, ActedBy, BufferKind, ProducerPermit, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, TransitionMetadata,
-    TransitionRef, MAX_CAPACITY, MIN_BYTES_PER_TRANSITION, NO_POLICY,
+    check_capacity, ActedBy, BufferKind, ProducerPermit, RecordedStep, ReplayBuffer, ReplayCounters, ReplayLayout, Returns,
+    TransitionMetadata, TransitionRef, Window, MAX_CAPACITY, MAX_N_STEP, MIN_BYTES_PER_TRANSITION, NO_POLICY,
 };
 pub use delivery::{HeldSlots, InFlight};
 pub use error::{ReplayError, Result};
-pub use producer::{Batch, ObservationFormat, Output, Producer, Recycler, SampleSpec, Source, MAX_BATCH_BYTES};
+pub use producer::{
+    Batch, ObservationFormat, Output, Producer, Recycler, SampleSpec, Source, ViewData, ViewSpec, MAX_BATCH_BYTES, MAX_VIEWS,
+    MAX_VIEW_NAME, RESERVED_FIELDS,
+};
 pub use rate_limiter::{Activity, Occupancy, RateLimiter};
 pub use shared::{SharedRing, Slot, SHARED_HEADER_BYTES, SHARED_MAGIC};

@@ -15,9 +15,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::buffer::{BufferKind, ProducerPermit, ReplayBuffer, TransitionMetadata, TransitionRef};
+use crate::buffer::{BufferKind, ProducerPermit, ReplayBuffer, Returns, TransitionMetadata, TransitionRef};
 use crate::error::{ReplayError, Result};
-use crate::rate_limiter::RateLimiter;
+use crate::rate_limiter::{Occupancy, RateLimiter};
 use crate::shared::{SharedRing, Slot};
 
 /// The largest batch of observations a stream may produce (1 GiB): 512 translated 108x108 stacks with
@@ -79,15 +79,73 @@ pub enum Source {
     Rollout { epochs: usize, per_env_draws: bool },
 }
 
+/// The most named views one request may ask for (DrQ asks for four, CURL and SVEA for three).
+pub const MAX_VIEWS: usize = 8;
+
+/// The longest view name.
+pub const MAX_VIEW_NAME: usize = 32;
+
+/// Names a view may not take: the batch's other fields (and the Python client's `server`).
+pub const RESERVED_FIELDS: [&str; 12] = [
+    "action", "reward", "discount", "terminated", "truncated", "env_index", "step_index", "policy_version", "t",
+    "log_prob", "value", "server",
+];
+
+/// One named output of a batch: the observation or the next observation of each sample, through a
+/// pipeline of its own. Views with the same `draws` label share their random parameters stage by
+/// stage (SVEA's strongly augmented view beside its shifted one); the others draw independently.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewSpec {
+    pub name: String,
+    pub of: TransitionPart,
+    pub pipeline: Pipeline,
+    pub draws: Option<String>,
+}
+
+impl ViewSpec {
+    /// A view with draws of its own.
+    pub fn new(name: &str, of: TransitionPart, pipeline: Pipeline) -> ViewSpec {
+        ViewSpec { name: name.to_owned(), of, pipeline, draws: None }
+    }
+
+    fn check_name(name: &str) -> Result<()> {
+        let plain = !name.is_empty()
+            && name.len() <= MAX_VIEW_NAME
+            && name.starts_with(|c: char| c.is_ascii_lowercase() || c == '_')
+            && name.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_');
+        if !plain {
+            return Err(ReplayError::InvalidArgument(format!(
+                "view names are lowercase names of at most {MAX_VIEW_NAME} characters (letters, digits, '_'), such as \
+                 \"obs_aug\"; got {:?}",
+                name.chars().take(MAX_VIEW_NAME + 8).collect::<String>()
+            )));
+        }
+        if RESERVED_FIELDS.contains(&name) {
+            return Err(ReplayError::InvalidArgument(format!(
+                "view name {name:?} is a field every batch has; name views anything but {}",
+                RESERVED_FIELDS.join(", ")
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// How a stream samples and augments.
 #[derive(Clone, Debug)]
 pub struct SampleSpec {
     pub source: Source,
     pub batch_size: usize,
-    /// Send next_obs too (off-policy learners need it; PPO does not).
+    /// Without views: send next_obs too (off-policy learners need it; PPO does not).
     pub include_next_obs: bool,
+    /// Without views: the pipeline of obs and next_obs, which share draws as `sharing` says.
     pub pipeline: Pipeline,
     pub sharing: Sharing,
+    /// Named outputs instead of obs and next_obs (empty: obs, and next_obs with
+    /// `include_next_obs`, through `pipeline`).
+    pub views: Vec<ViewSpec>,
+    /// n-step returns: the batch's reward sums up to n rewards and it carries `discount` (none: the
+    /// transition's own reward, no discount).
+    pub returns: Option<Returns>,
     pub seed: u64,
     /// Batches produced ahead and waiting (1..=64).
     pub prefetch: usize,
@@ -139,28 +197,43 @@ impl Spare {
     }
 }
 
+/// One view of a batch: its observations, augmented.
+#[derive(Debug, Default)]
+pub struct ViewData {
+    pub name: String,
+    /// Shape of one augmented observation.
+    pub shape: Vec<usize>,
+    /// `uint8` for images, float32 bytes (little-endian) for states; empty with shared output (the
+    /// batch's slot holds them, in the view's region).
+    pub data: Vec<u8>,
+}
+
 /// One augmented minibatch.
 #[derive(Debug, Default)]
 pub struct Batch {
     /// 0, 1, 2... in the order produced.
     pub index: u64,
     pub len: usize,
-    /// Shape of one augmented observation.
-    pub obs_shape: Vec<usize>,
     /// Observations are float32 state vectors (little-endian bytes), not uint8 images.
     pub obs_float32: bool,
-    /// `uint8` for images, float32 bytes (little-endian) for states.
-    pub obs: Vec<u8>,
-    /// Empty when the stream does not include next observations.
-    pub next_obs: Vec<u8>,
-    /// The stream carries next observations (in `next_obs` or in the slot).
-    pub has_next_obs: bool,
+    /// The observations, one per view in the request's order (obs, then next_obs when the request
+    /// names no views).
+    pub views: Vec<ViewData>,
     pub metadata: TransitionMetadata,
+    /// The batch carries n-step returns: `metadata.discounts` is part of it.
+    pub has_discount: bool,
     /// For rollouts: each transition's step within the rollout (0 the oldest).
     pub rollout_t: Option<Vec<u32>>,
-    /// With shared output: the slot holding obs (and next_obs); `obs`/`next_obs` stay empty.
+    /// With shared output: the slot holding the views, region i view i; their `data` stays empty.
     pub slot: Option<Slot>,
     refs: Vec<TransitionRef>,
+}
+
+impl Batch {
+    /// The view named `name`.
+    pub fn view(&self, name: &str) -> Option<&ViewData> {
+        self.views.iter().find(|view| view.name == name)
+    }
 }
 
 /// Where `fill` gets the memory for a batch's observations.
@@ -174,6 +247,31 @@ enum Plan {
     State(StatePlan),
 }
 
+/// A view checked against the observation: its plan, its output and its draws.
+struct ViewPlan {
+    name: String,
+    of: TransitionPart,
+    plan: Plan,
+    shape: Vec<usize>,
+    /// Bytes of one augmented observation.
+    bytes: usize,
+    /// The draws' part, sharing and stream; each batch sets the seed.
+    draws: Draws,
+}
+
+/// Where a sample's stacks lie in the frames copied for it.
+#[derive(Clone, Copy)]
+enum Frames {
+    /// `frame_stack + 1` frames: obs from the first, next_obs from the second (one step).
+    Joined,
+    /// Two stacks, obs then next_obs (n steps, where the two need not overlap).
+    Split,
+    /// The observation's stack only.
+    ObsOnly,
+    /// The next observation's stack only.
+    NextOnly,
+}
+
 thread_local! {
     static STACK: RefCell<Vec<u8>> = RefCell::default();
 }
@@ -184,9 +282,10 @@ pub struct Producer {
     spec: SampleSpec,
     /// Reverb's rate limiter, when the spec sets samples_per_insert.
     limiter: Option<RateLimiter>,
-    plan: Plan,
-    obs_shape: Vec<usize>,
-    obs_bytes: usize,
+    views: Vec<ViewPlan>,
+    frames: Frames,
+    /// Steps summed per transition (1 without n-step returns).
+    n_step: usize,
     /// This stream's place among the buffer's producers, reserved at admission.
     permit: Option<ProducerPermit>,
 }
@@ -236,29 +335,85 @@ impl Producer {
             Some(ratio) => Some(RateLimiter::new(spec.min_size as u64, ratio, spec.error_buffer).map_err(ReplayError::InvalidArgument)?),
             None => None,
         };
-        let (plan, obs_shape) = match format {
-            ObservationFormat::Image(shape) => {
-                let plan = ImagePlan::new(&spec.pipeline, shape)?;
-                let out = plan.output_shape();
-                (Plan::Image(plan), vec![out.planes(), out.height, out.width])
-            }
-            ObservationFormat::State(dim) => (Plan::State(StatePlan::new(&spec.pipeline, dim)?), vec![dim]),
+        if spec.returns.is_some() && spec.source != Source::Replay {
+            return invalid(
+                "n_step and discount apply to replay: a rollout's returns are the learner's (GAE over the rollout)".into(),
+            );
+        }
+        let views = Self::plan_views(&spec, format)?;
+        let n_step = spec.returns.map_or(1, |returns| returns.n_step);
+        let with_obs = views.iter().any(|view| view.of == TransitionPart::Obs);
+        let with_next = views.iter().any(|view| view.of == TransitionPart::NextObs);
+        let frames = match (with_obs, with_next) {
+            (true, true) if n_step == 1 => Frames::Joined,
+            (true, true) => Frames::Split,
+            (false, true) => Frames::NextOnly,
+            _ => Frames::ObsOnly,
         };
-        let obs_bytes = match &plan {
-            Plan::Image(plan) => plan.output_shape().sample_len(),
-            Plan::State(plan) => plan.dim() * 4,
-        };
-        let parts = if spec.include_next_obs { 2 } else { 1 };
-        let batch_bytes = spec.batch_size.saturating_mul(obs_bytes).saturating_mul(parts);
+        let sample_bytes = views.iter().fold(0usize, |sum, view| sum.saturating_add(view.bytes));
+        let batch_bytes = spec.batch_size.saturating_mul(sample_bytes);
         if batch_bytes > MAX_BATCH_BYTES {
+            let names: Vec<&str> = views.iter().map(|view| view.name.as_str()).collect();
             return invalid(format!(
-                "a batch of {} observations of {obs_bytes} bytes{} is {batch_bytes} bytes; the most allowed is \
-                 {MAX_BATCH_BYTES} (use a smaller batch_size or augmentation output)",
+                "a batch of {} samples of {sample_bytes} bytes (views {}) is {batch_bytes} bytes; the most allowed is \
+                 {MAX_BATCH_BYTES} (use a smaller batch_size, fewer views or a smaller augmentation output)",
                 spec.batch_size,
-                if parts == 2 { " (obs and next_obs)" } else { "" },
+                names.join(", "),
             ));
         }
-        Ok(Self { buffer, spec, limiter, plan, obs_shape, obs_bytes, permit: None })
+        Ok(Self { buffer, spec, limiter, views, frames, n_step, permit: None })
+    }
+
+    /// The request's views checked against the observation; without named views, obs (and
+    /// next_obs) through the request's pipeline, drawn as `sharing` says.
+    fn plan_views(spec: &SampleSpec, format: ObservationFormat) -> Result<Vec<ViewPlan>> {
+        let invalid = |message: String| Err(ReplayError::InvalidArgument(message));
+        if spec.views.len() > MAX_VIEWS {
+            return invalid(format!("a request names at most {MAX_VIEWS} views, got {}", spec.views.len()));
+        }
+        let plan = |pipeline: &Pipeline| -> Result<(Plan, Vec<usize>, usize)> {
+            Ok(match format {
+                ObservationFormat::Image(shape) => {
+                    let plan = ImagePlan::new(pipeline, shape)?;
+                    let out = plan.output_shape();
+                    (Plan::Image(plan), vec![out.planes(), out.height, out.width], out.sample_len())
+                }
+                ObservationFormat::State(dim) => (Plan::State(StatePlan::new(pipeline, dim)?), vec![dim], dim * 4),
+            })
+        };
+        let mut views = Vec::new();
+        if spec.views.is_empty() {
+            let parts: &[(&str, TransitionPart)] = if spec.include_next_obs {
+                &[("obs", TransitionPart::Obs), ("next_obs", TransitionPart::NextObs)]
+            } else {
+                &[("obs", TransitionPart::Obs)]
+            };
+            for &(name, of) in parts {
+                let (plan, shape, bytes) = plan(&spec.pipeline)?;
+                let draws = Draws { seed: 0, part: of, sharing: spec.sharing, stream: 0 };
+                views.push(ViewPlan { name: name.into(), of, plan, shape, bytes, draws });
+            }
+            return Ok(views);
+        }
+        for (index, view) in spec.views.iter().enumerate() {
+            ViewSpec::check_name(&view.name)?;
+            if spec.views[..index].iter().any(|earlier| earlier.name == view.name) {
+                return invalid(format!("view {:?} is named twice; each view needs a name of its own", view.name));
+            }
+            let (plan, shape, bytes) = plan(&view.pipeline).map_err(|error| match error {
+                ReplayError::Augment(error) => ReplayError::InvalidArgument(format!("view {:?}: {error}", view.name)),
+                other => other,
+            })?;
+            // Views draw from the stream of the first view with their label (1 + its index), each
+            // as if it were the observation: a shared stream shares every stage.
+            let stream = match &view.draws {
+                Some(label) => spec.views.iter().position(|other| other.draws.as_ref() == Some(label)).unwrap_or(index),
+                None => index,
+            };
+            let draws = Draws { seed: 0, part: TransitionPart::Obs, sharing: Sharing::Shared, stream: 1 + stream as u32 };
+            views.push(ViewPlan { name: view.name.clone(), of: view.of, plan, shape, bytes, draws });
+        }
+        Ok(views)
     }
 
     /// Run under `permit`, the place reserved for this stream when it was admitted (without one, the
@@ -268,13 +423,14 @@ impl Producer {
         self
     }
 
-    pub fn obs_shape(&self) -> &[usize] {
-        &self.obs_shape
+    /// The names of the batch's views and the shape of one of each view's observations.
+    pub fn view_shapes(&self) -> Vec<(&str, &[usize])> {
+        self.views.iter().map(|view| (view.name.as_str(), view.shape.as_slice())).collect()
     }
 
-    /// Bytes of one batch's observations (obs, or next_obs: each as large).
-    pub fn observation_bytes(&self) -> usize {
-        self.spec.batch_size * self.obs_bytes
+    /// Bytes of each view's observations in one batch: the regions of a shared slot.
+    pub fn region_bytes(&self) -> Vec<usize> {
+        self.views.iter().map(|view| self.spec.batch_size * view.bytes).collect()
     }
 
     /// Batches produced ahead of the learner.
@@ -285,8 +441,7 @@ impl Producer {
     /// Observation bytes the stream may hold at once, whichever the output: `prefetch` batches
     /// ready, one being filled and one with the transport or the learner.
     pub fn stream_memory_bytes(&self) -> u64 {
-        let parts = if self.spec.include_next_obs { 2 } else { 1 };
-        ((self.spec.prefetch + 2) * parts * self.observation_bytes()) as u64
+        ((self.spec.prefetch + 2) * self.region_bytes().iter().sum::<usize>()) as u64
     }
 
     /// Start producing on a thread of its own, augmenting on `pool`. Batches arrive on the returned
@@ -341,7 +496,7 @@ impl Producer {
                 }
                 let mut buffer = self.buffer.write().expect("replay lock");
                 if self.allowed(&buffer) {
-                    break buffer.sample(self.spec.batch_size, rng, &mut batch.refs);
+                    break buffer.sample_windows(self.spec.batch_size, self.n_step, rng, &mut batch.refs);
                 }
             };
             if !self.allocate(spare, &mut batch, self.spec.batch_size, ready) {
@@ -416,11 +571,13 @@ impl Producer {
         }
     }
 
-    /// Whether the buffer holds `min_size` transitions and the rate limiter lets a batch through.
+    /// Whether the buffer holds `min_size` transitions (with complete n-step windows) and the rate
+    /// limiter lets a batch through.
     fn allowed(&self, buffer: &ReplayBuffer) -> bool {
+        let size = buffer.sampleable(self.n_step);
         match &self.limiter {
-            Some(limiter) => limiter.can_sample(buffer.occupancy(), self.spec.batch_size as u64),
-            None => buffer.len() >= self.spec.min_size.max(1),
+            Some(limiter) => limiter.can_sample(Occupancy::of(buffer.counters(), size), self.spec.batch_size as u64),
+            None => size >= self.spec.min_size.max(1),
         }
     }
 
@@ -442,13 +599,21 @@ impl Producer {
     ) -> bool {
         match destination {
             Destination::Heap(spare) => {
-                batch.obs = spare.take(size * self.obs_bytes);
-                if self.spec.include_next_obs {
-                    batch.next_obs = spare.take(size * self.obs_bytes);
-                }
+                batch.views = self
+                    .views
+                    .iter()
+                    .map(|view| ViewData { name: view.name.clone(), shape: view.shape.clone(), data: spare.take(size * view.bytes) })
+                    .collect();
             }
             Destination::Shared(ring) => match ring.acquire(|| !ready.is_closed()) {
-                Some(slot) => batch.slot = Some(slot),
+                Some(slot) => {
+                    batch.slot = Some(slot);
+                    batch.views = self
+                        .views
+                        .iter()
+                        .map(|view| ViewData { name: view.name.clone(), shape: view.shape.clone(), data: Vec::new() })
+                        .collect();
+                }
                 None => return false,
             },
         }
@@ -460,9 +625,9 @@ impl Producer {
     /// images are augmented: each turn (`in_turns`) reads its samples' metadata under one read lock,
     /// then each sample copies its frames under a read lock of its own and augments them without
     /// it, so a Step recording into the buffer waits for one sample's copy, not for a batch. A
-    /// transition the buffer still holds does not change, so frames and metadata read under two
-    /// locks agree; one it overwrote meanwhile (the session stepped past it in a small buffer) is
-    /// drawn again from what the buffer holds then.
+    /// transition the buffer still holds does not change, nor do the later steps of its n-step
+    /// window, so frames and metadata read under two locks agree; one it overwrote meanwhile (the
+    /// session stepped past it in a small buffer) is drawn again from what the buffer holds then.
     fn fill(
         &self,
         pool: &rayon::ThreadPool,
@@ -473,133 +638,148 @@ impl Producer {
     ) -> Result<()> {
         let size = batch.refs.len();
         batch.len = size;
-        batch.obs_shape.clone_from(&self.obs_shape);
-        batch.obs_float32 = matches!(self.plan, Plan::State(_));
-        batch.has_next_obs = self.spec.include_next_obs;
-        let draws = Draws { seed: draw_seed, part: TransitionPart::Obs, sharing: self.spec.sharing };
-        let observation_len = size * self.obs_bytes;
-        let (obs, next_obs) = match &mut batch.slot {
-            Some(slot) => slot.regions_mut(observation_len),
-            None => (&mut batch.obs[..], &mut batch.next_obs[..]),
+        batch.obs_float32 = self.views.first().is_some_and(|view| matches!(view.plan, Plan::State(_)));
+        batch.has_discount = self.spec.returns.is_some();
+        let draws: Vec<Draws> = self.views.iter().map(|view| Draws { seed: draw_seed, ..view.draws }).collect();
+        let lens: Vec<usize> = self.views.iter().map(|view| size * view.bytes).collect();
+        let mut outputs: Vec<&mut [u8]> = match &mut batch.slot {
+            Some(slot) => slot.regions_mut(&lens),
+            None => batch.views.iter_mut().zip(&lens).map(|(view, &len)| &mut view.data[..len]).collect(),
         };
-        let next_obs = if self.spec.include_next_obs { &mut next_obs[..observation_len] } else { &mut next_obs[..0] };
-        let obs = &mut obs[..observation_len];
-        match &self.plan {
-            Plan::Image(plan) => {
-                // Rollouts visit fixed (t, env) transitions; only replay samples are drawn again.
-                let redraw = matches!(self.spec.source, Source::Replay);
-                let mut rng = ChaCha8Rng::seed_from_u64(draw_seed ^ 0x5E_ED0F_D2A5);
-                let (refs, metadata) = (&mut batch.refs, &mut batch.metadata);
-                let (frame_bytes, stack_bytes) = {
-                    let buffer = self.buffer.read().expect("replay lock");
-                    let layout = buffer.layout();
-                    metadata.resize(size, layout.action_bytes);
-                    (layout.frame_bytes, layout.frame_stack * layout.frame_bytes)
-                };
-                let bytes = self.obs_bytes;
-                let (obs_draws, next_draws) = (draws.with_part(TransitionPart::Obs), draws.with_part(TransitionPart::NextObs));
-                let with_next = !next_obs.is_empty();
-                // A transition the buffer overwrote since it was drawn is replaced by a fresh draw.
-                let refresh = |buffer: &ReplayBuffer, transition: &mut TransitionRef, rng: &mut ChaCha8Rng| {
-                    if redraw && !buffer.still_holds(*transition) {
-                        if let Some(fresh) = buffer.draw_one(rng) {
-                            *transition = fresh;
+        let returns = self.spec.returns;
+        // Rollouts visit fixed (t, env) transitions; only replay samples are drawn again.
+        let redraw = matches!(self.spec.source, Source::Replay);
+        let n_step = self.n_step;
+        let gather = |buffer: &ReplayBuffer, refs: &[TransitionRef], metadata: &mut TransitionMetadata, start: usize| {
+            buffer.gather_metadata_at(refs, metadata, start);
+            if let Some(returns) = returns {
+                buffer.gather_returns_at(refs, returns, metadata, start);
+            }
+        };
+        // A transition the buffer overwrote since it was drawn is replaced by a fresh draw.
+        let refresh = |buffer: &ReplayBuffer, transition: &mut TransitionRef, rng: &mut ChaCha8Rng| {
+            if redraw && !buffer.still_holds(*transition) {
+                if let Some(fresh) = buffer.draw_one_window(n_step, rng) {
+                    *transition = fresh;
+                }
+            }
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(draw_seed ^ 0x5E_ED0F_D2A5);
+        let (frame_bytes, stack_bytes) = {
+            let buffer = self.buffer.read().expect("replay lock");
+            let layout = buffer.layout();
+            batch.metadata.resize(size, layout.action_bytes);
+            (layout.frame_bytes, layout.frame_stack * layout.frame_bytes)
+        };
+        // Where a sample's two stacks lie in the frames copied for it.
+        let (copied_bytes, obs_at, next_at) = match self.frames {
+            // With both, stack + 1 frames serve both stacks (a third less reading).
+            Frames::Joined => (stack_bytes + frame_bytes, 0, frame_bytes),
+            Frames::Split => (2 * stack_bytes, 0, stack_bytes),
+            Frames::ObsOnly | Frames::NextOnly => (stack_bytes, 0, 0),
+        };
+        let copy = |buffer: &ReplayBuffer, transition: TransitionRef, last_frame: u64, frames: &mut Vec<u8>| {
+            frames.resize(copied_bytes, 0);
+            match self.frames {
+                Frames::Joined => buffer.copy_transition(transition, frames),
+                Frames::Split => {
+                    let (obs, next) = frames.split_at_mut(stack_bytes);
+                    buffer.copy_observation(transition, false, obs);
+                    buffer.copy_stack_ending(transition, last_frame, next);
+                }
+                Frames::ObsOnly => buffer.copy_observation(transition, false, frames),
+                Frames::NextOnly => buffer.copy_stack_ending(transition, last_frame, frames),
+            }
+        };
+        let stack_of = |of: TransitionPart| -> Range<usize> {
+            let at = if of == TransitionPart::Obs { obs_at } else { next_at };
+            at..at + stack_bytes
+        };
+        let (refs, metadata) = (&mut batch.refs, &mut batch.metadata);
+        if self.views.iter().all(|view| matches!(view.plan, Plan::Image(_))) {
+            let augment = |frames: &[u8], key: u64, outputs: Vec<&mut [u8]>| {
+                for ((view, draws), dst) in self.views.iter().zip(&draws).zip(outputs) {
+                    let Plan::Image(plan) = &view.plan else { unreachable!("checked above") };
+                    plan.apply_sample(&frames[stack_of(view.of)], dst, &plan.draw(draws, key));
+                }
+            };
+            let key = |sample: usize| keys.map_or(sample as u64, |keys| keys[sample]);
+            let bytes: Vec<usize> = self.views.iter().map(|view| view.bytes).collect();
+            pool.install(|| {
+                in_turns(size, keep_going, |samples| {
+                    {
+                        let buffer = self.buffer.read().expect("replay lock");
+                        for transition in &mut refs[samples.clone()] {
+                            refresh(&buffer, transition, &mut rng);
                         }
+                        gather(&buffer, &refs[samples.clone()], metadata, samples.start);
                     }
-                };
-                // A sample's frames; with next_obs, stack + 1 frames serve both stacks (a third less
-                // reading).
-                let copy = |buffer: &ReplayBuffer, transition: TransitionRef, frames: &mut Vec<u8>| {
-                    if with_next {
-                        frames.resize(stack_bytes + frame_bytes, 0);
-                        buffer.copy_transition(transition, frames);
-                    } else {
-                        frames.resize(stack_bytes, 0);
-                        buffer.copy_observation(transition, false, frames);
+                    let stale = std::sync::Mutex::new(Vec::new());
+                    {
+                        let (refs, last_frames) = (&refs[..], &metadata.last_frames);
+                        // Each sample's destination in every view.
+                        let mut destinations: Vec<Vec<&mut [u8]>> =
+                            (0..samples.len()).map(|_| Vec::with_capacity(bytes.len())).collect();
+                        for (output, &bytes) in outputs.iter_mut().zip(&bytes) {
+                            let part = &mut output[samples.start * bytes..samples.end * bytes];
+                            for (destination, chunk) in destinations.iter_mut().zip(part.chunks_exact_mut(bytes)) {
+                                destination.push(chunk);
+                            }
+                        }
+                        // Copied under a read lock of its own, augmented without it; set aside
+                        // when the buffer overwrote it after the turn's metadata was read.
+                        destinations.into_par_iter().enumerate().for_each(|(offset, outputs)| {
+                            let sample = samples.start + offset;
+                            STACK.with(|frames| {
+                                let mut frames = frames.borrow_mut();
+                                {
+                                    let buffer = self.buffer.read().expect("replay lock");
+                                    if redraw && !buffer.still_holds(refs[sample]) {
+                                        stale.lock().expect("stale list").push(sample);
+                                        return;
+                                    }
+                                    copy(&buffer, refs[sample], last_frames[sample], &mut frames);
+                                }
+                                augment(&frames, key(sample), outputs);
+                            });
+                        });
                     }
-                };
-                let augment = |frames: &[u8], key: u64, obs_dst: &mut [u8], next_dst: Option<&mut [u8]>| {
-                    plan.apply_sample(&frames[..stack_bytes], obs_dst, &plan.draw(&obs_draws, key));
-                    if let Some(next_dst) = next_dst {
-                        plan.apply_sample(&frames[frame_bytes..], next_dst, &plan.draw(&next_draws, key));
-                    }
-                };
-                let key = |sample: usize| keys.map_or(sample as u64, |keys| keys[sample]);
-                pool.install(|| {
-                    in_turns(size, keep_going, |samples| {
+                    // Rare: drawn again, with metadata and frames read under one lock.
+                    for sample in stale.into_inner().expect("stale list") {
+                        let mut frames = Vec::new();
                         {
                             let buffer = self.buffer.read().expect("replay lock");
-                            for transition in &mut refs[samples.clone()] {
-                                refresh(&buffer, transition, &mut rng);
-                            }
-                            buffer.gather_metadata_at(&refs[samples.clone()], metadata, samples.start);
+                            refresh(&buffer, &mut refs[sample], &mut rng);
+                            gather(&buffer, &refs[sample..=sample], metadata, sample);
+                            copy(&buffer, refs[sample], metadata.last_frames[sample], &mut frames);
                         }
-                        let stale = std::sync::Mutex::new(Vec::new());
-                        {
-                            let refs = &refs[..];
-                            let obs = &mut obs[samples.start * bytes..samples.end * bytes];
-                            // Copied under a read lock of its own, augmented without it; set aside
-                            // when the buffer overwrote it after the turn's metadata was read.
-                            let one = |offset: usize, obs_dst: &mut [u8], next_dst: Option<&mut [u8]>| {
-                                let sample = samples.start + offset;
-                                STACK.with(|frames| {
-                                    let mut frames = frames.borrow_mut();
-                                    {
-                                        let buffer = self.buffer.read().expect("replay lock");
-                                        if redraw && !buffer.still_holds(refs[sample]) {
-                                            stale.lock().expect("stale list").push(sample);
-                                            return;
-                                        }
-                                        copy(&buffer, refs[sample], &mut frames);
-                                    }
-                                    augment(&frames, key(sample), obs_dst, next_dst);
-                                });
-                            };
-                            if with_next {
-                                let next_obs = &mut next_obs[samples.start * bytes..samples.end * bytes];
-                                obs.par_chunks_mut(bytes)
-                                    .zip(next_obs.par_chunks_mut(bytes))
-                                    .enumerate()
-                                    .for_each(|(offset, (obs_dst, next_dst))| one(offset, obs_dst, Some(next_dst)));
-                            } else {
-                                obs.par_chunks_mut(bytes).enumerate().for_each(|(offset, dst)| one(offset, dst, None));
-                            }
-                        }
-                        // Rare: drawn again, with metadata and frames read under one lock.
-                        for sample in stale.into_inner().expect("stale list") {
-                            let mut frames = Vec::new();
-                            {
-                                let buffer = self.buffer.read().expect("replay lock");
-                                refresh(&buffer, &mut refs[sample], &mut rng);
-                                buffer.gather_metadata_at(&refs[sample..=sample], metadata, sample);
-                                copy(&buffer, refs[sample], &mut frames);
-                            }
-                            let next_dst = with_next.then(|| &mut next_obs[sample * bytes..(sample + 1) * bytes]);
-                            augment(&frames, key(sample), &mut obs[sample * bytes..(sample + 1) * bytes], next_dst);
-                        }
-                    })
-                })?;
-            }
+                        let outputs = outputs
+                            .iter_mut()
+                            .zip(&bytes)
+                            .map(|(output, &bytes)| &mut output[sample * bytes..(sample + 1) * bytes])
+                            .collect();
+                        augment(&frames, key(sample), outputs);
+                    }
+                })
+            })?;
+        } else {
             // State vectors are a few hundred bytes and their augmentations a multiply: the whole
             // batch under one lock takes less than one image turn.
-            Plan::State(plan) => {
-                let buffer = self.buffer.read().expect("replay lock");
-                let refs = &batch.refs;
-                buffer.gather_metadata(refs, &mut batch.metadata);
-                for (part, out) in [(TransitionPart::Obs, obs), (TransitionPart::NextObs, next_obs)] {
-                    if out.is_empty() {
-                        continue;
+            let buffer = self.buffer.read().expect("replay lock");
+            gather(&buffer, refs, metadata, 0);
+            for ((view, draws), out) in self.views.iter().zip(&draws).zip(outputs) {
+                let Plan::State(plan) = &view.plan else { unreachable!("one observation format for every view") };
+                for (sample, dst) in out.chunks_exact_mut(view.bytes).enumerate() {
+                    match view.of {
+                        TransitionPart::Obs => buffer.copy_observation(refs[sample], false, dst),
+                        TransitionPart::NextObs => buffer.copy_stack_ending(refs[sample], metadata.last_frames[sample], dst),
                     }
-                    for (sample, dst) in out.chunks_exact_mut(self.obs_bytes).enumerate() {
-                        buffer.copy_observation(refs[sample], part == TransitionPart::NextObs, dst);
-                    }
-                    let values: Vec<f32> =
-                        out.chunks_exact(4).map(|bytes| f32::from_le_bytes(bytes.try_into().unwrap())).collect();
-                    let mut augmented = vec![0.0f32; values.len()];
-                    plan.apply_keyed(&values, &mut augmented, &draws.with_part(part), keys)?;
-                    for (bytes, value) in out.chunks_exact_mut(4).zip(&augmented) {
-                        bytes.copy_from_slice(&value.to_le_bytes());
-                    }
+                }
+                let values: Vec<f32> = out.chunks_exact(4).map(|bytes| f32::from_le_bytes(bytes.try_into().unwrap())).collect();
+                let mut augmented = vec![0.0f32; values.len()];
+                plan.apply_keyed(&values, &mut augmented, draws, keys)?;
+                for (bytes, value) in out.chunks_exact_mut(4).zip(&augmented) {
+                    bytes.copy_from_slice(&value.to_le_bytes());
                 }
             }
         }

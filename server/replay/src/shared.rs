@@ -27,8 +27,8 @@ pub struct SharedRing {
     token: [u8; 16],
     slots: usize,
     slot_bytes: usize,
-    /// Bytes of one observation region (obs, then next_obs after it).
-    region_bytes: usize,
+    /// Where each observation region (one per view of a batch) starts in a slot, and its size.
+    regions: Vec<(usize, usize)>,
     free: Mutex<Vec<usize>>,
     freed: Condvar,
 }
@@ -40,11 +40,17 @@ unsafe impl Send for SharedRing {}
 unsafe impl Sync for SharedRing {}
 
 impl SharedRing {
-    /// A ring of `slots` slots, each holding two observation regions of `region_bytes` (obs and
-    /// next_obs). Pages are allocated by the kernel when first written.
-    pub fn create(slots: usize, region_bytes: usize) -> io::Result<Arc<SharedRing>> {
-        let region_bytes = region_bytes.next_multiple_of(REGION_ALIGN);
-        let slot_bytes = (2 * region_bytes).next_multiple_of(SHARED_HEADER_BYTES);
+    /// A ring of `slots` slots, each holding one observation region per entry of `region_bytes`
+    /// (one per view of a batch), each on a cache line. Pages are allocated by the kernel when
+    /// first written.
+    pub fn create(slots: usize, region_bytes: &[usize]) -> io::Result<Arc<SharedRing>> {
+        let mut regions = Vec::with_capacity(region_bytes.len());
+        let mut offset = 0usize;
+        for &bytes in region_bytes {
+            regions.push((offset, bytes));
+            offset = offset.saturating_add(bytes.next_multiple_of(REGION_ALIGN));
+        }
+        let slot_bytes = offset.max(1).next_multiple_of(SHARED_HEADER_BYTES);
         let len = SHARED_HEADER_BYTES + slots.max(1) * slot_bytes;
         // The learner maps it too, but writes only slots the server has handed it (and the server
         // reads nothing back from it).
@@ -56,7 +62,7 @@ impl SharedRing {
             token: header.token,
             slots,
             slot_bytes,
-            region_bytes,
+            regions,
             free: Mutex::new((0..slots).rev().collect()),
             freed: Condvar::new(),
         }))
@@ -84,8 +90,9 @@ impl SharedRing {
         self.slot_bytes
     }
 
-    pub fn region_bytes(&self) -> usize {
-        self.region_bytes
+    /// Bytes of each region of a slot.
+    pub fn region_bytes(&self) -> Vec<usize> {
+        self.regions.iter().map(|&(_, bytes)| bytes).collect()
     }
 
     /// A free slot, waiting for one while `keep_waiting` says so (checked every 50 ms): None when
@@ -120,27 +127,26 @@ impl Slot {
         self.index
     }
 
-    /// Where the obs region starts, from the start of the memory.
-    pub fn obs_offset(&self) -> usize {
-        SHARED_HEADER_BYTES + self.index * self.ring.slot_bytes
+    /// Where region `region` starts, from the start of the memory.
+    pub fn region_offset(&self, region: usize) -> usize {
+        SHARED_HEADER_BYTES + self.index * self.ring.slot_bytes + self.ring.regions[region].0
     }
 
-    /// Where the next_obs region starts, from the start of the memory.
-    pub fn next_obs_offset(&self) -> usize {
-        self.obs_offset() + self.ring.region_bytes
-    }
-
-    /// The first `len` bytes of the obs and of the next_obs region, to write a batch into.
-    pub fn regions_mut(&mut self, len: usize) -> (&mut [u8], &mut [u8]) {
-        assert!(len <= self.ring.region_bytes, "a batch of {len} bytes in regions of {}", self.ring.region_bytes);
-        // SAFETY: both ranges lie inside this slot, inside the mapping (see `create`), and do not
-        // overlap; this `Slot` is the only owner of its index, and `&mut self` keeps the two slices
-        // from outliving the borrow or being handed out twice.
-        unsafe {
-            let obs = self.ring.base.add(self.obs_offset());
-            let next_obs = self.ring.base.add(self.next_obs_offset());
-            (std::slice::from_raw_parts_mut(obs, len), std::slice::from_raw_parts_mut(next_obs, len))
-        }
+    /// The first `lens[i]` bytes of region i, for each region, to write a batch into.
+    pub fn regions_mut(&mut self, lens: &[usize]) -> Vec<&mut [u8]> {
+        assert!(lens.len() <= self.ring.regions.len(), "{} regions asked of a slot of {}", lens.len(), self.ring.regions.len());
+        lens.iter()
+            .zip(&self.ring.regions)
+            .enumerate()
+            .map(|(region, (&len, &(_, bytes)))| {
+                assert!(len <= bytes, "a view of {len} bytes in a region of {bytes}");
+                // SAFETY: the range lies inside this slot's region, inside the mapping (see
+                // `create`), and regions do not overlap; this `Slot` is the only owner of its
+                // index, and `&mut self` keeps the slices from outliving the borrow or being
+                // handed out twice.
+                unsafe { std::slice::from_raw_parts_mut(self.ring.base.add(self.region_offset(region)), len) }
+            })
+            .collect()
     }
 }
 
@@ -163,26 +169,30 @@ mod tests {
 
     #[test]
     fn another_mapping_sees_the_header_and_a_slot_s_bytes() {
-        let ring = SharedRing::create(3, 1000).unwrap();
+        let ring = SharedRing::create(3, &[1000, 1000, 10]).unwrap();
         let mut slot = ring.acquire(|| false).unwrap();
-        let (obs, next_obs) = slot.regions_mut(1000);
-        obs.fill(7);
-        next_obs.fill(9);
+        let mut regions = slot.regions_mut(&[1000, 1000, 10]);
+        regions[0].fill(7);
+        regions[1].fill(9);
+        regions[2].fill(3);
         let peer = MemFile::from_fd(ring.fd().try_clone_to_owned().unwrap()).unwrap();
         let peer = peer.as_slice();
         assert_eq!(peer.len(), ring.size_bytes());
         assert_eq!(&peer[..16], SHARED_MAGIC);
         assert_eq!(peer[16..32], ring.token());
-        assert!(peer[slot.obs_offset()..][..1000].iter().all(|&b| b == 7));
-        assert!(peer[slot.next_obs_offset()..][..1000].iter().all(|&b| b == 9));
-        assert_eq!(slot.obs_offset() % REGION_ALIGN, 0);
-        assert_eq!(slot.next_obs_offset() % REGION_ALIGN, 0);
-        assert!(slot.next_obs_offset() + 1000 <= slot.obs_offset() + ring.slot_bytes());
+        assert!(peer[slot.region_offset(0)..][..1000].iter().all(|&b| b == 7));
+        assert!(peer[slot.region_offset(1)..][..1000].iter().all(|&b| b == 9));
+        assert!(peer[slot.region_offset(2)..][..10].iter().all(|&b| b == 3));
+        for region in 0..3 {
+            assert_eq!(slot.region_offset(region) % REGION_ALIGN, 0);
+        }
+        assert!(slot.region_offset(1) >= slot.region_offset(0) + 1000);
+        assert!(slot.region_offset(2) + 10 <= slot.region_offset(0) + ring.slot_bytes());
     }
 
     #[test]
     fn slots_are_handed_out_once_and_come_back_when_dropped() {
-        let ring = SharedRing::create(2, 64).unwrap();
+        let ring = SharedRing::create(2, &[64, 64]).unwrap();
         let first = ring.acquire(|| false).unwrap();
         let second = ring.acquire(|| false).unwrap();
         assert_ne!(first.index(), second.index());
@@ -194,7 +204,7 @@ mod tests {
 
     #[test]
     fn a_waiting_acquire_gets_the_slot_another_thread_drops() {
-        let ring = SharedRing::create(1, 64).unwrap();
+        let ring = SharedRing::create(1, &[64, 64]).unwrap();
         let held = ring.acquire(|| false).unwrap();
         let waiter = {
             let ring = ring.clone();
@@ -207,6 +217,6 @@ mod tests {
 
     #[test]
     fn tokens_differ_between_rings() {
-        assert_ne!(SharedRing::create(1, 64).unwrap().token(), SharedRing::create(1, 64).unwrap().token());
+        assert_ne!(SharedRing::create(1, &[64, 64]).unwrap().token(), SharedRing::create(1, &[64, 64]).unwrap().token());
     }
 }

@@ -4,10 +4,10 @@
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
 
-use radserve_augment::{FrameShape, Pipeline, Sharing};
+use radserve_augment::{FrameShape, Pipeline, Sharing, TransitionPart};
 use radserve_replay::{
-    BufferKind, ObservationFormat, Output, Producer, RecordedStep, ReplayBuffer, ReplayLayout, SampleSpec, SharedRing, Source,
-    TransitionRef,
+    BufferKind, ObservationFormat, Output, Producer, RecordedStep, ReplayBuffer, ReplayLayout, Returns, SampleSpec, SharedRing, Source,
+    TransitionMetadata, TransitionRef, ViewSpec,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -157,7 +157,7 @@ fn an_empty_buffer_refuses_to_sample() {
     assert_eq!(refs.len(), 5);
 }
 
-/// Replay batches with next_obs, seed 11, prefetch 2.
+/// Replay batches with next_obs, seed 11, prefetch 2 (views and returns: none).
 fn replay_spec(batch_size: usize, text: &str, max_batches: Option<u64>) -> SampleSpec {
     SampleSpec {
         source: Source::Replay,
@@ -171,7 +171,14 @@ fn replay_spec(batch_size: usize, text: &str, max_batches: Option<u64>) -> Sampl
         samples_per_insert: None,
         error_buffer: 0.0,
         max_batches,
+        views: Vec::new(),
+        returns: None,
     }
+}
+
+/// The bytes of view `name` of a heap batch.
+fn view<'a>(batch: &'a radserve_replay::Batch, name: &str) -> &'a [u8] {
+    &batch.view(name).unwrap_or_else(|| panic!("no view {name}")).data
 }
 
 fn producer(buffer: ReplayBuffer, text: &str, batch_size: usize) -> (Producer, Arc<RwLock<ReplayBuffer>>) {
@@ -190,19 +197,21 @@ fn the_producer_delivers_batches_in_order_with_real_stacks() {
     while let Some(batch) = ready.blocking_recv() {
         let mut batch = batch.unwrap();
         assert_eq!(batch.index, seen);
-        assert_eq!(batch.obs_shape, vec![9, 4, 4]);
+        assert_eq!(batch.views.iter().map(|view| (view.name.as_str(), view.shape.clone())).collect::<Vec<_>>(),
+            [("obs", vec![9, 4, 4]), ("next_obs", vec![9, 4, 4])]);
+        assert!(!batch.has_discount);
         for sample in 0..batch.len {
             let key = (batch.metadata.env_indices[sample], batch.metadata.step_indices[sample]);
             let stack = 3 * FRAME_BYTES;
-            assert_eq!(batch.obs[sample * stack..(sample + 1) * stack], expected[&key].obs);
-            assert_eq!(batch.next_obs[sample * stack..(sample + 1) * stack], expected[&key].next_obs);
+            assert_eq!(view(&batch, "obs")[sample * stack..(sample + 1) * stack], expected[&key].obs);
+            assert_eq!(view(&batch, "next_obs")[sample * stack..(sample + 1) * stack], expected[&key].next_obs);
         }
         seen += 1;
         // Buffers handed back are reused (filled with garbage first: every byte must be rewritten).
-        batch.obs.fill(0xEE);
-        batch.next_obs.fill(0xEE);
-        let _ = recycle.send(std::mem::take(&mut batch.obs));
-        let _ = recycle.send(std::mem::take(&mut batch.next_obs));
+        for view in &mut batch.views {
+            view.data.fill(0xEE);
+            let _ = recycle.send(std::mem::take(&mut view.data));
+        }
     }
     assert_eq!(seen, 3, "max_batches ends the stream");
 }
@@ -218,7 +227,7 @@ fn shared_output_writes_the_same_batches_into_slots_and_waits_for_free_ones() {
     assert_eq!(expected.len(), 3);
 
     let shared_producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec(Some(3))).unwrap();
-    let ring = SharedRing::create(2, shared_producer.observation_bytes()).unwrap();
+    let ring = SharedRing::create(2, &shared_producer.region_bytes()).unwrap();
     let (mut ready, _) = shared_producer.start(pool.clone(), Output::Shared(ring.clone()));
     let first = ready.blocking_recv().unwrap().unwrap();
     let second = ready.blocking_recv().unwrap().unwrap();
@@ -227,27 +236,28 @@ fn shared_output_writes_the_same_batches_into_slots_and_waits_for_free_ones() {
     // The learner's view: memory the producer no longer writes into for these batches.
     let peer = radserve_shm::MemFile::from_fd(ring.fd().try_clone_to_owned().unwrap()).unwrap();
     let peer = peer.as_slice();
+    let len = view(&expected[0], "obs").len();
     let slot_bytes = |batch: &radserve_replay::Batch, next: bool| {
         let slot = batch.slot.as_ref().expect("shared batches carry their slot");
-        let offset = if next { slot.next_obs_offset() } else { slot.obs_offset() };
-        peer[offset..offset + expected[0].obs.len()].to_vec()
+        let offset = slot.region_offset(usize::from(next));
+        peer[offset..offset + len].to_vec()
     };
     for (batch, reference) in [(&first, &expected[0]), (&second, &expected[1])] {
-        assert!(batch.obs.is_empty() && batch.next_obs.is_empty());
+        assert!(batch.views.iter().all(|view| view.data.is_empty()));
         assert_eq!(batch.metadata, reference.metadata);
-        assert_eq!(slot_bytes(batch, false), reference.obs, "batch {}", batch.index);
-        assert_eq!(slot_bytes(batch, true), reference.next_obs, "batch {}", batch.index);
+        assert_eq!(slot_bytes(batch, false), view(reference, "obs"), "batch {}", batch.index);
+        assert_eq!(slot_bytes(batch, true), view(reference, "next_obs"), "batch {}", batch.index);
     }
     let freed = first.slot.as_ref().unwrap().index();
     drop(first);
     let third = ready.blocking_recv().unwrap().unwrap();
     assert_eq!(third.slot.as_ref().unwrap().index(), freed, "the released slot is reused");
-    assert_eq!(slot_bytes(&third, false), expected[2].obs);
+    assert_eq!(slot_bytes(&third, false), view(&expected[2], "obs"));
     assert!(ready.blocking_recv().is_none(), "max_batches ends the stream");
 
     // A client that leaves while the producer waits for a slot frees the producer.
     let waiting = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec(None)).unwrap();
-    let small_ring = SharedRing::create(1, waiting.observation_bytes()).unwrap();
+    let small_ring = SharedRing::create(1, &waiting.region_bytes()).unwrap();
     let (mut ready, _) = waiting.start(pool, Output::Shared(small_ring));
     let held = ready.blocking_recv().unwrap().unwrap();
     std::thread::sleep(std::time::Duration::from_millis(50));
@@ -265,11 +275,11 @@ fn shared_output_writes_the_same_batches_into_slots_and_waits_for_free_ones() {
 fn the_producer_augments_and_checks_the_request_first() {
     let (buffer, _) = simulate(1, 50, 100, 6);
     let (producer, shared) = producer(buffer, "crop(3)|flip(p=0.5)", 8);
-    assert_eq!(producer.obs_shape(), &[9, 3, 3]);
+    assert_eq!(producer.view_shapes(), [("obs", &[9usize, 3, 3][..]), ("next_obs", &[9, 3, 3][..])]);
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
     let (mut ready, _recycle) = producer.start(pool, Output::Heap);
     let batch = ready.blocking_recv().unwrap().unwrap();
-    assert_eq!(batch.obs.len(), 8 * 9 * 3 * 3);
+    assert_eq!(view(&batch, "obs").len(), 8 * 9 * 3 * 3);
     let spec = |batch_size, text: &str, prefetch| SampleSpec {
         source: Source::Replay,
         include_next_obs: true,
@@ -282,6 +292,8 @@ fn the_producer_augments_and_checks_the_request_first() {
         samples_per_insert: None,
         error_buffer: 0.0,
         max_batches: None,
+        views: Vec::new(),
+        returns: None,
     };
     let refuse = |spec: SampleSpec, format| Producer::new(shared.clone(), format, spec).err().unwrap().to_string();
     let image = ObservationFormat::Image(SHAPE);
@@ -309,6 +321,8 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
         samples_per_insert: Some(2.0),
         error_buffer: 10.0,
         max_batches: None,
+        views: Vec::new(),
+        returns: None,
     };
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
@@ -364,6 +378,8 @@ fn rollout_spec(batch_size: usize, epochs: usize, per_env_draws: bool, text: &st
         samples_per_insert: None,
         error_buffer: 0.0,
         max_batches: None,
+        views: Vec::new(),
+        returns: None,
     }
 }
 
@@ -380,7 +396,7 @@ fn rollout_epochs_cover_every_step_of_every_env_exactly_once() {
     let mut batches = 0;
     while let Some(batch) = ready.blocking_recv() {
         let batch = batch.unwrap();
-        assert!(batch.next_obs.is_empty(), "rollouts leave next_obs out");
+        assert!(batch.view("next_obs").is_none(), "rollouts leave next_obs out");
         let t = batch.rollout_t.as_ref().unwrap();
         #[allow(clippy::needless_range_loop)] // one index into several parallel arrays
         for sample in 0..batch.len {
@@ -420,7 +436,7 @@ fn rollout_draws_can_be_held_per_environment() {
         while let Some(batch) = ready.blocking_recv() {
             let batch = batch.unwrap();
             for sample in 0..batch.len {
-                let plane = &batch.obs[sample * 9 * 4..sample * 9 * 4 + 4];
+                let plane = &view(&batch, "obs")[sample * 9 * 4..sample * 9 * 4 + 4];
                 // The position of the env byte tells the offset: (0,0) keeps it, others do not.
                 let signature = plane.iter().map(|&v| u8::from(v == batch.metadata.env_indices[sample] as u8)).collect();
                 offsets.entry(batch.metadata.env_indices[sample]).or_default().insert(signature);
@@ -501,8 +517,8 @@ fn samples_stay_consistent_while_the_buffer_is_written() {
         for sample in 0..batch.len {
             let step = batch.metadata.step_indices[sample];
             assert_eq!(batch.metadata.rewards[sample], step as f32);
-            let stack = &batch.obs[sample * 3 * FRAME_BYTES..][..3 * FRAME_BYTES];
-            let next = &batch.next_obs[sample * 3 * FRAME_BYTES..][..3 * FRAME_BYTES];
+            let stack = &view(&batch, "obs")[sample * 3 * FRAME_BYTES..][..3 * FRAME_BYTES];
+            let next = &view(&batch, "next_obs")[sample * 3 * FRAME_BYTES..][..3 * FRAME_BYTES];
             // Frame t is the observation after step t - 1; the first frame fills the stack.
             let want = |t: i64| (t.max(0) as u32) & 0xFFFF;
             for k in 0..3 {
@@ -514,4 +530,171 @@ fn samples_stay_consistent_while_the_buffer_is_written() {
     }
     writer.join().unwrap();
     assert_eq!(batches, 60);
+}
+
+/// The model's n-step window of (env, step): up to `n` rewards of its episode summed with
+/// `discount`, the bootstrap's factor, the flags and the next observation after the last summed
+/// step; None while the episode is in progress and fewer than `n` steps from it were taken.
+fn model_window(
+    expected: &HashMap<(u32, u64), Expected>,
+    key: (u32, u64),
+    n: u64,
+    discount: f64,
+) -> Option<(f64, f64, bool, bool, Vec<u8>)> {
+    let (mut reward, mut factor) = (0.0, 1.0);
+    for k in 0..n {
+        let step = expected.get(&(key.0, key.1 + k))?;
+        reward += factor * f64::from(step.reward);
+        factor *= discount;
+        if step.terminated {
+            return Some((reward, 0.0, true, false, step.next_obs.clone()));
+        }
+        if step.truncated || k + 1 == n {
+            return Some((reward, factor, false, step.truncated, step.next_obs.clone()));
+        }
+    }
+    unreachable!("n >= 1")
+}
+
+#[test]
+fn n_step_windows_match_a_model_of_the_episodes() {
+    // Episodes end by termination and truncation (8% of steps); small rings wrap many times.
+    let (mut cut_short, mut terminated, mut truncated) = (0, 0, 0);
+    for (num_envs, capacity, steps) in [(1, 40, 500), (3, 90, 400), (2, 1000, 120)] {
+        for n in [1usize, 3, 5] {
+            let (mut buffer, expected) = simulate(num_envs, capacity, steps, 21 + n as u64);
+            let returns = Returns::new(n, 0.9).unwrap();
+            let mut rng = ChaCha8Rng::seed_from_u64(3);
+            let mut refs = Vec::new();
+            buffer.sample_windows(3000, n, &mut rng, &mut refs).unwrap();
+            let mut metadata = TransitionMetadata::default();
+            buffer.gather_metadata(&refs, &mut metadata);
+            buffer.gather_returns_at(&refs, returns, &mut metadata, 0);
+            let mut stack = vec![0u8; 3 * FRAME_BYTES];
+            for (index, transition) in refs.iter().enumerate() {
+                let key = (metadata.env_indices[index], metadata.step_indices[index]);
+                let (reward, discount, ends, cut, next_obs) = model_window(&expected, key, n as u64, 0.9)
+                    .unwrap_or_else(|| panic!("{key:?} was sampled before its {n} steps were taken"));
+                assert!((f64::from(metadata.rewards[index]) - reward).abs() < 1e-5, "reward of {key:?}");
+                assert!((f64::from(metadata.discounts[index]) - discount).abs() < 1e-6, "discount of {key:?}");
+                assert_eq!((metadata.terminated[index] == 1, metadata.truncated[index] == 1), (ends, cut), "flags of {key:?}");
+                buffer.copy_stack_ending(*transition, metadata.last_frames[index], &mut stack);
+                assert_eq!(stack, next_obs, "the observation after the window of {key:?}");
+                buffer.copy_observation(*transition, false, &mut stack);
+                assert_eq!(stack, expected[&key].obs, "obs of {key:?}");
+                if n > 1 {
+                    cut_short += usize::from(metadata.discounts[index] as f32 != 0.9f64.powi(n as i32) as f32);
+                    terminated += usize::from(ends);
+                    truncated += usize::from(cut);
+                }
+            }
+            // The last n - 1 steps of each episode in progress wait for their windows.
+            let in_progress: usize = (0..num_envs as u32)
+                .map(|env| (1..n as u64).filter(|back| model_window(&expected, (env, steps - back), n as u64, 0.9).is_none()).count())
+                .sum();
+            assert_eq!(buffer.sampleable(n), buffer.len() - in_progress);
+        }
+    }
+    assert!(cut_short > 0 && terminated > 0 && truncated > 0, "windows end early both ways: {cut_short} {terminated} {truncated}");
+}
+
+/// Views of a DrQ batch with a CURL pair and SVEA's shared draws: obs as stored, two crops drawn
+/// independently, a crop and a crop-then-flip that share their draws, and next_obs three steps on.
+fn drq_views() -> Vec<ViewSpec> {
+    let view = |name: &str, of, text: &str, draws: Option<&str>| ViewSpec {
+        name: name.into(),
+        of,
+        pipeline: Pipeline::parse(text).unwrap(),
+        draws: draws.map(str::to_owned),
+    };
+    vec![
+        view("obs", TransitionPart::Obs, "none", None),
+        view("anchor", TransitionPart::Obs, "crop(3)", None),
+        view("positive", TransitionPart::Obs, "crop(3)", None),
+        view("svea_clean", TransitionPart::Obs, "crop(3)", Some("svea")),
+        view("svea_strong", TransitionPart::Obs, "crop(3)|flip(p=1)", Some("svea")),
+        view("next_obs", TransitionPart::NextObs, "none", None),
+    ]
+}
+
+#[test]
+fn named_views_carry_their_own_draws_and_the_n_step_next_obs() {
+    let (buffer, expected) = simulate(2, 200, 300, 5);
+    let shared = Arc::new(RwLock::new(buffer));
+    let spec = SampleSpec { views: drq_views(), returns: Some(Returns::new(3, 0.99).unwrap()), ..replay_spec(64, "none", Some(2)) };
+    let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec.clone()).unwrap();
+    let sizes: Vec<usize> = [3 * 48, 81, 81, 81, 81, 3 * 48].iter().map(|bytes| 64 * bytes).collect();
+    assert_eq!(producer.region_bytes(), sizes);
+    assert_eq!(producer.stream_memory_bytes(), 4 * sizes.iter().sum::<usize>() as u64);
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
+    let (mut ready, _recycle) = producer.start(pool.clone(), Output::Heap);
+    let heap: Vec<_> = std::iter::from_fn(|| ready.blocking_recv()).map(Result::unwrap).collect();
+    let mut independent = 0;
+    for batch in &heap {
+        assert!(batch.has_discount);
+        let names: Vec<&str> = batch.views.iter().map(|view| view.name.as_str()).collect();
+        assert_eq!(names, ["obs", "anchor", "positive", "svea_clean", "svea_strong", "next_obs"]);
+        for sample in 0..batch.len {
+            let key = (batch.metadata.env_indices[sample], batch.metadata.step_indices[sample]);
+            let (_, discount, ..) = model_window(&expected, key, 3, 0.99).unwrap();
+            let (_, _, _, _, next_obs) = model_window(&expected, key, 3, 0.99).unwrap();
+            assert!((f64::from(batch.metadata.discounts[sample]) - discount).abs() < 1e-6);
+            let at = |name: &str, bytes: usize| &view(batch, name)[sample * bytes..(sample + 1) * bytes];
+            assert_eq!(at("obs", 3 * FRAME_BYTES), expected[&key].obs);
+            assert_eq!(at("next_obs", 3 * FRAME_BYTES), next_obs);
+            // The strong view is the clean one flipped: the same crop.
+            let (clean, strong) = (at("svea_clean", 81), at("svea_strong", 81));
+            for row in 0..9 * 3 {
+                let mut flipped = clean[row * 3..row * 3 + 3].to_vec();
+                flipped.reverse();
+                assert_eq!(strong[row * 3..row * 3 + 3], flipped);
+            }
+            independent += usize::from(at("anchor", 81) != at("positive", 81));
+        }
+    }
+    assert!(independent > 64, "anchor and positive are cropped independently ({independent} of 128 differ)");
+    // Through shared memory: the same batches, one region per view.
+    let shared_producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
+    let ring = SharedRing::create(4, &shared_producer.region_bytes()).unwrap();
+    let (mut ready, _) = shared_producer.start(pool, Output::Shared(ring.clone()));
+    let peer = radserve_shm::MemFile::from_fd(ring.fd().try_clone_to_owned().unwrap()).unwrap();
+    for reference in &heap {
+        let batch = ready.blocking_recv().unwrap().unwrap();
+        assert_eq!(batch.metadata, reference.metadata);
+        let slot = batch.slot.as_ref().unwrap();
+        for (region, view) in reference.views.iter().enumerate() {
+            assert_eq!(&peer.as_slice()[slot.region_offset(region)..][..view.data.len()], view.data.as_slice(), "{}", view.name);
+        }
+    }
+}
+
+#[test]
+fn views_and_returns_are_checked_before_any_batch() {
+    let (buffer, _) = simulate(1, 50, 100, 6);
+    let shared = Arc::new(RwLock::new(buffer));
+    let image = ObservationFormat::Image(SHAPE);
+    let with_views = |views: Vec<ViewSpec>| SampleSpec { views, ..replay_spec(8, "none", None) };
+    let refuse = |spec: SampleSpec| Producer::new(shared.clone(), image, spec).err().unwrap().to_string();
+    let obs = |name: &str, text: &str| ViewSpec::new(name, TransitionPart::Obs, Pipeline::parse(text).unwrap());
+    assert!(refuse(with_views((0..9).map(|i| obs(&format!("v{i}"), "none")).collect())).contains("at most 8 views, got 9"));
+    assert!(refuse(with_views(vec![obs("Obs", "none")])).contains("lowercase names"));
+    assert!(refuse(with_views(vec![obs("", "none")])).contains("lowercase names"));
+    assert!(refuse(with_views(vec![obs(&"x".repeat(33), "none")])).contains("lowercase names"));
+    assert!(refuse(with_views(vec![obs("reward", "none")])).contains("is a field every batch has"));
+    assert!(refuse(with_views(vec![obs("a", "none"), obs("a", "crop(3)")])).contains("named twice"));
+    let message = refuse(with_views(vec![obs("a", "none"), obs("b", "crop(5)")]));
+    assert!(message.starts_with("view \"b\": ") && message.contains("crop(5) needs frames of at least 5x5"), "{message}");
+    // 8 views of 512 translated stacks: over the batch bound, naming the views.
+    let big = (0..8).map(|i| obs(&format!("v{i}"), "translate(2000)")).collect();
+    let message = Producer::new(shared.clone(), image, SampleSpec { views: big, ..replay_spec(50, "none", None) }).err().unwrap().to_string();
+    assert!(message.contains("views v0, v1") && message.contains("the most allowed is"), "{message}");
+    assert!(Returns::new(0, 0.9).unwrap_err().to_string().contains("n_step must be between 1 and 64, got 0"));
+    assert!(Returns::new(65, 0.9).is_err());
+    for discount in [-0.1, 1.1, f64::NAN] {
+        assert!(Returns::new(3, discount).unwrap_err().to_string().contains("discount must be in [0, 1]"));
+    }
+    let rollout = Arc::new(RwLock::new(rollout_buffer(8, 2, 0)));
+    let spec = SampleSpec { returns: Some(Returns::new(3, 0.9).unwrap()), ..rollout_spec(4, 1, false, "none") };
+    let message = Producer::new(rollout, image, spec).err().unwrap().to_string();
+    assert!(message.contains("n_step and discount apply to replay"), "{message}");
 }

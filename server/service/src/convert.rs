@@ -3,8 +3,8 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use radserve_augment::{Pipeline, Sharing};
-use radserve_replay::{Batch, ReplayError, SampleSpec, Slot, Source};
+use radserve_augment::{Pipeline, Sharing, TransitionPart};
+use radserve_replay::{Batch, ReplayError, Returns, SampleSpec, Slot, Source, ViewSpec, MAX_VIEWS};
 use radserve_core::{
     BufferRequest, CatalogEntry, DType, EpisodeEnd, InfoKind, Infos, OptionValue, Options, SessionInfo, SessionSummary, Space,
     StepOutcome,
@@ -263,17 +263,103 @@ fn typed_pipeline_text(typed: &proto::AugmentationPipeline) -> Result<String> {
     Ok(stages.join("|"))
 }
 
+/// A pipeline given typed or as text (none: no augmentation).
+fn pipeline_from_proto(text: Option<&str>, typed: Option<&proto::AugmentationPipeline>) -> Result<Pipeline> {
+    Ok(match (text, typed) {
+        (Some(text), _) => Pipeline::parse(text).map_err(ReplayError::from)?,
+        // The typed form goes through the text form's parser, so both are checked the same way.
+        (None, Some(typed)) => Pipeline::parse(&typed_pipeline_text(typed)?).map_err(ReplayError::from)?,
+        (None, None) => Pipeline::identity(),
+    })
+}
+
+/// A request's named views, bounded before any is parsed; names and shapes are checked by the
+/// producer against the observation.
+fn views_from_proto(request: &proto::SampleBatchesRequest) -> Result<Vec<ViewSpec>> {
+    use proto::sample_view::Augmentation as Choice;
+    use radserve_core::bounds::clip;
+    if request.views.is_empty() {
+        return Ok(Vec::new());
+    }
+    if request.views.len() > MAX_VIEWS {
+        return Err(ServiceError::BadRequest(format!("views: at most {MAX_VIEWS} per request, got {}", request.views.len())));
+    }
+    let beside = |field: &str| {
+        Err(ServiceError::BadRequest(format!(
+            "{field} applies to obs and next_obs when no views are named; with views, give each view its own pipeline \
+             (and a `draws` label to share draws, a view of next_obs for next observations)"
+        )))
+    };
+    if request.augmentation.is_some() {
+        return beside("augmentation");
+    }
+    if request.sharing != proto::DrawSharing::Reference as i32 {
+        return beside("sharing");
+    }
+    if request.include_next_obs.is_some() {
+        return beside("include_next_obs");
+    }
+    request
+        .views
+        .iter()
+        .map(|view| {
+            let of = match proto::ViewOf::try_from(view.of) {
+                Ok(proto::ViewOf::Obs) => TransitionPart::Obs,
+                Ok(proto::ViewOf::NextObs) => TransitionPart::NextObs,
+                Ok(proto::ViewOf::Unspecified) if view.name.starts_with("next_") => TransitionPart::NextObs,
+                Ok(proto::ViewOf::Unspecified) => TransitionPart::Obs,
+                Err(_) => {
+                    return Err(ServiceError::BadRequest(format!(
+                        "view {:?}: `of` must be VIEW_OF_OBS or VIEW_OF_NEXT_OBS (the fields a transition has), got {}",
+                        clip(&view.name),
+                        view.of
+                    )))
+                }
+            };
+            let (text, typed) = match &view.augmentation {
+                Some(Choice::PipelineText(text)) => (Some(text.as_str()), None),
+                Some(Choice::Pipeline(typed)) => (None, Some(typed)),
+                None => (None, None),
+            };
+            let pipeline = pipeline_from_proto(text, typed).map_err(|error| match error {
+                ServiceError::Replay(error) => ServiceError::BadRequest(format!("view {:?}: {error}", clip(&view.name))),
+                other => other,
+            })?;
+            if view.draws.len() > radserve_replay::MAX_VIEW_NAME {
+                return Err(ServiceError::BadRequest(format!(
+                    "view {:?}: a draws label has at most {} characters, got {}",
+                    clip(&view.name),
+                    radserve_replay::MAX_VIEW_NAME,
+                    view.draws.len()
+                )));
+            }
+            let draws = (!view.draws.is_empty()).then(|| view.draws.clone());
+            Ok(ViewSpec { name: view.name.clone(), of, pipeline, draws })
+        })
+        .collect()
+}
+
+/// A request's n-step returns (none: neither n_step nor discount given).
+fn returns_from_proto(request: &proto::SampleBatchesRequest) -> Result<Option<Returns>> {
+    let n_step = request.n_step.unwrap_or(1) as usize;
+    match request.discount {
+        None if n_step > 1 => Err(ServiceError::BadRequest(format!(
+            "n_step {n_step} needs the discount its rewards are summed with (discount, in [0, 1])"
+        ))),
+        None if request.n_step.is_some() => Ok(Some(Returns::new(n_step, 1.0).map_err(ServiceError::from)?)),
+        None => Ok(None),
+        Some(discount) => Ok(Some(Returns::new(n_step, discount).map_err(ServiceError::from)?)),
+    }
+}
+
 /// A SampleBatches request as the producer's spec, every field checked; a field the request leaves
 /// at its proto3 zero gets the default the proto documents.
 pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<SampleSpec> {
     use proto::sample_batches_request::Augmentation as Choice;
     let pipeline = match &request.augmentation {
         None => Pipeline::identity(),
-        Some(Choice::PipelineText(text)) => Pipeline::parse(text).map_err(ReplayError::from)?,
-        // The typed form goes through the text form's parser, so both are checked the same way.
-        Some(Choice::Pipeline(typed)) => {
-            Pipeline::parse(&typed_pipeline_text(typed)?).map_err(ReplayError::from)?
-        }
+        Some(Choice::PipelineText(text)) => pipeline_from_proto(Some(text), None)?,
+        Some(Choice::Pipeline(typed)) => pipeline_from_proto(None, Some(typed))?,
     };
     let sharing = match proto::DrawSharing::try_from(request.sharing) {
         Ok(proto::DrawSharing::Reference) => Sharing::Reference,
@@ -291,12 +377,16 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
         Err(_) => return Err(ServiceError::BadRequest(format!("unknown BatchSource value {}", request.source))),
     };
     let include_next_obs = request.include_next_obs.unwrap_or(source == Source::Replay);
+    let views = views_from_proto(request)?;
+    let returns = returns_from_proto(request)?;
     Ok(SampleSpec {
         source,
         include_next_obs,
         batch_size,
         pipeline,
         sharing,
+        views,
+        returns,
         seed: request.seed,
         prefetch: if request.prefetch == 0 { SampleSpec::DEFAULT_PREFETCH } else { request.prefetch as usize },
         min_size: if source == Source::Replay { request.min_size.map_or(batch_size, |size| size as usize) } else { 0 },
@@ -317,8 +407,8 @@ impl AsRef<[u8]> for SharedBuffer {
 }
 
 /// The fields of a batch other than its observations, in the stream's order, as (name, dtype,
-/// shape, little-endian bytes); `t` only for rollout batches.
-fn small_fields(batch: &mut Batch, action: &Space) -> Vec<(&'static str, proto::DType, Vec<i64>, Vec<u8>)> {
+/// shape, little-endian bytes); `discount` only with n-step returns, `t` only for rollout batches.
+fn small_fields(batch: &mut Batch, action: &Space) -> Vec<(String, proto::DType, Vec<i64>, Vec<u8>)> {
     let len = batch.len;
     let with_batch = |shape: &[usize]| -> Vec<i64> { std::iter::once(len).chain(shape.iter().copied()).map(|d| d as i64).collect() };
     let metadata = std::mem::take(&mut batch.metadata);
@@ -334,12 +424,15 @@ fn small_fields(batch: &mut Batch, action: &Space) -> Vec<(&'static str, proto::
         ("step_index", proto::DType::DtypeInt64, vec![len as i64], int64_bytes),
         ("policy_version", proto::DType::DtypeInt32, vec![len as i64], metadata.policy_versions.iter().flat_map(|v| v.to_le_bytes()).collect()),
     ];
+    if batch.has_discount {
+        fields.push(("discount", proto::DType::DtypeFloat32, vec![len as i64], metadata.discounts.iter().flat_map(|v| v.to_le_bytes()).collect()));
+    }
     if let Some(rollout_t) = &batch.rollout_t {
         fields.push(("t", proto::DType::DtypeInt32, vec![len as i64], rollout_t.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect()));
         fields.push(("log_prob", proto::DType::DtypeFloat32, vec![len as i64], metadata.log_probs.iter().flat_map(|v| v.to_le_bytes()).collect()));
         fields.push(("value", proto::DType::DtypeFloat32, vec![len as i64], metadata.values.iter().flat_map(|v| v.to_le_bytes()).collect()));
     }
-    fields
+    fields.into_iter().map(|(name, dtype, shape, data)| (name.to_owned(), dtype, shape, data)).collect()
 }
 
 fn observation_dtype(batch: &Batch) -> proto::DType {
@@ -350,30 +443,30 @@ fn observation_dtype(batch: &Batch) -> proto::DType {
     }
 }
 
-fn observation_shape(batch: &Batch) -> Vec<i64> {
-    std::iter::once(batch.len).chain(batch.obs_shape.iter().copied()).map(|d| d as i64).collect()
+fn observation_shape(batch: &Batch, view: &radserve_replay::ViewData) -> Vec<i64> {
+    std::iter::once(batch.len).chain(view.shape.iter().copied()).map(|d| d as i64).collect()
 }
 
 /// Split a batch into BatchChunk messages of at most `chunk_bytes` of tensor data each. The
 /// observation buffers are sliced, never copied; they are also returned, for recycling once the
 /// chunks have been sent (when the `Arc` is unique again).
 pub fn batch_to_chunks(mut batch: Batch, action: &Space, chunk_bytes: usize) -> (Vec<proto::BatchChunk>, Vec<Arc<Vec<u8>>>) {
-    let len = batch.len;
-    let (obs_dtype, obs_shape) = (observation_dtype(&batch), observation_shape(&batch));
+    let obs_dtype = observation_dtype(&batch);
+    let views = std::mem::take(&mut batch.views);
     let small = small_fields(&mut batch, action);
-    let mut fields = vec![
-        ("obs", obs_dtype, obs_shape.clone(), std::mem::take(&mut batch.obs)),
-        ("next_obs", obs_dtype, obs_shape, std::mem::take(&mut batch.next_obs)),
-    ];
+    let view_count = views.len();
+    let mut fields: Vec<_> = views
+        .into_iter()
+        .map(|view| {
+            let shape = observation_shape(&batch, &view);
+            (view.name, obs_dtype, shape, view.data)
+        })
+        .collect();
     fields.extend(small);
     let mut chunks = Vec::new();
     let mut observation_buffers = Vec::new();
-    for (name, dtype, shape, data) in fields {
-        // next_obs is left out when the stream does not carry it (rollouts by default).
-        if data.is_empty() && len > 0 && name == "next_obs" {
-            continue;
-        }
-        let data = if matches!(name, "obs" | "next_obs") {
+    for (field, (name, dtype, shape, data)) in fields.into_iter().enumerate() {
+        let data = if field < view_count {
             let shared = Arc::new(data);
             observation_buffers.push(shared.clone());
             prost::bytes::Bytes::from_owner(SharedBuffer(shared))
@@ -386,7 +479,7 @@ pub fn batch_to_chunks(mut batch: Batch, action: &Space, chunk_bytes: usize) -> 
             let end = (offset + chunk_bytes.max(1)).min(total);
             chunks.push(proto::BatchChunk {
                 batch_index: batch.index,
-                field: name.to_string(),
+                field: name.clone(),
                 dtype: dtype as i32,
                 shape: shape.clone(),
                 offset: offset as u64,
@@ -411,17 +504,19 @@ pub fn batch_to_chunks(mut batch: Batch, action: &Space, chunk_bytes: usize) -> 
 /// releases the batch.
 pub fn shared_batch_to_proto(mut batch: Batch, action: &Space) -> (proto::SharedBatch, Slot) {
     let slot = batch.slot.take().expect("a batch produced into shared memory carries its slot");
-    let (dtype, shape) = (observation_dtype(&batch) as i32, observation_shape(&batch));
-    let mut shared = HashMap::from([(
-        "obs".to_string(),
-        proto::SharedTensor { dtype, shape: shape.clone(), offset: slot.obs_offset() as u64 },
-    )]);
-    if batch.has_next_obs {
-        shared.insert("next_obs".into(), proto::SharedTensor { dtype, shape, offset: slot.next_obs_offset() as u64 });
-    }
+    let dtype = observation_dtype(&batch) as i32;
+    let shared = batch
+        .views
+        .iter()
+        .enumerate()
+        .map(|(region, view)| {
+            let tensor = proto::SharedTensor { dtype, shape: observation_shape(&batch, view), offset: slot.region_offset(region) as u64 };
+            (view.name.clone(), tensor)
+        })
+        .collect();
     let tensors = small_fields(&mut batch, action)
         .into_iter()
-        .map(|(name, dtype, shape, data)| (name.to_string(), proto::Tensor { dtype: dtype as i32, shape, data: data.into() }))
+        .map(|(name, dtype, shape, data)| (name, proto::Tensor { dtype: dtype as i32, shape, data: data.into() }))
         .collect();
     let message = proto::SharedBatch { batch_index: batch.index, slot: slot.index() as u32, shared, tensors };
     (message, slot)

@@ -113,8 +113,9 @@ impl RadServeService {
         // A slot per batch waiting in the prefetch queue, one being filled and one the learner
         // reads: the producer never waits on a learner that releases each batch before the next.
         let slots = producer.prefetch() + 2;
-        let ring = SharedRing::create(slots, producer.observation_bytes()).map_err(|error| {
-            let what = format!("creating {slots} shared-memory slots of 2 x {} bytes for the batches", producer.observation_bytes());
+        let regions = producer.region_bytes();
+        let ring = SharedRing::create(slots, &regions).map_err(|error| {
+            let what = format!("creating {slots} shared-memory slots of {regions:?} bytes for the batches");
             radserve_core::error::resource_error(&what, &error)
         })?;
         let socket = HandoffSocket::bind()

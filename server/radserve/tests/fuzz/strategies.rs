@@ -57,8 +57,29 @@ pub fn stage_text() -> impl Strategy<Value = String> {
     text(vec![
         "crop(84)", "crop(2)", "translate(12)", "translate(2700)", "center_crop(84)", "center_translate(108)", "grayscale",
         "cutout(1,3)", "flip(p=0.5)", "rotate", "conv", "color_jitter", "noise(std=0.1)", "ras_s", "ras_m(alpha=2,beta=1)",
-        "crop(size=-1)", "crpo", "none", "",
+        "crop(size=-1)", "crpo", "none", "", "shift(4)", "shift(200)", "intensity", "intensity(0.9)",
     ])
+}
+
+/// Named views: mostly none, else a few plausible ones (DrQ's, CURL's, SVEA's), names and labels
+/// that are not allowed, unknown `of` values and more views than allowed.
+pub fn views() -> impl Strategy<Value = Vec<proto::SampleView>> {
+    use proto::sample_view::Augmentation;
+    let view = (
+        text(vec!["obs", "obs_aug", "next_obs", "next_obs_aug", "anchor", "positive", "reward", "Obs", "obs-aug", "_x", ""]),
+        prop_oneof![4 => 0i32..3, 1 => any::<i32>()],
+        prop::option::of(stage_text().prop_map(Augmentation::PipelineText)),
+        text(vec!["", "", "a", "b"]),
+    )
+        .prop_map(|(name, of, augmentation, draws)| proto::SampleView { name, of, augmentation, draws });
+    prop_oneof![
+        3 => Just(Vec::new()),
+        2 => prop::collection::vec(view, 1..5),
+        1 => prop::collection::vec(
+            (text(vec!["v"]), 0i32..3).prop_map(|(name, of)| proto::SampleView { name, of, ..Default::default() }),
+            8..12
+        ),
+    ]
 }
 
 pub fn pipeline() -> impl Strategy<Value = Option<proto::sample_batches_request::Augmentation>> {
@@ -117,12 +138,14 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
         (edge_u32(), pipeline(), prop_oneof![4 => 0i32..3, 1 => any::<i32>()], edge_u32(), any::<u64>()),
         (prop::option::of(edge_u64()), prop::option::of(edge_f64()), edge_f64(), prop::option::of(0u64..6)),
         (edge_u32(), prop_oneof![4 => 0i32..2, 1 => any::<i32>()], edge_u32(), any::<bool>(), prop::option::of(any::<bool>())),
+        (views(), prop::option::of(prop_oneof![3 => 0u32..6, 1 => edge_u32()]), prop::option::of(edge_f64())),
     )
         .prop_map(
             |(
                 (batch_size, augmentation, sharing, prefetch, seed),
                 (min_size, samples_per_insert, error_buffer, max_batches),
                 (chunk_bytes, source, epochs, per_env_augmentation, include_next_obs),
+                (views, n_step, discount),
             )| proto::SampleBatchesRequest {
                 session_id: String::new(),
                 batch_size,
@@ -139,6 +162,9 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
                 epochs,
                 per_env_augmentation,
                 include_next_obs,
+                views,
+                n_step,
+                discount,
             },
         )
 }
