@@ -68,7 +68,8 @@ option_values = st.one_of(
 )
 options = st.dictionaries(text("frame_stack", "action_repeat", "max_episode_steps", "num_levels", "distribution_mode",
                                "pixels", "height"), option_values, max_size=3)
-pipelines = st.lists(text("crop(84)", "translate(12)", "noise(std=0.1)", "ras_s", "ras_m", "conv", "crpo", "none", ""),
+pipelines = st.lists(text("crop(84)", "translate(12)", "noise(std=0.1)", "ras_s", "ras_m", "conv", "crpo", "none", "",
+                          "shift(4)", "intensity"),
                      max_size=10).map("|".join)
 
 
@@ -87,12 +88,20 @@ def tensors(draw):
     return pb.Tensor(dtype=dtype, shape=shape, data=data)
 
 
+views = st.lists(st.builds(
+    pb.SampleView, name=text("obs", "obs_aug", "next_obs", "anchor", "reward", "Obs", ""),
+    of=st.one_of(st.integers(0, 2), st.integers(-2**31, 2**31 - 1)), pipeline_text=pipelines, draws=text("", "a")),
+    max_size=10)
+
+
 def sample_requests(session_id):
     return st.builds(
         pb.SampleBatchesRequest, session_id=st.just(session_id), batch_size=u32, pipeline_text=pipelines,
         sharing=st.integers(0, 3), prefetch=u32, seed=u64, min_size=st.one_of(st.none(), u64),
         samples_per_insert=st.one_of(st.none(), f64), error_buffer=f64, max_batches=st.one_of(st.none(), st.integers(0, 4)),
         chunk_bytes=u32, source=st.integers(0, 2), epochs=u32, include_next_obs=st.one_of(st.none(), st.booleans()),
+        views=st.one_of(st.just([]), views), n_step=st.one_of(st.none(), st.integers(0, 70), u32),
+        discount=st.one_of(st.none(), f64),
     )
 
 

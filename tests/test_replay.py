@@ -318,7 +318,9 @@ def test_outputs_too_large_and_too_many_streams_are_refused(client, cheetah):
 
 def copies(batch):
     """Every array of a batch, copied (shared-memory arrays are only valid until the next batch)."""
-    return {name: None if value is None else np.array(value) for name, value in vars(batch).items() if name != "index"}
+    arrays = {name: None if value is None else np.array(value) for name, value in vars(batch).items()
+              if name not in ("index", "views")}
+    return {**arrays, "views": {name: np.array(value) for name, value in batch.views.items()}}
 
 
 @pytest.mark.parametrize("source", ["replay", "rollout"])
@@ -351,13 +353,15 @@ def test_shared_memory_batches_equal_the_grpc_ones(client, cheetah, source):
             envs.close()
     assert len(got) == len(expected) == (5 if source == "replay" else 6)
     for want, have in zip(expected, got):
-        assert want.keys() == have.keys()
+        assert want.keys() == have.keys() and list(want["views"]) == list(have["views"])
         for name in want:
             if want[name] is None:
                 assert have[name] is None, name
                 continue
-            assert have[name].dtype == want[name].dtype and have[name].shape == want[name].shape, name
-            np.testing.assert_array_equal(have[name], want[name], err_msg=name)
+            for field, array in (want[name].items() if name == "views" else [(name, want[name])]):
+                other = have[name][field] if name == "views" else have[name]
+                assert other.dtype == array.dtype and other.shape == array.shape, field
+                np.testing.assert_array_equal(other, array, err_msg=field)
 
 
 def test_shared_memory_slots_are_reused_only_after_release(client, cheetah):

@@ -133,6 +133,14 @@ def test_sharded_batches_have_the_size_asked_for_and_say_where_they_came_from(sh
             # env_index is the env's index in the whole session: each server's rows are its own envs.
             for server, rows in enumerate([range(0, 3), range(3, 5), range(5, 7)]):
                 assert set(batch.env_index[batch.server == server].tolist()) <= set(rows)
+        # Named views and n-step returns from every server, in the request's order.
+        views = {"obs": "shift(4)", "obs_aug": "shift(4)", "next_obs": "none"}
+        with envs.sample_batches(16, views=views, n_step=3, discount=0.99, seed=4, max_batches=2) as stream:
+            for batch in stream:
+                assert list(batch.views) == ["obs", "obs_aug", "next_obs"] and batch.obs is batch.views["obs"]
+                assert batch.views["obs_aug"].shape == (16, 9, 64, 64) and batch.discount.shape == (16,)
+                assert (batch.discount[~batch.terminated] > 0.97).all() and (batch.discount[batch.terminated] == 0).all()
+                assert len(set(batch.server.tolist())) == 3
     finally:
         envs.close()
     # Closing the sharded session closes its session on every server.

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import mmap
 import queue
-from dataclasses import dataclass
-from typing import Any, Iterator
+from dataclasses import dataclass, field
+from typing import Any, Iterator, Mapping
 
 import grpc
 import numpy as np
@@ -26,15 +26,31 @@ from ._shm import receive_server_memory
 from ._transport import check_delivery
 from .errors import InvalidArgumentError, SharedMemoryError, from_rpc_error
 
-FIELDS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "env_index", "step_index", "t",
-          "policy_version", "log_prob", "value")
-OPTIONAL_FIELDS = ("next_obs", "t", "policy_version", "log_prob", "value")
+# Every field of a batch but its observations; any other field is a view (obs and next_obs when the
+# request names no views).
+METADATA_FIELDS = ("action", "reward", "discount", "terminated", "truncated", "env_index", "step_index", "t",
+                   "policy_version", "log_prob", "value")
 
 SHARING = {
     "reference": pb.DRAW_SHARING_REFERENCE,
     "shared": pb.DRAW_SHARING_SHARED,
     "independent": pb.DRAW_SHARING_INDEPENDENT,
 }
+
+
+@dataclass(frozen=True)
+class View:
+    """One named output of a batch (`sample_batches(views={"obs_aug": View("shift(4)")})`): each
+    sample's `of` ("obs" or "next_obs"; default: "next_obs" for a name starting with `next_`, else
+    "obs") through `augment` (a pipeline in text form; "none": the stack as stored). Views with the
+    same `draws` label share their random draws stage by stage; the others draw independently."""
+
+    augment: str = "none"
+    of: "str | None" = None
+    draws: "str | None" = None
+
+
+_VIEW_OF = {None: pb.VIEW_OF_UNSPECIFIED, "obs": pb.VIEW_OF_OBS, "next_obs": pb.VIEW_OF_NEXT_OBS}
 
 
 @dataclass
@@ -49,10 +65,16 @@ class Batch:
     acted (`Client.set_policy`; -1 where none did), so a learner can see how stale a batch is;
     rollouts acted on the server also carry the head's `log_prob` of each action and the model's
     `value` (PPO's old log-probabilities and values).
+
+    `views` holds every observation array by name: obs and next_obs, or the views the request named
+    (`obs` and `next_obs` are then the views of those names, if any). With `n_step` (or `discount`),
+    `reward` is the n-step return, `discount` the bootstrap's factor (0 where the episode terminated
+    within the window) and `next_obs` the observation after the window: the target is
+    `reward + discount * Q(next_obs)`.
     """
 
     index: int
-    obs: np.ndarray
+    obs: "np.ndarray | None"
     action: np.ndarray
     reward: np.ndarray
     terminated: np.ndarray
@@ -66,9 +88,23 @@ class Batch:
     value: "np.ndarray | None" = None
     # Sharded sessions: the index (in `Client.addresses`) of the server each transition came from.
     server: "np.ndarray | None" = None
+    discount: "np.ndarray | None" = None
+    views: "dict[str, np.ndarray]" = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.reward)
+
+
+def make_batch(index: int, arrays: "dict[str, np.ndarray]", order: "list[str] | None" = None) -> Batch:
+    """A Batch from its arrays by field name: metadata fields by name, every other one a view (in
+    `order` where given, the request's order)."""
+    views = {name: array for name, array in arrays.items() if name not in METADATA_FIELDS and name != "server"}
+    if order:
+        views = {name: views[name] for name in sorted(views, key=lambda name: order.index(name) if name in order else len(order))}
+    fields = {name: arrays[name] for name in (*METADATA_FIELDS, "server") if name in arrays}
+    for flag in ("terminated", "truncated"):
+        fields[flag] = fields[flag].astype(bool)
+    return Batch(index=index, obs=views.get("obs"), next_obs=views.get("next_obs"), views=views, **fields)
 
 
 def _varint(data: memoryview, position: int) -> "tuple[int, int]":
@@ -142,16 +178,9 @@ def iterate_batches(stream, error=from_rpc_error) -> Iterator[Batch]:
             target = entry[0]
             target[chunk.offset : chunk.offset + len(chunk.data)] = np.frombuffer(chunk.data, dtype=np.uint8)
             if chunk.last:
-                arrays = {}
-                for name in FIELDS:
-                    if name not in buffers and name in OPTIONAL_FIELDS:
-                        continue
-                    raw, dtype, shape = buffers[name]
-                    arrays[name] = raw.view(NUMPY_DTYPES[dtype]).reshape(shape)
-                arrays["terminated"] = arrays["terminated"].astype(bool)
-                arrays["truncated"] = arrays["truncated"].astype(bool)
+                arrays = {name: raw.view(NUMPY_DTYPES[dtype]).reshape(shape) for name, (raw, dtype, shape) in buffers.items()}
                 buffers = {}
-                yield Batch(index=chunk.batch_index, **arrays)
+                yield make_batch(chunk.batch_index, arrays)
     except grpc.RpcError as failure:
         raise error(failure) from None
 
@@ -222,6 +251,7 @@ class SharedBatchStream:
             self.close()
             raise
         self.slots = first.region.slots
+        self._order = [view.name for view in request.views] or ["obs", "next_obs"]
 
     def __iter__(self) -> "SharedBatchStream":
         return self
@@ -245,10 +275,9 @@ class SharedBatchStream:
             count = int(np.prod(shape))
             arrays[name] = np.frombuffer(self._memory, dtype=dtype, count=count, offset=tensor.offset).reshape(shape)
         for name, tensor in message.tensors.items():
-            array = np.frombuffer(tensor.data, dtype=NUMPY_DTYPES[tensor.dtype]).reshape(tuple(tensor.shape))
-            arrays[name] = array.astype(bool) if name in ("terminated", "truncated") else array.copy()
+            arrays[name] = np.frombuffer(tensor.data, dtype=NUMPY_DTYPES[tensor.dtype]).reshape(tuple(tensor.shape)).copy()
         self._held = message.batch_index
-        return Batch(index=message.batch_index, **arrays)
+        return make_batch(message.batch_index, arrays, self._order)
 
     @property
     def closed(self) -> bool:
@@ -305,18 +334,29 @@ def sample_request(session_id: str, batch_size: int, *, augment: str = "none", s
                    prefetch: int = 2, seed: int = 0, min_size: "int | None" = None,
                    samples_per_insert: "float | None" = None, error_buffer: float = 0.0,
                    max_batches: "int | None" = None, chunk_bytes: int = 0, source: str = "replay", epochs: int = 1,
-                   per_env_augmentation: bool = False,
-                   include_next_obs: "bool | None" = None) -> "pb.SampleBatchesRequest":
+                   per_env_augmentation: bool = False, include_next_obs: "bool | None" = None,
+                   views: "Mapping[str, str | View] | None" = None, n_step: "int | None" = None,
+                   discount: "float | None" = None) -> "pb.SampleBatchesRequest":
     """SampleBatches' request (see `SamplingMixin.sample_batches` for the settings)."""
     if sharing not in SHARING:
         raise InvalidArgumentError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
     if source not in _SOURCES:
         raise InvalidArgumentError(f"source must be one of {sorted(_SOURCES)}, got {source!r}")
+    named = []
+    for name, view in (views or {}).items():
+        view = View(view) if isinstance(view, str) else view
+        if not isinstance(view, View) or view.of not in _VIEW_OF:
+            raise InvalidArgumentError(
+                f"views[{name!r}] must be a pipeline's text or a radserve.View with of 'obs' or 'next_obs', got {view!r}")
+        named.append(pb.SampleView(name=name, of=_VIEW_OF[view.of], pipeline_text=view.augment, draws=view.draws or ""))
+    # With views, the request's own pipeline is left unset (the server refuses it beside views).
+    pipeline = {} if named else {"pipeline_text": augment}
     return pb.SampleBatchesRequest(
-        session_id=session_id, batch_size=batch_size, pipeline_text=augment, sharing=SHARING[sharing],
+        session_id=session_id, batch_size=batch_size, sharing=SHARING[sharing],
         prefetch=prefetch, seed=seed, min_size=min_size, samples_per_insert=samples_per_insert,
         error_buffer=error_buffer, max_batches=max_batches, chunk_bytes=chunk_bytes, source=_SOURCES[source],
-        epochs=epochs, per_env_augmentation=per_env_augmentation, include_next_obs=include_next_obs)
+        epochs=epochs, per_env_augmentation=per_env_augmentation, include_next_obs=include_next_obs,
+        views=named, n_step=n_step, discount=discount, **pipeline)
 
 
 class SamplingMixin:
@@ -335,7 +375,12 @@ class SamplingMixin:
 
         `augment` is a pipeline in text form (`"crop(84)"`, `"translate(108)|grayscale"`, `"none"`;
         see docs/augmentations.md); `sharing` says whether obs and next_obs share draws
-        (`"reference"`: as RAD's code, `"shared"`, `"independent"`). Sampling waits for `min_size`
+        (`"reference"`: as RAD's code, `"shared"`, `"independent"`). `views` names the outputs
+        instead (DrQ's `{"obs": "shift(4)", "obs_aug": "shift(4)", "next_obs": "shift(4)",
+        "next_obs_aug": "shift(4)"}`): each a pipeline's text or a `radserve.View`, carried in
+        `Batch.views` under its name (see docs/replay.md). `n_step` and `discount` make `reward` the
+        n-step return, with `Batch.discount` the bootstrap's factor and `next_obs` the observation
+        after the window. Sampling waits for `min_size`
         transitions (default: one batch) and, with `samples_per_insert` (and `error_buffer`), keeps
         to Reverb's SampleToInsertRatio, counted from `min_size` on, against the envs' inserts.
 

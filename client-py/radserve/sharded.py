@@ -37,7 +37,7 @@ from gymnasium.vector.utils import batch_space
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport
 from .actors import ActingMixin
-from .batches import FIELDS, Batch, SamplingMixin, open_batch_stream
+from .batches import METADATA_FIELDS, Batch, SamplingMixin, make_batch, open_batch_stream
 from .infos import merge_infos
 from .errors import InvalidArgumentError, NotFoundError, RadServeError, UnavailableError
 from .types import SessionInfo
@@ -537,11 +537,14 @@ class ShardedBatchStream:
 
 def _concatenate(parts: "list[tuple[Shard, Batch]]") -> Batch:
     arrays = {}
-    for name in FIELDS:
-        values = [getattr(batch, name) for _, batch in parts]
+    batches = [batch for _, batch in parts]
+    for name in METADATA_FIELDS:
+        values = [getattr(batch, name) for batch in batches]
         if any(value is None for value in values):
             continue
         arrays[name] = np.concatenate([np.asarray(value) for value in values], axis=0)
+    for name in batches[0].views:
+        arrays[name] = np.concatenate([np.asarray(batch.views[name]) for batch in batches], axis=0)
     arrays["env_index"] = np.concatenate([np.asarray(batch.env_index) + shard.start for shard, batch in parts])
     arrays["server"] = np.concatenate([np.full(len(batch), shard.server, dtype=np.int32) for shard, batch in parts])
-    return Batch(index=parts[0][1].index, **arrays)
+    return make_batch(batches[0].index, arrays, list(batches[0].views))

@@ -5,7 +5,7 @@ Needs the `torch` extra (`pip install radserve[torch]`); nothing else in radserv
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Iterable, Iterator
 
 import numpy as np
@@ -17,7 +17,7 @@ from .batches import Batch
 @dataclass
 class TensorBatch:
     """A Batch with every array as a tensor on `device` (uint8 observations stay uint8: scale them on
-    the device, where it is cheap)."""
+    the device, where it is cheap); `views` as a dict of tensors, `obs` and `next_obs` among them."""
 
     index: int
     obs: torch.Tensor
@@ -33,6 +33,8 @@ class TensorBatch:
     log_prob: "torch.Tensor | None" = None
     value: "torch.Tensor | None" = None
     server: "torch.Tensor | None" = None
+    discount: "torch.Tensor | None" = None
+    views: "dict[str, torch.Tensor]" = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.reward)
@@ -42,16 +44,25 @@ def to_tensors(batch: Batch, device: "torch.device | str" = "cpu", *, pin_memory
     """One Batch as tensors. The numpy arrays are shared, not copied, on the CPU; with `pin_memory`
     they are copied into page-locked memory first so that the copy to a GPU runs asynchronously."""
     device = torch.device(device)
-    converted = {}
-    for spec in fields(Batch):
-        value = getattr(batch, spec.name)
-        if not isinstance(value, np.ndarray):
-            converted[spec.name] = value
-            continue
+
+    def move(value: np.ndarray) -> torch.Tensor:
         tensor = torch.from_numpy(value)
         if pin_memory and device.type == "cuda":
             tensor = tensor.pin_memory()
-        converted[spec.name] = tensor.to(device, non_blocking=pin_memory)
+        return tensor.to(device, non_blocking=pin_memory)
+
+    converted = {}
+    views = {name: move(value) for name, value in batch.views.items()}
+    for spec in fields(Batch):
+        value = getattr(batch, spec.name)
+        if spec.name == "views":
+            converted["views"] = views
+        elif spec.name in ("obs", "next_obs") and spec.name in views:
+            converted[spec.name] = views[spec.name]  # one copy on the device for both names
+        elif isinstance(value, np.ndarray):
+            converted[spec.name] = move(value)
+        else:
+            converted[spec.name] = value
     return TensorBatch(**converted)
 
 

@@ -39,6 +39,12 @@ class DrawSharing(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     DRAW_SHARING_SHARED: _ClassVar[DrawSharing]
     DRAW_SHARING_INDEPENDENT: _ClassVar[DrawSharing]
 
+class ViewOf(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    VIEW_OF_UNSPECIFIED: _ClassVar[ViewOf]
+    VIEW_OF_OBS: _ClassVar[ViewOf]
+    VIEW_OF_NEXT_OBS: _ClassVar[ViewOf]
+
 class BatchSource(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     SOURCE_REPLAY: _ClassVar[BatchSource]
@@ -63,6 +69,9 @@ INFO_KIND_JSON: InfoKind
 DRAW_SHARING_REFERENCE: DrawSharing
 DRAW_SHARING_SHARED: DrawSharing
 DRAW_SHARING_INDEPENDENT: DrawSharing
+VIEW_OF_UNSPECIFIED: ViewOf
+VIEW_OF_OBS: ViewOf
+VIEW_OF_NEXT_OBS: ViewOf
 SOURCE_REPLAY: BatchSource
 SOURCE_ROLLOUT: BatchSource
 
@@ -624,8 +633,22 @@ class AugmentationPipeline(_message.Message):
     stages: _containers.RepeatedCompositeFieldContainer[AugmentationStage]
     def __init__(self, stages: _Optional[_Iterable[_Union[AugmentationStage, _Mapping]]] = ...) -> None: ...
 
+class SampleView(_message.Message):
+    __slots__ = ("name", "of", "pipeline", "pipeline_text", "draws")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    OF_FIELD_NUMBER: _ClassVar[int]
+    PIPELINE_FIELD_NUMBER: _ClassVar[int]
+    PIPELINE_TEXT_FIELD_NUMBER: _ClassVar[int]
+    DRAWS_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    of: ViewOf
+    pipeline: AugmentationPipeline
+    pipeline_text: str
+    draws: str
+    def __init__(self, name: _Optional[str] = ..., of: _Optional[_Union[ViewOf, str]] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., draws: _Optional[str] = ...) -> None: ...
+
 class SampleBatchesRequest(_message.Message):
-    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs")
+    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs", "views", "n_step", "discount")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     PIPELINE_FIELD_NUMBER: _ClassVar[int]
@@ -642,6 +665,9 @@ class SampleBatchesRequest(_message.Message):
     EPOCHS_FIELD_NUMBER: _ClassVar[int]
     PER_ENV_AUGMENTATION_FIELD_NUMBER: _ClassVar[int]
     INCLUDE_NEXT_OBS_FIELD_NUMBER: _ClassVar[int]
+    VIEWS_FIELD_NUMBER: _ClassVar[int]
+    N_STEP_FIELD_NUMBER: _ClassVar[int]
+    DISCOUNT_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     batch_size: int
     pipeline: AugmentationPipeline
@@ -658,7 +684,10 @@ class SampleBatchesRequest(_message.Message):
     epochs: int
     per_env_augmentation: bool
     include_next_obs: bool
-    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ...) -> None: ...
+    views: _containers.RepeatedCompositeFieldContainer[SampleView]
+    n_step: int
+    discount: float
+    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ..., views: _Optional[_Iterable[_Union[SampleView, _Mapping]]] = ..., n_step: _Optional[int] = ..., discount: _Optional[float] = ...) -> None: ...
 
 class BatchChunk(_message.Message):
     __slots__ = ("batch_index", "field", "dtype", "shape", "offset", "field_bytes", "last", "data")

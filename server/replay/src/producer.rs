@@ -371,7 +371,7 @@ impl Producer {
         if spec.views.len() > MAX_VIEWS {
             return invalid(format!("a request names at most {MAX_VIEWS} views, got {}", spec.views.len()));
         }
-        let plan = |pipeline: &Pipeline| -> Result<(Plan, Vec<usize>, usize)> {
+        let plan = |pipeline: &Pipeline| -> std::result::Result<(Plan, Vec<usize>, usize), radserve_augment::AugmentError> {
             Ok(match format {
                 ObservationFormat::Image(shape) => {
                     let plan = ImagePlan::new(pipeline, shape)?;
@@ -389,7 +389,7 @@ impl Producer {
                 &[("obs", TransitionPart::Obs)]
             };
             for &(name, of) in parts {
-                let (plan, shape, bytes) = plan(&spec.pipeline)?;
+                let (plan, shape, bytes) = plan(&spec.pipeline).map_err(ReplayError::from)?;
                 let draws = Draws { seed: 0, part: of, sharing: spec.sharing, stream: 0 };
                 views.push(ViewPlan { name: name.into(), of, plan, shape, bytes, draws });
             }
@@ -400,10 +400,8 @@ impl Producer {
             if spec.views[..index].iter().any(|earlier| earlier.name == view.name) {
                 return invalid(format!("view {:?} is named twice; each view needs a name of its own", view.name));
             }
-            let (plan, shape, bytes) = plan(&view.pipeline).map_err(|error| match error {
-                ReplayError::Augment(error) => ReplayError::InvalidArgument(format!("view {:?}: {error}", view.name)),
-                other => other,
-            })?;
+            let (plan, shape, bytes) = plan(&view.pipeline)
+                .map_err(|error| ReplayError::InvalidArgument(format!("view {:?}: {error}", view.name)))?;
             // Views draw from the stream of the first view with their label (1 + its index), each
             // as if it were the observation: a shared stream shares every stage.
             let stream = match &view.draws {

@@ -583,7 +583,7 @@ fn n_step_windows_match_a_model_of_the_episodes() {
                 buffer.copy_observation(*transition, false, &mut stack);
                 assert_eq!(stack, expected[&key].obs, "obs of {key:?}");
                 if n > 1 {
-                    cut_short += usize::from(metadata.discounts[index] as f32 != 0.9f64.powi(n as i32) as f32);
+                    cut_short += usize::from(metadata.discounts[index] != 0.9f64.powi(n as i32) as f32);
                     terminated += usize::from(ends);
                     truncated += usize::from(cut);
                 }

@@ -321,10 +321,8 @@ fn views_from_proto(request: &proto::SampleBatchesRequest) -> Result<Vec<ViewSpe
                 Some(Choice::Pipeline(typed)) => (None, Some(typed)),
                 None => (None, None),
             };
-            let pipeline = pipeline_from_proto(text, typed).map_err(|error| match error {
-                ServiceError::Replay(error) => ServiceError::BadRequest(format!("view {:?}: {error}", clip(&view.name))),
-                other => other,
-            })?;
+            let pipeline = pipeline_from_proto(text, typed)
+                .map_err(|error| ServiceError::BadRequest(format!("view {:?}: {error}", clip(&view.name))))?;
             if view.draws.len() > radserve_replay::MAX_VIEW_NAME {
                 return Err(ServiceError::BadRequest(format!(
                     "view {:?}: a draws label has at most {} characters, got {}",
