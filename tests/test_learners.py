@@ -76,6 +76,20 @@ def test_rad_sac_with_the_servers_acting(tmp_path):
     assert metrics["charts/eval_return"][0][-1] >= 240
 
 
+@pytest.mark.parametrize("actor", ["learner", "server"])
+def test_drqv2_with_n_step_returns_and_the_servers_shift(tmp_path, actor):
+    """DrQ-v2: batches shifted and summed over 3 steps by the server; with --actor server the actor
+    goes as the deterministic_noise head, each version with the schedule's std."""
+    run_dir = run_learner("drqv2_pixels.py", tmp_path, "--actor", actor, "--env", "dmc/cartpole-balance",
+                          "--total-env-steps", "240", "--num-expl-steps", "10", "--batch-size", "8", "--hidden-dim", "64",
+                          "--eval-every", "240", "--eval-episodes", "2", "--render-profile", "fast", "--log-every", "1",
+                          "--policy-every", "5", "--std-steps", "200")
+    metrics = check_run(run_dir, {"losses/critic_loss", "losses/actor_loss", "losses/std"})
+    steps, stds = metrics["losses/std"]
+    assert stds[0] > stds[-1] >= 0.1, "the exploration std follows its linear schedule down"
+    assert metrics["charts/eval_return"][0][-1] >= 240
+
+
 def test_rad_sac_crop_with_bfloat16_convs(tmp_path):
     run_dir = run_learner("sac_pixels.py", tmp_path, "--env", "dmc/cartpole-balance", "--aug", "crop(84)|grayscale(p=0.5)",
                           "--amp", "--total-env-steps", "160", "--init-steps", "10", "--batch-size", "8",

@@ -169,13 +169,16 @@ class ScalarLog(Protocol):
 def learn_while_servers_act(envs: SessionEnv, batches: Batches, *, update: Callable, policy: Callable[[], bytes],
                             head: str, policy_every: int, total_env_steps: int, eval_every: int,
                             evaluate_at: Callable[[int], float], log: ScalarLog, env_steps_per_acted: int = 1,
-                            log_every: int = 50) -> "tuple[int, float]":
+                            log_every: int = 50, noise: "Callable[[], tuple[float, float, int, float]] | None" = None,
+                            on_progress: "Callable[[int], None] | None" = None) -> "tuple[int, float]":
     """An off-policy learner's loop (the SAC examples' `--actor server`) once the servers act on
     `envs`: `update(batch)` on every batch of `batches` (a stream whose rate limiter matches the
     actors'), `policy()` (ONNX bytes) sent as a new version every `policy_every` updates, the actors
     looked at every 10 updates (their episodes logged, a failed one raised), `evaluate_at(env_steps)`
     every `eval_every` env steps (`env_steps_per_acted` env steps per acted step: the action repeat)
     and at the end, which is the first look past `total_env_steps`; the actors are stopped then.
+    With `noise`, each version goes with the deterministic_noise head's schedule it returns then
+    (DrQ-v2's current std); `on_progress(env_steps)` hears of every look at the actors.
     Returns the env steps acted and the last evaluation's return."""
     from tqdm import tqdm
 
@@ -188,7 +191,7 @@ def learn_while_servers_act(envs: SessionEnv, batches: Batches, *, update: Calla
         for number, batch in enumerate(batches):
             metrics = update(batch)
             if (number + 1) % policy_every == 0:
-                envs.set_policy(policy(), head=head)
+                envs.set_policy(policy(), head=head, **({"noise": noise()} if noise is not None else {}))
             if number % 10 and number % log_every:
                 continue
             acted, ended = progress.poll()
@@ -198,6 +201,8 @@ def learn_while_servers_act(envs: SessionEnv, batches: Batches, *, update: Calla
                 log.scalars(acted, **{"charts/episodic_return": episode_return})
             bar.update(max(0, acted - env_steps))
             env_steps = acted
+            if on_progress is not None:
+                on_progress(env_steps)
             sps = env_steps / (time.perf_counter() - start)
             if number % log_every == 0:
                 versions = batch.policy_version[batch.policy_version >= 0] if batch.policy_version is not None else []

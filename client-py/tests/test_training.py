@@ -1,7 +1,8 @@
 """radserve.training without a server: the evaluation view of a pipeline, evaluation acted here with
 each env's first episodes, and ActorProgress following scripted actors (episodes found once, a
 server that comes back counting from zero, a failed actor raised). The same functions against real
-servers: tests/test_actors.py (evaluate_on_servers against evaluate) and the learners' smoke tests."""
+servers: tests/test_actors.py (evaluate_on_servers against evaluate) and the learners' smoke tests.
+Also the loop while the servers act (learn_while_servers_act) against scripted actors."""
 
 import numpy as np
 import pytest
@@ -115,3 +116,51 @@ def test_rounds_and_served_envs():
     sharded = ScriptedActors([])
     sharded.active = np.array([True, False, False, True])
     assert served_envs(sharded) == 2
+
+
+class ScriptedLearning(ScriptedActors):
+    """ScriptedActors that also take policies and stop: what learn_while_servers_act calls."""
+
+    policy_version = 0
+
+    def __init__(self, answers):
+        super().__init__(answers)
+        self.sent, self.stopped = [], False
+
+    def set_policy(self, model, *, head, noise=None):
+        self.policy_version += 1
+        self.sent.append((model, head, noise))
+
+    def stop_acting(self):
+        self.stopped = True
+
+
+class Log:
+    def __init__(self):
+        self.rows = []
+
+    def scalars(self, step, **named):
+        self.rows.append((step, named))
+
+
+def test_the_loop_sends_versions_with_their_noise_and_evaluates_until_the_budget():
+    """Every policy_every updates a version goes with the schedule noise() gives then; the actors are
+    looked at every 10 updates, each look heard by on_progress; the first look past the budget stops
+    them and evaluates."""
+    from radserve.training import learn_while_servers_act
+
+    looks = [[acting(env_steps=steps)] for steps in (0, 40, 80)]
+    envs = ScriptedLearning(looks)
+    batch = type("Batch", (), {"policy_version": np.array([-1, 0])})()
+    stds = iter([0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3])
+    seen, evaluated = [], []
+    steps, last = learn_while_servers_act(
+        envs, iter([batch] * 100), update=lambda b: {"losses/x": 1.0}, policy=lambda: b"onnx", head="deterministic_noise",
+        policy_every=10, total_env_steps=100, eval_every=1000, evaluate_at=lambda s: evaluated.append(s) or 7.0,
+        log=Log(), env_steps_per_acted=2, log_every=50, noise=lambda: (next(stds), 0.0, 1, 0.3),
+        on_progress=seen.append)
+    assert (steps, last) == (160, 7.0) and envs.stopped
+    assert seen == [0, 80, 160], "a look every 10 updates, in env steps (2 per step acted)"
+    assert evaluated == [0, 160]
+    assert [noise[0] for _, _, noise in envs.sent] == [0.9, 0.8] and envs.answers == []
+    assert all(head == "deterministic_noise" for _, head, _ in envs.sent)
