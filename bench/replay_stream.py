@@ -44,7 +44,7 @@ def rate(stream, batches: int, warmup: int = 6) -> "tuple[float, int]":
     started = time.perf_counter()
     for _ in range(batches):
         batch = next(iterator)
-        size = batch.obs.nbytes + (batch.next_obs.nbytes if batch.next_obs is not None else 0)
+        size = sum(view.nbytes for view in batch.views.values())  # obs and next_obs, or the named views
     elapsed = time.perf_counter() - started
     stream.close()
     return batches / elapsed, size

@@ -19,10 +19,10 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import time
 
 import radserve
 import record  # noqa: E402  (bench/record.py: the results file)
+from replay_stream import rate  # noqa: E402  (batches per second and bytes per batch of a stream)
 
 DRQ = {"obs": "shift(4)", "obs_aug": "shift(4)", "next_obs": "shift(4)", "next_obs_aug": "shift(4)"}
 CASES = [
@@ -34,22 +34,6 @@ CASES = [
     ("shift(4), 2 views, n-step 3", "drq", dict(views={"obs": "shift(4)", "next_obs": "shift(4)"}, n_step=3,
                                                 discount=0.99)),
 ]
-
-
-def rate(stream, batches: int, warmup: int = 6) -> "tuple[float, int]":
-    """Batches per second over `batches` batches after `warmup` (a shared ring's first pass touches
-    fresh pages), and the observation bytes of one batch."""
-    iterator = iter(stream)
-    for _ in range(warmup):
-        next(iterator)
-    size = 0
-    started = time.perf_counter()
-    for _ in range(batches):
-        batch = next(iterator)
-        size = sum(view.nbytes for view in batch.views.values())
-    elapsed = time.perf_counter() - started
-    stream.close()
-    return batches / elapsed, size
 
 
 def main() -> None:

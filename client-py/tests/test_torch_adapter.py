@@ -9,14 +9,20 @@ import radserve  # noqa: E402
 import radserve.torch as radserve_torch  # noqa: E402
 
 
-def test_batches_become_tensors_sharing_memory_on_cpu():
+@pytest.fixture(scope="module")
+def cartpole():
+    """Two CartPoles after 20 random steps, recorded in a replay of 100."""
     with radserve.LocalServer(workers=1) as server, radserve.Client(server.address) as client:
         envs = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0, replay_capacity=100)
         envs.reset()
         for _ in range(20):
             envs.step(envs.action_space.sample())
-        with envs.sample_batches(8, max_batches=2) as stream:
-            converted = list(radserve_torch.tensors(stream))
+        yield envs
+
+
+def test_batches_become_tensors_sharing_memory_on_cpu(cartpole):
+    with cartpole.sample_batches(8, max_batches=2) as stream:
+        converted = list(radserve_torch.tensors(stream))
     assert [b.index for b in converted] == [0, 1]
     batch = converted[0]
     assert batch.obs.dtype == torch.float32 and batch.obs.shape == (8, 4)
@@ -36,15 +42,10 @@ def test_a_tensor_batch_has_every_field_of_a_batch():
     assert [f.name for f in fields(radserve_torch.TensorBatch)] == [f.name for f in fields(radserve.Batch)]
 
 
-def test_views_and_the_discount_become_tensors_once():
-    with radserve.LocalServer(workers=1) as server, radserve.Client(server.address) as client:
-        envs = client.make_vec("gym/CartPole-v1", num_envs=2, seed=0, replay_capacity=100)
-        envs.reset()
-        for _ in range(20):
-            envs.step(envs.action_space.sample())
-        views = {"obs": "noise(std=0.1)", "obs_aug": "noise(std=0.1)", "next_obs": "none"}
-        with envs.sample_batches(8, max_batches=1, views=views, n_step=3, discount=0.99) as stream:
-            (batch,) = list(radserve_torch.tensors(stream))
+def test_views_and_the_discount_become_tensors_once(cartpole):
+    views = {"obs": "noise(std=0.1)", "obs_aug": "noise(std=0.1)", "next_obs": "none"}
+    with cartpole.sample_batches(8, max_batches=1, views=views, n_step=3, discount=0.99) as stream:
+        (batch,) = list(radserve_torch.tensors(stream))
     assert list(batch.views) == ["obs", "obs_aug", "next_obs"]
     assert batch.obs is batch.views["obs"] and batch.next_obs is batch.views["next_obs"]
     assert batch.views["obs_aug"].dtype == torch.float32 and batch.discount.shape == (8,)
