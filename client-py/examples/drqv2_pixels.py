@@ -32,7 +32,7 @@ from tqdm import tqdm
 import radserve
 from radserve.torch import to_tensors
 from radserve.training import episode_stats, evaluate, evaluate_on_servers, learn_while_servers_act
-from runs import RunLog, plot_curves, run_name, select_device
+from runs import RunLog, run_name, select_device
 
 
 @dataclass
@@ -273,7 +273,6 @@ def train(args: Args, address: str) -> RunLog:
     env_steps_per_step = args.action_repeat * args.num_envs
 
     log = RunLog(args.runs_dir, run_name(args.env, "drqv2_pixels", args.seed), args)
-    log.started = time.perf_counter()
     agent = DrQV2(obs_shape, action_dim, args, device)
     agent_steps = max(1, args.total_env_steps // env_steps_per_step)
     print(f"DrQ-v2 on {args.env}: shift({args.pad}) and {args.n_step}-step returns on the server, frames {obs_shape}, "
@@ -283,15 +282,9 @@ def train(args: Args, address: str) -> RunLog:
     def scaled(action: np.ndarray) -> np.ndarray:
         return (low + (action + 1.0) * 0.5 * (high - low)).astype(np.float32)
 
-    evaluations: "list[tuple[int, float]]" = []
-
     def record(env_steps: int, returns: "list[float]") -> float:
-        evaluations.append((env_steps, float(np.mean(returns))))
-        log.scalars(env_steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
-        log.flush()
-        if args.checkpoint:
-            torch.save(agent.state_dict() | {"env_steps": env_steps, "args": vars(args)}, log.dir / "checkpoint.pt")
-        return float(np.mean(returns))
+        checkpoint = agent.state_dict() | {"env_steps": env_steps, "args": vars(args)} if args.checkpoint else None
+        return log.evaluation(env_steps, returns, checkpoint)
 
     shift = f"shift({args.pad})"
     # Sampling starts with the warm-up's transitions, less the last n - 1 of each env, whose n-step
@@ -309,13 +302,7 @@ def train(args: Args, address: str) -> RunLog:
         eval_envs.close()
         client.close()
         log.close()
-    curve = plot_curves({"DrQ-v2": log.dir}, log.dir / "curve.png", title=f"{args.env}, DrQ-v2")
-    (first_steps, first), (last_steps, last) = evaluations[0], evaluations[-1]
-    summary = (f"{args.env}: evaluation return {first:.1f} at {first_steps} -> {last:.1f} at {last_steps} environment "
-               f"steps (best {max(value for _, value in evaluations):.1f}, {args.eval_episodes} episodes each, "
-               f"{(time.perf_counter() - log.started) / 60:.1f} min); curve: {curve}")
-    (log.dir / "summary.txt").write_text(summary + "\n")
-    print(summary)
+    log.summarize(args.env, "DrQ-v2", f"{args.env}, DrQ-v2", args.eval_episodes, log.started)
     return log
 
 

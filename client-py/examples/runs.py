@@ -30,7 +30,7 @@ def select_device(name: str):
 
 class RunLog:
     """A run directory: `args.json`, `metrics.csv` (step, wall time, name, value), TensorBoard events,
-    and at the end `curve.png`."""
+    `checkpoint.pt` at each evaluation, and at the end `curve.png` and `summary.txt`."""
 
     def __init__(self, root: "str | Path", name: str, args) -> None:
         self.dir = Path(root) / name
@@ -44,6 +44,9 @@ class RunLog:
         self._writer = SummaryWriter(str(self.dir))
         self._writer.add_text("args", "\n".join(f"{k}: {v}" for k, v in dataclasses.asdict(args).items()))
         self._start = time.time()
+        self.started = time.perf_counter()
+        # (step, mean return) of every evaluation, in order.
+        self.evaluations: "list[tuple[int, float]]" = []
 
     def scalar(self, name: str, value: float, step: int) -> None:
         value = float(value)
@@ -54,6 +57,32 @@ class RunLog:
         """`scalars(step, **{"losses/qf_loss": 0.3})`."""
         for name, value in named.items():
             self.scalar(name, value, step)
+
+    def evaluation(self, step: int, returns: "list[float]", checkpoint: "dict | None" = None) -> float:
+        """Logs an evaluation's returns (charts/eval_return and its std), keeps (step, mean), and saves
+        `checkpoint` (a learner's state) to checkpoint.pt when given; the mean."""
+        mean = float(np.mean(returns))
+        self.evaluations.append((step, mean))
+        self.scalars(step, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
+        self.flush()
+        if checkpoint is not None:
+            import torch
+
+            torch.save(checkpoint, self.dir / "checkpoint.pt")
+        return mean
+
+    def summarize(self, env_id: str, label: str, title: str, episodes: int, started: float) -> str:
+        """Draws curve.png and writes (and prints) the run's one line, which `make demo` ends with:
+        the first and last evaluation, the best, the minutes since `started`, the curve's path."""
+        curve = plot_curves({label: self.dir}, self.dir / "curve.png", title=title)
+        (first_steps, first), (last_steps, last) = self.evaluations[0], self.evaluations[-1]
+        best = max(value for _, value in self.evaluations)
+        summary = (f"{env_id}: evaluation return {first:.1f} at {first_steps} -> {last:.1f} at {last_steps} environment "
+                   f"steps (best {best:.1f}, {episodes} episodes each, {(time.perf_counter() - started) / 60:.1f} min); "
+                   f"curve: {curve}")
+        (self.dir / "summary.txt").write_text(summary + "\n")
+        print(summary)
+        return summary
 
     def flush(self) -> None:
         self._csv_file.flush()

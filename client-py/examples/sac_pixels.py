@@ -34,7 +34,7 @@ from tqdm import tqdm
 import radserve
 from radserve.torch import to_tensors
 from radserve.training import episode_stats, evaluate, evaluate_on_servers, evaluation_view, learn_while_servers_act
-from runs import RunLog, plot_curves, run_name, select_device
+from runs import RunLog, run_name, select_device
 
 
 @dataclass
@@ -343,7 +343,6 @@ def train(args: Args, address: str) -> RunLog:
     action_dim = low.shape[0]
 
     log = RunLog(args.runs_dir, run_name(args.env, "sac_pixels", args.seed), args)
-    log.started = time.perf_counter()
     agent = RadSac(obs_shape, action_dim, args, lr, device)
     env_steps_per_step = action_repeat * args.num_envs
     agent_steps = max(1, args.total_env_steps // env_steps_per_step)
@@ -354,21 +353,19 @@ def train(args: Args, address: str) -> RunLog:
     def scaled(action: np.ndarray) -> np.ndarray:
         return (low + (action + 1.0) * 0.5 * (high - low)).astype(np.float32)
 
-    evaluations: "list[tuple[int, float]]" = []
-
     def run_evaluation(env_steps: int) -> float:
         returns = evaluate(eval_envs, lambda o: scaled(agent.act(o, deterministic=True)), args.eval_episodes)
-        return record_evaluation(args, log, agent, evaluations, env_steps, returns)
+        return record_evaluation(args, log, agent, env_steps, returns)
 
     if args.actor == "server":
         try:
-            train_server_side(args, client, envs, eval_envs, agent, log, aug, action_repeat, obs_shape, device, evaluations)
+            train_server_side(args, client, envs, eval_envs, agent, log, aug, action_repeat, obs_shape, device)
         finally:
             envs.close()
             eval_envs.close()
             client.close()
             log.close()
-        return finish(args, log, aug, evaluations, start=log.started)
+        return finish(args, log, aug, start=log.started)
 
     # The server samples uniformly from its replay buffer once it holds the initial steps' transitions,
     # augments obs and next_obs, and keeps `prefetch` minibatches ready.
@@ -416,33 +413,22 @@ def train(args: Args, address: str) -> RunLog:
         eval_envs.close()
         client.close()
         log.close()
-    return finish(args, log, aug, evaluations, start)
+    return finish(args, log, aug, start)
 
 
-def finish(args: Args, log: RunLog, aug: str, evaluations: "list[tuple[int, float]]", start: float) -> RunLog:
-    curve = plot_curves({f"RAD-SAC ({aug})": log.dir}, log.dir / "curve.png", title=f"{args.env}, aug {aug}")
-    (first_steps, first), (last_steps, last) = evaluations[0], evaluations[-1]
-    summary = (f"{args.env}: evaluation return {first:.1f} at {first_steps} -> {last:.1f} at {last_steps} environment "
-               f"steps (best {max(value for _, value in evaluations):.1f}, {args.eval_episodes} episodes each, "
-               f"{(time.perf_counter() - start) / 60:.1f} min); curve: {curve}")
-    (log.dir / "summary.txt").write_text(summary + "\n")
-    print(summary)
+def finish(args: Args, log: RunLog, aug: str, start: float) -> RunLog:
+    log.summarize(args.env, f"RAD-SAC ({aug})", f"{args.env}, aug {aug}", args.eval_episodes, start)
     return log
 
 
-def record_evaluation(args: Args, log: RunLog, agent: RadSac, evaluations: "list[tuple[int, float]]", env_steps: int,
-                      returns: "list[float]") -> float:
+def record_evaluation(args: Args, log: RunLog, agent: RadSac, env_steps: int, returns: "list[float]") -> float:
     """Logs an evaluation's returns (and saves the checkpoint); their mean."""
-    evaluations.append((env_steps, float(np.mean(returns))))
-    log.scalars(env_steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
-    log.flush()
-    if args.checkpoint:
-        torch.save(agent.state_dict() | {"env_steps": env_steps, "args": vars(args)}, log.dir / "checkpoint.pt")
-    return float(np.mean(returns))
+    checkpoint = agent.state_dict() | {"env_steps": env_steps, "args": vars(args)} if args.checkpoint else None
+    return log.evaluation(env_steps, returns, checkpoint)
 
 
 def train_server_side(args: Args, client, envs, eval_envs, agent: RadSac, log: RunLog, aug: str, action_repeat: int,
-                      obs_shape, device, evaluations: "list[tuple[int, float]]") -> None:
+                      obs_shape, device) -> None:
     """--actor server: the servers act with the exported actor (random actions for the first init_steps
     agent steps) and record into the replay; this process streams batches, updates, and sends the
     actor every `policy_every` updates. Reverb's rate limiter on both sides keeps one update of
@@ -457,7 +443,7 @@ def train_server_side(args: Args, client, envs, eval_envs, agent: RadSac, log: R
     def run_evaluation(env_steps: int) -> float:
         returns = evaluate_on_servers(eval_envs, policy_model(agent, obs_shape), "gaussian_tanh", args.eval_episodes,
                                       seed=args.seed + 10_000)
-        return record_evaluation(args, log, agent, evaluations, env_steps, returns)
+        return record_evaluation(args, log, agent, env_steps, returns)
 
     stream = envs.sample_batches(args.batch_size, augment=aug, seed=args.seed, prefetch=args.prefetch,
                                    min_size=min_size, samples_per_insert=ratio, error_buffer=slack, delivery=args.delivery)

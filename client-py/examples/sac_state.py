@@ -398,11 +398,8 @@ def train_server_side(args: Args, client, envs, eval_envs, agent: Sac, log: RunL
 
 def record_evaluation(args: Args, log: RunLog, agent: Sac, steps: int, returns: "list[float]") -> float:
     """Logs an evaluation's returns (and saves the checkpoint); their mean."""
-    log.scalars(steps, **{"charts/eval_return": np.mean(returns), "charts/eval_return_std": np.std(returns)})
-    log.flush()
-    if args.checkpoint:
-        torch.save(agent.state_dict() | {"env_steps": steps, "args": vars(args)}, log.dir / "checkpoint.pt")
-    return float(np.mean(returns))
+    checkpoint = agent.state_dict() | {"env_steps": steps, "args": vars(args)} if args.checkpoint else None
+    return log.evaluation(steps, returns, checkpoint)
 
 
 def main() -> None:

@@ -737,8 +737,9 @@ impl ReplayBuffer {
 
 impl ReplayBuffer {
     /// Replace the one-step reward and flags gathered for `refs` (the batch's transitions from
-    /// `start` on) by their n-step window's, and fill their discounts and last frames. A transition
-    /// whose window is incomplete (drawn before `returns` applied) keeps what its steps so far give.
+    /// `start` on) by their n-step window's, and fill their discounts and last frames. Transitions
+    /// drawn by `sample_windows` and `draw_one_window` have complete windows; one that does not
+    /// gets the window of the steps recorded so far rather than stopping the stream.
     pub fn gather_returns_at(&self, refs: &[TransitionRef], returns: Returns, batch: &mut TransitionMetadata, start: usize) {
         for (index, transition) in refs.iter().enumerate() {
             let index = start + index;
