@@ -362,6 +362,10 @@ impl Case {
                 let request = proto::StopActingRequest { session_id: self.session(&target) };
                 within(limit, self.client.stop_acting(request)).await.expect("a stop_acting answers").map(drop)
             }
+            Op::UpdatePriorities(target, keys, priorities) => {
+                let request = proto::UpdatePrioritiesRequest { session_id: self.session(&target), keys, priorities };
+                within(limit, self.client.update_priorities(request)).await.expect("an update_priorities answers").map(drop)
+            }
             Op::Sample(target, mut request) => {
                 request.session_id = self.session(&target);
                 // A few chunks, then the client leaves.
@@ -507,6 +511,7 @@ const METHODS: &[(&str, bool, bool)] = &[
     ("SetPolicy", false, false),
     ("StartActing", false, false),
     ("StopActing", false, false),
+    ("UpdatePriorities", false, false),
     // dm_env_rpc on the same port (a full path: another service).
     ("/dm_env_rpc.v1.Environment/Process", true, true),
 ];

@@ -108,6 +108,9 @@ const TABLE: &[Row] = &[
     Row { method: "StopActing", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
         proto::StopActingRequest { session_id: id.into() }.encode_to_vec()
     } },
+    Row { method: "UpdatePriorities", client_streams: false, server_streams: false, scope: Scope::Session, request: |id| {
+        proto::UpdatePrioritiesRequest { session_id: id.into(), keys: vec![], priorities: vec![] }.encode_to_vec()
+    } },
 ];
 
 /// Calls `method` with `body` and `token`; a stream that opens and sends nothing wrong within a

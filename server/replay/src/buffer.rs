@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 use rand::Rng;
 
 use crate::error::{ReplayError, Result};
+use crate::priority::Priorities;
 use crate::rate_limiter::{Activity, Occupancy};
 
 /// Whether a buffer serves uniform replay or the last rollout.
@@ -162,6 +163,23 @@ pub struct TransitionRef {
     pub frame: u64,
 }
 
+/// The low bits of a transition's key that hold its frame; the env is above them (see
+/// [`TransitionRef::key`]).
+pub const KEY_FRAME_BITS: u32 = 40;
+
+impl TransitionRef {
+    /// The key a batch carries for this transition, by which `UpdatePriorities` names it: the env
+    /// in the high 24 bits, the frame in the low 40 (2^40 frames per env: 35 years at 1000 steps
+    /// per second).
+    pub fn key(self) -> u64 {
+        ((self.env as u64) << KEY_FRAME_BITS) | self.frame
+    }
+
+    pub fn from_key(key: u64) -> TransitionRef {
+        TransitionRef { env: (key >> KEY_FRAME_BITS) as usize, frame: key & ((1 << KEY_FRAME_BITS) - 1) }
+    }
+}
+
 /// The most steps one n-step return may sum (DrQ-v2 and Rainbow use 3, R2D2 5, Ape-X 3).
 pub const MAX_N_STEP: usize = 64;
 
@@ -268,6 +286,9 @@ pub struct ReplayBuffer {
     pub(crate) floors: Vec<u64>,
     /// Per env: whether an episode is in progress (a first frame was recorded and it has not ended).
     pub(crate) in_episode: Vec<bool>,
+    /// Per env: the episodes' first frames among its sampleable frames (`oldest_sampleable..written`),
+    /// kept as frames are written so that `len` is O(envs), not a scan of the buffer per batch.
+    pub(crate) first_frames: Vec<u64>,
     /// One past the largest step index recorded.
     pub(crate) steps_recorded: u64,
     pub(crate) counters: ReplayCounters,
@@ -276,6 +297,9 @@ pub struct ReplayBuffer {
     active_producers: Arc<AtomicUsize>,
     /// Woken by each insert and each sampled batch: the waiters on the rate limiter.
     activity: Arc<Activity>,
+    /// Each sampleable transition's priority, from the first prioritized stream on (None before:
+    /// uniform streams need none).
+    pub(crate) priorities: Option<Priorities>,
 }
 
 /// One admitted sample stream of a buffer; dropping it frees its place (see
@@ -334,11 +358,13 @@ impl ReplayBuffer {
             written: vec![0; layout.num_envs],
             floors: vec![0; layout.num_envs],
             in_episode: vec![false; layout.num_envs],
+            first_frames: vec![0; layout.num_envs],
             steps_recorded: 0,
             counters: ReplayCounters::default(),
             recent_batches: RecentBatches::default(),
             active_producers: Arc::default(),
             activity: Arc::default(),
+            priorities: None,
         })
     }
 
@@ -423,13 +449,29 @@ impl ReplayBuffer {
     }
 
     fn transitions_in(&self, env: usize) -> usize {
+        (self.written[env].saturating_sub(self.oldest_sampleable(env)) - self.first_frames[env]) as usize
+    }
+
+    /// The first frames among `env`'s sampleable frames, counted by a scan (after a restore).
+    pub(crate) fn count_first_frames(&self, env: usize) -> u64 {
         let (oldest, written) = (self.oldest_sampleable(env), self.written[env]);
-        (oldest..written).filter(|frame| self.flags[self.slot(env, *frame)] & FIRST_OF_EPISODE == 0).count()
+        (oldest..written).filter(|frame| self.flags[self.slot(env, *frame)] & FIRST_OF_EPISODE != 0).count() as u64
+    }
+
+    /// After `env` wrote frame `written - 1` (with its flags) and its sampleable frames began at
+    /// `oldest` before: the first frames that left the range and the one that entered it.
+    fn count_written(&mut self, env: usize, oldest: u64) {
+        let first = |buffer: &Self, frame: u64| u64::from(buffer.flags[buffer.slot(env, frame)] & FIRST_OF_EPISODE != 0);
+        let (now, newest) = (self.oldest_sampleable(env), self.written[env] - 1);
+        let left: u64 = (oldest..now.min(newest)).map(|frame| first(self, frame)).sum();
+        let entered = if newest >= now { first(self, newest) } else { 0 };
+        self.first_frames[env] = self.first_frames[env] + entered - left;
     }
 
     /// An episode starts in `env` with `frame` (a Reset, or the autoreset after an episode ended).
     pub fn record_first_frame(&mut self, env: usize, frame: &[u8], step_index: u64) {
         let index = self.written[env];
+        let oldest = self.oldest_sampleable(env);
         let slot = self.write_frame(env, frame);
         self.flags[slot] = FIRST_OF_EPISODE;
         self.rewards[slot] = 0.0;
@@ -437,6 +479,8 @@ impl ReplayBuffer {
         self.step_indices[slot] = step_index;
         self.stamp(slot, None);
         self.in_episode[env] = true;
+        self.count_written(env, oldest);
+        self.track_priorities(env, slot, oldest);
     }
 
     /// `env` took a step. Steps of an env with no episode in progress are ignored (nothing to
@@ -448,6 +492,7 @@ impl ReplayBuffer {
         debug_assert_eq!(step.action.len(), self.layout.action_bytes);
         let previous = self.slot(env, self.written[env] - 1);
         let episode_start = self.episode_starts[previous];
+        let oldest = self.oldest_sampleable(env);
         let slot = self.write_frame(env, step.next_frame);
         let action_bytes = self.layout.action_bytes;
         self.actions[slot * action_bytes..(slot + 1) * action_bytes].copy_from_slice(step.action);
@@ -461,7 +506,30 @@ impl ReplayBuffer {
         if step.terminated || step.truncated {
             self.in_episode[env] = false;
         }
+        self.count_written(env, oldest);
+        self.track_priorities(env, slot, oldest);
         self.activity.bump();
+    }
+
+    /// After `env` wrote into `slot`: the slot's transition (none for a first frame) enters the
+    /// priorities at the largest priority so far, and those whose stacks now reach an overwritten
+    /// frame (below the new oldest sampleable, from `oldest` before the write) leave them.
+    fn track_priorities(&mut self, env: usize, slot: usize, oldest: u64) {
+        if self.priorities.is_none() {
+            return;
+        }
+        let leaving: Vec<usize> = (oldest..self.oldest_sampleable(env)).map(|frame| self.slot(env, frame)).collect();
+        let first = self.flags[slot] & FIRST_OF_EPISODE != 0;
+        let priorities = self.priorities.as_mut().expect("checked above");
+        for old in leaving {
+            debug_assert_ne!(old, slot, "a frame's stack never reaches the slot written");
+            priorities.remove(old);
+        }
+        if first {
+            priorities.remove(slot);
+        } else {
+            priorities.insert(slot);
+        }
     }
 
     pub(crate) fn stamp(&mut self, slot: usize, acted: Option<ActedBy>) {
@@ -564,20 +632,22 @@ impl ReplayBuffer {
     /// Transitions that can be sampled now with `n_step` returns: those held, less the last
     /// `n_step - 1` of each episode in progress, whose windows are not complete yet.
     pub fn sampleable(&self, n_step: usize) -> usize {
-        let incomplete: usize = (0..self.layout.num_envs)
-            .filter(|&env| self.in_episode[env])
-            .map(|env| {
-                let oldest = self.oldest_sampleable(env);
-                (1..n_step as u64)
-                    .map_while(|back| self.written[env].checked_sub(back).filter(|frame| *frame >= oldest))
-                    .take_while(|&frame| self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0)
-                    .count()
-            })
-            .sum();
-        self.len().saturating_sub(incomplete)
+        self.len().saturating_sub(self.incomplete_windows(n_step).count())
     }
 
-    fn window_complete(&self, transition: TransitionRef, n_step: usize) -> bool {
+    /// The transitions whose `n_step` windows are not complete yet: the last `n_step - 1` of each
+    /// episode in progress.
+    pub(crate) fn incomplete_windows(&self, n_step: usize) -> impl Iterator<Item = TransitionRef> + '_ {
+        (0..self.layout.num_envs).filter(|&env| self.in_episode[env]).flat_map(move |env| {
+            let oldest = self.oldest_sampleable(env);
+            (1..n_step as u64)
+                .map_while(move |back| self.written[env].checked_sub(back).filter(|frame| *frame >= oldest))
+                .take_while(move |&frame| self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0)
+                .map(move |frame| TransitionRef { env, frame })
+        })
+    }
+
+    pub(crate) fn window_complete(&self, transition: TransitionRef, n_step: usize) -> bool {
         n_step <= 1 || self.walk_window(transition, n_step, 1.0).is_some()
     }
 
@@ -731,6 +801,7 @@ impl ReplayBuffer {
             batch.log_probs[index] = self.log_probs[slot];
             batch.values[index] = self.values[slot];
             batch.last_frames[index] = transition.frame;
+            batch.keys[index] = transition.key();
         }
     }
 }
@@ -779,6 +850,12 @@ pub struct TransitionMetadata {
     /// The frame each next observation's stack ends at (the transition's own next frame for one
     /// step).
     pub last_frames: Vec<u64>,
+    /// Each transition's key ([`TransitionRef::key`]): what `UpdatePriorities` names it by.
+    pub keys: Vec<u64>,
+    /// In a prioritized batch: each draw's probability, and its importance weight (see
+    /// [`crate::importance_weights`]).
+    pub probabilities: Vec<f64>,
+    pub weights: Vec<f32>,
 }
 
 impl TransitionMetadata {
@@ -795,6 +872,9 @@ impl TransitionMetadata {
         self.values.resize(len, 0.0);
         self.discounts.resize(len, 0.0);
         self.last_frames.resize(len, 0);
+        self.keys.resize(len, 0);
+        self.probabilities.resize(len, 0.0);
+        self.weights.resize(len, 1.0);
     }
 }
 

@@ -17,6 +17,7 @@ use rayon::prelude::*;
 
 use crate::buffer::{BufferKind, ProducerPermit, ReplayBuffer, Returns, TransitionMetadata, TransitionRef};
 use crate::error::{ReplayError, Result};
+use crate::priority::{importance_weights, Prioritized};
 use crate::rate_limiter::{Occupancy, RateLimiter};
 use crate::shared::{SharedRing, Slot};
 
@@ -86,9 +87,9 @@ pub const MAX_VIEWS: usize = 8;
 pub const MAX_VIEW_NAME: usize = 32;
 
 /// Names a view may not take: the batch's other fields (and the Python client's `server`).
-pub const RESERVED_FIELDS: [&str; 12] = [
+pub const RESERVED_FIELDS: [&str; 16] = [
     "action", "reward", "discount", "terminated", "truncated", "env_index", "step_index", "policy_version", "t",
-    "log_prob", "value", "server",
+    "log_prob", "value", "key", "probability", "table_size", "weight", "server",
 ];
 
 /// One named output of a batch: the observation or the next observation of each sample, through a
@@ -146,6 +147,8 @@ pub struct SampleSpec {
     /// n-step returns: the batch's reward sums up to n rewards and it carries `discount` (none: the
     /// transition's own reward, no discount).
     pub returns: Option<Returns>,
+    /// Proportional prioritized sampling (none: uniform): replay only.
+    pub prioritized: Option<Prioritized>,
     pub seed: u64,
     /// Batches produced ahead and waiting (1..=64).
     pub prefetch: usize,
@@ -222,6 +225,12 @@ pub struct Batch {
     pub metadata: TransitionMetadata,
     /// The batch carries n-step returns: `metadata.discounts` is part of it.
     pub has_discount: bool,
+    /// The batch was drawn by priority: `metadata.probabilities` and `metadata.weights` are part
+    /// of it.
+    pub prioritized: bool,
+    /// In a prioritized batch: the transitions that could be drawn (the N of the importance
+    /// weights).
+    pub table_size: usize,
     /// For rollouts: each transition's step within the rollout (0 the oldest).
     pub rollout_t: Option<Vec<u32>>,
     /// With shared output: the slot holding the views, region i view i; their `data` stays empty.
@@ -339,6 +348,9 @@ impl Producer {
             return invalid(
                 "n_step and discount apply to replay: a rollout's returns are the learner's (GAE over the rollout)".into(),
             );
+        }
+        if spec.prioritized.is_some() && spec.source != Source::Replay {
+            return invalid("prioritized sampling applies to replay: a rollout visits each of its transitions once per epoch".into());
         }
         let views = Self::plan_views(&spec, format)?;
         let n_step = spec.returns.map_or(1, |returns| returns.n_step);
@@ -483,18 +495,37 @@ impl Producer {
         rng: &mut ChaCha8Rng,
         spare: &mut Destination,
     ) {
+        // A prioritized stream holds its exponent's sum tree while it runs.
+        let _exponent = match self.spec.prioritized {
+            Some(prioritized) => match ExponentHeld::acquire(&self.buffer, prioritized.exponent) {
+                Ok(held) => Some(held),
+                Err(error) => {
+                    let _ = ready.blocking_send(Err(error));
+                    return;
+                }
+            },
+            None => None,
+        };
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {
-            let mut batch = Batch { index, ..Batch::default() };
+            let mut batch = Batch { index, prioritized: self.spec.prioritized.is_some(), ..Batch::default() };
             // Checked again under the write lock that counts the samples, so that two streams on
             // one buffer cannot both take the limiter's last allowance.
-            let sampled = loop {
+            let (sampled, sampleable) = loop {
                 if !self.wait_until_allowed(ready) {
                     return;
                 }
                 let mut buffer = self.buffer.write().expect("replay lock");
                 if self.allowed(&buffer) {
-                    break buffer.sample_windows(self.spec.batch_size, self.n_step, rng, &mut batch.refs);
+                    let (count, n_step) = (self.spec.batch_size, self.n_step);
+                    break match self.spec.prioritized {
+                        Some(prioritized) => {
+                            let probabilities = &mut batch.metadata.probabilities;
+                            let drawn = buffer.sample_prioritized(count, n_step, prioritized.exponent, rng, &mut batch.refs, probabilities);
+                            (drawn, buffer.sampleable(n_step))
+                        }
+                        None => (buffer.sample_windows(count, n_step, rng, &mut batch.refs), 0),
+                    };
                 }
             };
             if !self.allocate(spare, &mut batch, self.spec.batch_size, ready) {
@@ -506,6 +537,11 @@ impl Producer {
                     let _ = ready.blocking_send(Err(error));
                 }
                 return;
+            }
+            if let Some(prioritized) = self.spec.prioritized {
+                batch.table_size = sampleable;
+                let metadata = &mut batch.metadata;
+                importance_weights(&metadata.probabilities, sampleable, prioritized.importance_exponent, &mut metadata.weights);
             }
             if ready.blocking_send(Ok(batch)).is_err() {
                 return; // the client left
@@ -654,11 +690,24 @@ impl Producer {
                 buffer.gather_returns_at(refs, returns, metadata, start);
             }
         };
-        // A transition the buffer overwrote since it was drawn is replaced by a fresh draw.
-        let refresh = |buffer: &ReplayBuffer, transition: &mut TransitionRef, rng: &mut ChaCha8Rng| {
-            if redraw && !buffer.still_holds(*transition) {
-                if let Some(fresh) = buffer.draw_one_window(n_step, rng) {
-                    *transition = fresh;
+        // A transition the buffer overwrote since it was drawn is replaced by a fresh draw (by
+        // priority, with its probability, in a prioritized stream).
+        let prioritized = self.spec.prioritized;
+        let refresh = |buffer: &ReplayBuffer, sample: usize, refs: &mut [TransitionRef], metadata: &mut TransitionMetadata, rng: &mut ChaCha8Rng| {
+            if !redraw || buffer.still_holds(refs[sample]) {
+                return;
+            }
+            match prioritized {
+                Some(prioritized) => {
+                    if let Some((fresh, probability)) = buffer.draw_one_prioritized(n_step, prioritized.exponent, rng) {
+                        refs[sample] = fresh;
+                        metadata.probabilities[sample] = probability;
+                    }
+                }
+                None => {
+                    if let Some(fresh) = buffer.draw_one_window(n_step, rng) {
+                        refs[sample] = fresh;
+                    }
                 }
             }
         };
@@ -707,8 +756,8 @@ impl Producer {
                 in_turns(size, keep_going, |samples| {
                     {
                         let buffer = self.buffer.read().expect("replay lock");
-                        for transition in &mut refs[samples.clone()] {
-                            refresh(&buffer, transition, &mut rng);
+                        for sample in samples.clone() {
+                            refresh(&buffer, sample, refs, metadata, &mut rng);
                         }
                         gather(&buffer, &refs[samples.clone()], metadata, samples.start);
                     }
@@ -747,7 +796,7 @@ impl Producer {
                         let mut frames = Vec::new();
                         {
                             let buffer = self.buffer.read().expect("replay lock");
-                            refresh(&buffer, &mut refs[sample], &mut rng);
+                            refresh(&buffer, sample, refs, metadata, &mut rng);
                             gather(&buffer, &refs[sample..=sample], metadata, sample);
                             copy(&buffer, refs[sample], metadata.last_frames[sample], &mut frames);
                         }
@@ -782,5 +831,27 @@ impl Producer {
             }
         }
         Ok(())
+    }
+}
+
+/// A prioritized stream's hold on its exponent's sum tree: released when the stream ends, however
+/// it ends.
+struct ExponentHeld {
+    buffer: Arc<RwLock<ReplayBuffer>>,
+    exponent: f64,
+}
+
+impl ExponentHeld {
+    fn acquire(buffer: &Arc<RwLock<ReplayBuffer>>, exponent: f64) -> Result<Self> {
+        buffer.write().expect("replay lock").acquire_priorities(exponent)?;
+        Ok(Self { buffer: buffer.clone(), exponent })
+    }
+}
+
+impl Drop for ExponentHeld {
+    fn drop(&mut self) {
+        if let Ok(mut buffer) = self.buffer.write() {
+            buffer.release_priorities(self.exponent);
+        }
     }
 }

@@ -6,8 +6,8 @@ use std::sync::{Arc, RwLock};
 
 use radserve_augment::{FrameShape, Pipeline, Sharing, TransitionPart};
 use radserve_replay::{
-    BufferKind, ObservationFormat, Output, Producer, RecordedStep, ReplayBuffer, ReplayLayout, Returns, SampleSpec, SharedRing, Source,
-    TransitionMetadata, TransitionRef, ViewSpec,
+    BufferKind, ObservationFormat, Output, Prioritized, Producer, RecordedStep, ReplayBuffer, ReplayLayout, Returns, SampleSpec, SharedRing,
+    Source, TransitionMetadata, TransitionRef, ViewSpec,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -173,6 +173,7 @@ fn replay_spec(batch_size: usize, text: &str, max_batches: Option<u64>) -> Sampl
         max_batches,
         views: Vec::new(),
         returns: None,
+        prioritized: None,
     }
 }
 
@@ -294,6 +295,7 @@ fn the_producer_augments_and_checks_the_request_first() {
         max_batches: None,
         views: Vec::new(),
         returns: None,
+        prioritized: None,
     };
     let refuse = |spec: SampleSpec, format| Producer::new(shared.clone(), format, spec).err().unwrap().to_string();
     let image = ObservationFormat::Image(SHAPE);
@@ -323,6 +325,7 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
         max_batches: None,
         views: Vec::new(),
         returns: None,
+        prioritized: None,
     };
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
@@ -380,6 +383,7 @@ fn rollout_spec(batch_size: usize, epochs: usize, per_env_draws: bool, text: &st
         max_batches: None,
         views: Vec::new(),
         returns: None,
+        prioritized: None,
     }
 }
 
@@ -697,4 +701,79 @@ fn views_and_returns_are_checked_before_any_batch() {
     let spec = SampleSpec { returns: Some(Returns::new(3, 0.9).unwrap()), ..rollout_spec(4, 1, false, "none") };
     let message = Producer::new(rollout, image, spec).err().unwrap().to_string();
     assert!(message.contains("n_step and discount apply to replay"), "{message}");
+}
+
+/// The batches of a stream of `spec` on `shared`, on heap buffers.
+fn collect(shared: &Arc<RwLock<ReplayBuffer>>, spec: SampleSpec) -> Vec<radserve_replay::Batch> {
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap());
+    let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
+    let (mut ready, _recycle) = producer.start(pool, Output::Heap);
+    std::iter::from_fn(|| ready.blocking_recv()).map(Result::unwrap).collect()
+}
+
+#[test]
+fn a_prioritized_stream_draws_by_priority_with_keys_probabilities_and_weights() {
+    let (buffer, expected) = simulate(2, 200, 300, 5);
+    let shared = Arc::new(RwLock::new(buffer));
+    let prioritized = |exponent, beta| Some(Prioritized::new(exponent, beta).unwrap());
+    // The first prioritized stream gives every transition priority 1: uniform, weights 1.
+    let first = collect(&shared, SampleSpec { prioritized: prioritized(1.0, 1.0), ..replay_spec(64, "none", Some(2)) });
+    let held = shared.read().unwrap().len();
+    for batch in &first {
+        assert!(batch.prioritized && !batch.has_discount);
+        assert_eq!(batch.table_size, held);
+        let metadata = &batch.metadata;
+        for sample in 0..batch.len {
+            let transition = TransitionRef::from_key(metadata.keys[sample]);
+            assert_eq!(transition.env as u32, metadata.env_indices[sample]);
+            let key = (metadata.env_indices[sample], metadata.step_indices[sample]);
+            let stack = 3 * FRAME_BYTES;
+            assert_eq!(view(batch, "obs")[sample * stack..(sample + 1) * stack], expected[&key].obs, "{key:?}");
+            assert!((metadata.probabilities[sample] - 1.0 / held as f64).abs() < 1e-15);
+            assert_eq!(metadata.weights[sample], 1.0);
+        }
+    }
+    // One transition at priority 99, the rest of the first batch at 0: alpha 1 draws it with
+    // probability 99 / (99 + the transitions never updated).
+    let keys = &first[0].metadata.keys;
+    let mut distinct = keys.clone();
+    distinct.sort_unstable();
+    distinct.dedup();
+    let priorities: Vec<f64> = keys.iter().map(|&key| if key == keys[0] { 99.0 } else { 0.0 }).collect();
+    let update = shared.write().unwrap().update_priorities(keys, &priorities).unwrap();
+    assert_eq!((update.updated, update.missing), (keys.len(), 0));
+    let rest = (held - distinct.len()) as f64;
+    let want = 99.0 / (99.0 + rest);
+    let batches = collect(&shared, SampleSpec { prioritized: prioritized(1.0, 0.5), ..replay_spec(200, "none", Some(25)) });
+    let (mut hits, mut draws) = (0usize, 0usize);
+    for batch in &batches {
+        let metadata = &batch.metadata;
+        let largest = (0..batch.len).map(|i| (held as f64 * metadata.probabilities[i]).powf(-0.5)).fold(0.0, f64::max);
+        for sample in 0..batch.len {
+            let key = metadata.keys[sample];
+            assert!(key == keys[0] || !distinct.contains(&key), "a transition at priority 0 was drawn");
+            let probability = if key == keys[0] { want } else { 1.0 / (99.0 + rest) };
+            assert!((metadata.probabilities[sample] - probability).abs() < 1e-12);
+            let weight = (held as f64 * probability).powf(-0.5) / largest;
+            assert!((f64::from(metadata.weights[sample]) - weight).abs() < 1e-6);
+            hits += usize::from(key == keys[0]);
+            draws += 1;
+        }
+    }
+    let sd = (want * (1.0 - want) / draws as f64).sqrt();
+    assert!((hits as f64 / draws as f64 - want).abs() < 5.0 * sd, "{hits} of {draws} draws, p {want}");
+    // The largest priority set stays what new transitions enter at.
+    assert_eq!(shared.read().unwrap().max_priority(), Some(99.0));
+}
+
+#[test]
+fn prioritized_requests_are_checked_before_any_batch() {
+    let shared = Arc::new(RwLock::new(rollout_buffer(4, 2, 0)));
+    let spec = SampleSpec { prioritized: Some(Prioritized::new(0.6, 0.4).unwrap()), ..rollout_spec(4, 1, false, "none") };
+    let message = Producer::new(shared, ObservationFormat::Image(SHAPE), spec).err().unwrap().to_string();
+    assert!(message.contains("prioritized sampling applies to replay"), "{message}");
+    for (alpha, beta, field) in [(-0.1, 0.4, "priority_exponent"), (0.6, 1.5, "importance_sampling_exponent"), (f64::NAN, 0.4, "priority_exponent")] {
+        let message = Prioritized::new(alpha, beta).unwrap_err().to_string();
+        assert!(message.contains(field) && message.contains("[0, 1]"), "{message}");
+    }
 }

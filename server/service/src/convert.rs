@@ -4,7 +4,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use radserve_augment::{Pipeline, Sharing, TransitionPart};
-use radserve_replay::{Batch, ReplayError, Returns, SampleSpec, Slot, Source, ViewSpec, MAX_VIEWS};
+use radserve_replay::{Batch, Prioritized, ReplayError, Returns, SampleSpec, Slot, Source, ViewSpec, MAX_VIEWS};
 use radserve_core::{
     BufferRequest, CatalogEntry, DType, EpisodeEnd, InfoKind, Infos, OptionValue, Options, SessionInfo, SessionSummary, Space,
     StepOutcome,
@@ -350,6 +350,39 @@ fn returns_from_proto(request: &proto::SampleBatchesRequest) -> Result<Option<Re
     }
 }
 
+/// A request's sampler: None for uniform; the exponents only with SAMPLER_PRIORITIZED.
+fn prioritized_from_proto(request: &proto::SampleBatchesRequest) -> Result<Option<Prioritized>> {
+    match proto::Sampler::try_from(request.sampler) {
+        Ok(proto::Sampler::Uniform) => {
+            for (name, value) in
+                [("priority_exponent", request.priority_exponent), ("importance_sampling_exponent", request.importance_sampling_exponent)]
+            {
+                if value.is_some() {
+                    return Err(ServiceError::BadRequest(format!(
+                        "{name} applies to sampler SAMPLER_PRIORITIZED; this request samples uniformly"
+                    )));
+                }
+            }
+            Ok(None)
+        }
+        Ok(proto::Sampler::Prioritized) => Ok(Some(
+            Prioritized::new(
+                request.priority_exponent.unwrap_or(DEFAULT_PRIORITY_EXPONENT),
+                request.importance_sampling_exponent.unwrap_or(DEFAULT_IMPORTANCE_SAMPLING_EXPONENT),
+            )
+            .map_err(ServiceError::from)?,
+        )),
+        Err(_) => Err(ServiceError::BadRequest(format!(
+            "sampler must be SAMPLER_UNIFORM (0) or SAMPLER_PRIORITIZED (1), got {}",
+            request.sampler
+        ))),
+    }
+}
+
+/// Schaul et al.'s proportional variant: alpha 0.6, beta from 0.4.
+pub const DEFAULT_PRIORITY_EXPONENT: f64 = 0.6;
+pub const DEFAULT_IMPORTANCE_SAMPLING_EXPONENT: f64 = 0.4;
+
 /// A SampleBatches request as the producer's spec, every field checked; a field the request leaves
 /// at its proto3 zero gets the default the proto documents.
 pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<SampleSpec> {
@@ -377,6 +410,7 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
     let include_next_obs = request.include_next_obs.unwrap_or(source == Source::Replay);
     let views = views_from_proto(request)?;
     let returns = returns_from_proto(request)?;
+    let prioritized = prioritized_from_proto(request)?;
     Ok(SampleSpec {
         source,
         include_next_obs,
@@ -385,6 +419,7 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
         sharing,
         views,
         returns,
+        prioritized,
         seed: request.seed,
         prefetch: if request.prefetch == 0 { SampleSpec::DEFAULT_PREFETCH } else { request.prefetch as usize },
         min_size: if source == Source::Replay { request.min_size.map_or(batch_size, |size| size as usize) } else { 0 },
@@ -424,6 +459,13 @@ fn small_fields(batch: &mut Batch, action: &Space) -> Vec<(String, proto::DType,
     ];
     if batch.has_discount {
         fields.push(("discount", proto::DType::DtypeFloat32, vec![len as i64], metadata.discounts.iter().flat_map(|v| v.to_le_bytes()).collect()));
+    }
+    if batch.prioritized {
+        fields.push(("key", proto::DType::DtypeInt64, vec![len as i64], metadata.keys.iter().flat_map(|v| (*v as i64).to_le_bytes()).collect()));
+        fields.push(("probability", proto::DType::DtypeFloat64, vec![len as i64], metadata.probabilities.iter().flat_map(|v| v.to_le_bytes()).collect()));
+        let table_size = (batch.table_size as i64).to_le_bytes();
+        fields.push(("table_size", proto::DType::DtypeInt64, vec![len as i64], table_size.repeat(len)));
+        fields.push(("weight", proto::DType::DtypeFloat32, vec![len as i64], metadata.weights.iter().flat_map(|v| v.to_le_bytes()).collect()));
     }
     if let Some(rollout_t) = &batch.rollout_t {
         fields.push(("t", proto::DType::DtypeInt32, vec![len as i64], rollout_t.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect()));

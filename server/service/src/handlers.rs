@@ -325,6 +325,20 @@ impl RadServe for RadServeService {
         Ok(Response::new(convert::acting_to_proto(&status)))
     }
 
+    async fn update_priorities(
+        &self,
+        request: Request<proto::UpdatePrioritiesRequest>,
+    ) -> Result<Response<proto::UpdatePrioritiesResponse>, Status> {
+        let caller = caller(&request)?;
+        let request = request.into_inner();
+        let update = self
+            .manager
+            .update_priorities(&caller, &request.session_id, &request.keys, &request.priorities)
+            .await
+            .map_err(ServiceError::from)?;
+        Ok(Response::new(proto::UpdatePrioritiesResponse { updated: update.updated as u64, missing: update.missing as u64 }))
+    }
+
     type SampleBatchesStream = SampleStream;
 
     async fn sample_batches(

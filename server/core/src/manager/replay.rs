@@ -2,7 +2,7 @@
 
 use std::sync::{Arc, RwLock};
 
-use radserve_replay::{BufferKind, ObservationFormat, ReplayBuffer, ReplayLayout};
+use radserve_replay::{BufferKind, ObservationFormat, PriorityUpdate, ReplayBuffer, ReplayLayout};
 
 use super::admission::{gib, ReplayShare};
 use super::{BufferRequest, ReplayInfo, ReplaySource, SessionManager};
@@ -69,6 +69,24 @@ impl SessionManager {
             let bytes = replay.read().expect("replay lock").layout().memory_bytes() as u64;
             self.sessions.lock().expect("registry lock").reserved_replay_bytes -= bytes;
         }
+    }
+
+    /// Replace the priorities of a session's sampled transitions (see
+    /// [`ReplayBuffer::update_priorities`]).
+    pub async fn update_priorities(
+        &self,
+        caller: &Principal,
+        session_id: &str,
+        keys: &[u64],
+        priorities: &[f64],
+    ) -> Result<PriorityUpdate, CoreError> {
+        let buffer = {
+            let session = self.get(caller, session_id)?;
+            let session = session.lock().await;
+            session.replay().cloned().ok_or_else(|| CoreError::NoReplayBuffer(session_id.to_string()))?
+        };
+        let update = buffer.write().expect("replay lock").update_priorities(keys, priorities)?;
+        Ok(update)
     }
 
     /// The replay buffer of a session, with what a sampler needs to know about it.

@@ -139,6 +139,7 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
         (prop::option::of(edge_u64()), prop::option::of(edge_f64()), edge_f64(), prop::option::of(0u64..6)),
         (edge_u32(), prop_oneof![4 => 0i32..2, 1 => any::<i32>()], edge_u32(), any::<bool>(), prop::option::of(any::<bool>())),
         (views(), prop::option::of(prop_oneof![3 => 0u32..6, 1 => edge_u32()]), prop::option::of(edge_f64())),
+        (prop_oneof![4 => 0i32..2, 1 => any::<i32>()], prop::option::of(edge_f64()), prop::option::of(edge_f64())),
     )
         .prop_map(
             |(
@@ -146,6 +147,7 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
                 (min_size, samples_per_insert, error_buffer, max_batches),
                 (chunk_bytes, source, epochs, per_env_augmentation, include_next_obs),
                 (views, n_step, discount),
+                (sampler, priority_exponent, importance_sampling_exponent),
             )| proto::SampleBatchesRequest {
                 session_id: String::new(),
                 batch_size,
@@ -165,6 +167,9 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
                 views,
                 n_step,
                 discount,
+                sampler,
+                priority_exponent,
+                importance_sampling_exponent,
             },
         )
 }
@@ -197,6 +202,7 @@ pub enum Op {
     SetPolicy(Target, PolicyModel, i32, u32),
     StartActing(Target, proto::StartActingRequest),
     StopActing(Target),
+    UpdatePriorities(Target, Vec<u64>, Vec<f64>),
 }
 
 /// A SetPolicy's model: a fixture (server/policy/tests/models), one with bytes changed, or anything.
@@ -323,6 +329,8 @@ pub fn op() -> impl Strategy<Value = Op> {
             .prop_map(|(t, model, head, version)| Op::SetPolicy(t, model, head, version)),
         2 => (target(), start_acting()).prop_map(|(t, request)| Op::StartActing(t, request)),
         1 => target().prop_map(Op::StopActing),
+        2 => (target(), prop::collection::vec(edge_u64(), 0..4), prop::collection::vec(edge_f64(), 0..4))
+            .prop_map(|(t, keys, priorities)| Op::UpdatePriorities(t, keys, priorities)),
     ]
 }
 
