@@ -7,8 +7,13 @@
 //!   block with its own CRC-32. A segment costs the transitions recorded since the last one, not the
 //!   buffer. When the segments reach twice the buffer's size (or [`MAX_SEGMENTS`]), the next one is
 //!   *full*: every frame the buffer holds, after which the older segments are deleted.
-//! - `MANIFEST`: which segments make the snapshot, in order, and the buffer's state at the end of the
-//!   last one (frames written per env, counters). It is written to `MANIFEST.tmp`, synced and renamed
+//! - `prio-NNNNNNNN.rsnap` (format 2), once a prioritized stream sampled the buffer: every held
+//!   transition's priority (key and value) and the largest priority set, written whole with each
+//!   segment (priorities change anywhere in the buffer, not only where frames were added). A
+//!   snapshot of format 1 has none: its transitions start at priority 1, as in a buffer no
+//!   prioritized stream has sampled.
+//! - `MANIFEST`: which segments (and which priorities file) make the snapshot, in order, and the
+//!   buffer's state at the end of the last one (frames written per env, counters). It is written to `MANIFEST.tmp`, synced and renamed
 //!   over the old one: a crash at any point leaves the previous snapshot whole (a segment the manifest
 //!   does not list is ignored and removed).
 //!
@@ -39,14 +44,21 @@ pub use dir::SnapshotPath;
 pub use read::{restore, RestoreReport};
 pub use write::{SnapshotReport, SnapshotWriter, Throttle};
 
-/// The on-disk format this build writes and reads.
-pub const FORMAT_VERSION: u32 = 1;
+/// The on-disk format this build writes: 2 adds the priorities file. It reads 1 and 2.
+pub const FORMAT_VERSION: u32 = 2;
+/// The oldest format this build reads.
+pub const OLDEST_READABLE_VERSION: u32 = 1;
 /// Segments a snapshot may list before the next one is full.
 pub const MAX_SEGMENTS: usize = 256;
 const MANIFEST: &str = "MANIFEST";
 const MANIFEST_TMP: &str = "MANIFEST.tmp";
 const MANIFEST_MAGIC: &[u8; 8] = b"RSNPMANI";
 const SEGMENT_MAGIC: &[u8; 8] = b"RSNPSEGM";
+const PRIORITIES_MAGIC: &[u8; 8] = b"RSNPPRIO";
+/// magic, version, transitions, the largest priority set.
+const PRIORITIES_HEADER_BYTES: usize = 8 + 4 + 8 + 8;
+/// A transition's key and its priority.
+const PRIORITY_RECORD_BYTES: usize = 8 + 8;
 /// A manifest lists at most MAX_SEGMENTS segments and one count per env: far below this.
 const MAX_MANIFEST_BYTES: u64 = 1 << 20;
 /// The largest value a counter of a snapshot may hold (frames per env, inserts, samples, steps):
@@ -105,6 +117,14 @@ struct SegmentEntry {
     bytes: u64,
 }
 
+/// The priorities file of a snapshot (format 2).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PriorityEntry {
+    sequence: u64,
+    bytes: u64,
+}
+
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Manifest {
@@ -122,6 +142,9 @@ struct Manifest {
     session: SessionCounters,
     /// When the last segment was written (seconds since the Unix epoch).
     unix_time_s: u64,
+    /// The buffer's priorities, once a prioritized stream sampled it (format 2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    priorities: Option<PriorityEntry>,
 }
 
 impl Manifest {
@@ -138,16 +161,30 @@ impl Manifest {
             counters: SavedCounters::default(),
             session: SessionCounters::default(),
             unix_time_s: 0,
+            priorities: None,
         }
     }
 
     fn bytes(&self) -> u64 {
-        self.segments.iter().map(|segment| segment.bytes).sum()
+        self.segments.iter().map(|segment| segment.bytes).sum::<u64>() + self.priorities.map_or(0, |entry| entry.bytes)
     }
 }
 
 fn segment_name(sequence: u64) -> String {
     format!("seg-{sequence:08}.rsnap")
+}
+
+fn priorities_name(sequence: u64) -> String {
+    format!("prio-{sequence:08}.rsnap")
+}
+
+/// Whether this build reads snapshot files of `version`.
+fn readable(version: u32) -> bool {
+    (OLDEST_READABLE_VERSION..=FORMAT_VERSION).contains(&version)
+}
+
+fn unreadable(version: u32) -> String {
+    format!("snapshot format version {version}; this server reads versions {OLDEST_READABLE_VERSION} to {FORMAT_VERSION}")
 }
 
 /// Records of one block: as many as fit in [`BLOCK_BYTES`], at least one.

@@ -8,9 +8,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use super::dir::{SnapshotDir, SnapshotPath};
 use super::{
-    block_records, segment_name, Manifest, Result, SessionCounters, SnapshotError, SnapshotWriter, BLOCK_HEADER_BYTES,
-    FORMAT_VERSION, MANIFEST, MANIFEST_MAGIC, MANIFEST_TMP, MAX_COUNTER, MAX_MANIFEST_BYTES, MAX_SEGMENTS,
-    SEGMENT_HEADER_BYTES, SEGMENT_MAGIC,
+    block_records, priorities_name, readable, segment_name, unreadable, Manifest, Result, SessionCounters, SnapshotError,
+    SnapshotWriter, BLOCK_HEADER_BYTES, MANIFEST, MANIFEST_MAGIC, MANIFEST_TMP, MAX_COUNTER, MAX_MANIFEST_BYTES, MAX_SEGMENTS,
+    PRIORITIES_HEADER_BYTES, PRIORITIES_MAGIC, PRIORITY_RECORD_BYTES, SEGMENT_HEADER_BYTES, SEGMENT_MAGIC,
 };
 use crate::buffer::{ReplayBuffer, ReplayCounters, ReplayLayout, FIRST_OF_EPISODE, TERMINATED, TRUNCATED};
 
@@ -43,7 +43,8 @@ pub fn restore(dir: &SnapshotPath, identity: &str, buffer: &mut ReplayBuffer) ->
     };
     let result = read_manifest(&manifest_path, &contents, identity, &buffer.layout, buffer.slots as u64).and_then(|manifest| {
         let (bytes, truncated_episodes) = read_segments(&open, &manifest, buffer)?;
-        Ok((manifest, bytes, truncated_episodes))
+        let priority_bytes = read_priorities(&open, &manifest, buffer)?;
+        Ok((manifest, bytes + priority_bytes, truncated_episodes))
     });
     let (manifest, bytes, truncated_episodes) = match result {
         Ok(read) => read,
@@ -71,8 +72,10 @@ pub fn restore(dir: &SnapshotPath, identity: &str, buffer: &mut ReplayBuffer) ->
 fn remove_strays(dir: &SnapshotDir, manifest: &Manifest) {
     let Ok(names) = dir.names() else { return };
     for name in names {
-        let listed = manifest.segments.iter().any(|segment| segment_name(segment.sequence) == name);
-        if (name.starts_with("seg-") && name.ends_with(".rsnap") && !listed) || name == MANIFEST_TMP {
+        let listed = manifest.segments.iter().any(|segment| segment_name(segment.sequence) == name)
+            || manifest.priorities.is_some_and(|entry| priorities_name(entry.sequence) == name);
+        let ours = (name.starts_with("seg-") || name.starts_with("prio-")) && name.ends_with(".rsnap");
+        if (ours && !listed) || name == MANIFEST_TMP {
             let _ = dir.remove(&name);
         }
     }
@@ -120,8 +123,61 @@ fn read_manifest(path: &Path, contents: &[u8], identity: &str, layout: &ReplayLa
             segment.sequence, segment.bytes
         )));
     }
+    if let Some(entry) = manifest.priorities {
+        let most = max_priorities_bytes(slots * layout.num_envs as u64);
+        if entry.bytes > most || entry.sequence >= MAX_COUNTER {
+            return Err(invalid(format!(
+                "it lists priorities file {} of {} bytes; this buffer's has at most {most} bytes",
+                entry.sequence, entry.bytes
+            )));
+        }
+    }
     check_counters(&manifest).map_err(invalid)?;
     Ok(manifest)
+}
+
+/// The most bytes a priorities file of a buffer of `slots` slots can take.
+fn max_priorities_bytes(slots: u64) -> u64 {
+    (PRIORITIES_HEADER_BYTES as u64 + 4).saturating_add(slots.saturating_mul(PRIORITY_RECORD_BYTES as u64))
+}
+
+/// The priorities the manifest lists, checked whole (magic, version, length, checksum, every key
+/// and value) before `buffer` takes them; the bytes read.
+fn read_priorities(dir: &SnapshotDir, manifest: &Manifest, buffer: &mut ReplayBuffer) -> Result<u64> {
+    let Some(entry) = manifest.priorities else { return Ok(0) };
+    let name = priorities_name(entry.sequence);
+    let path = dir.path().join(&name);
+    let invalid = |message: String| SnapshotError::new(&path, message);
+    let contents = match dir.read_bounded(&name, entry.bytes) {
+        Ok(Some(contents)) => contents,
+        Ok(None) => return Err(invalid("missing: the manifest lists it".into())),
+        Err(error) => return Err(SnapshotError::io(&path, error)),
+    };
+    if contents.len() as u64 != entry.bytes || contents.len() < PRIORITIES_HEADER_BYTES + 4 {
+        return Err(invalid(format!("{} bytes, the manifest says {}: truncated or replaced", contents.len(), entry.bytes)));
+    }
+    if &contents[..8] != PRIORITIES_MAGIC {
+        return Err(invalid("not a radserve snapshot priorities file".into()));
+    }
+    let (body, crc) = contents.split_at(contents.len() - 4);
+    if crc32fast::hash(body).to_le_bytes() != crc {
+        return Err(invalid("checksum mismatch: corrupted".into()));
+    }
+    let version = le_u32(body, 8);
+    if !readable(version) {
+        return Err(invalid(unreadable(version)));
+    }
+    let count = le_u64(body, 12);
+    let max = f64::from_le_bytes(body[20..28].try_into().expect("8 bytes"));
+    if (body.len() - PRIORITIES_HEADER_BYTES) as u64 != count.saturating_mul(PRIORITY_RECORD_BYTES as u64) {
+        return Err(invalid(format!("it counts {count} priorities in {} bytes", body.len() - PRIORITIES_HEADER_BYTES)));
+    }
+    let pairs: Vec<(u64, f64)> = body[PRIORITIES_HEADER_BYTES..]
+        .chunks_exact(PRIORITY_RECORD_BYTES)
+        .map(|record| (le_u64(record, 0), f64::from_le_bytes(record[8..16].try_into().expect("8 bytes"))))
+        .collect();
+    buffer.restore_priorities(max, &pairs).map_err(invalid)?;
+    Ok(entry.bytes)
 }
 
 /// The manifest's counters against the frames it counts: none past [`MAX_COUNTER`] (so none can
@@ -164,8 +220,8 @@ pub(super) fn parse_manifest(contents: &[u8]) -> std::result::Result<Manifest, S
         return Err("not a radserve snapshot manifest".into());
     }
     let version = u32::from_le_bytes(contents[8..12].try_into().expect("4 bytes"));
-    if version != FORMAT_VERSION {
-        return Err(format!("snapshot format version {version}; this server reads version {FORMAT_VERSION}"));
+    if !readable(version) {
+        return Err(unreadable(version));
     }
     let length = u32::from_le_bytes(contents[12..16].try_into().expect("4 bytes")) as usize;
     if contents.len() != 16 + length + 4 {
@@ -230,8 +286,8 @@ fn read_segments(dir: &SnapshotDir, manifest: &Manifest, buffer: &mut ReplayBuff
             return Err(invalid("header checksum mismatch: corrupted".into()));
         }
         let version = le_u32(&header, 8);
-        if version != FORMAT_VERSION {
-            return Err(invalid(format!("snapshot format version {version}; this server reads version {FORMAT_VERSION}")));
+        if !readable(version) {
+            return Err(invalid(unreadable(version)));
         }
         let described = (le_u64(&header, 12), le_u32(&header, 20) as usize, le_u32(&header, 24) as usize, le_u32(&header, 28) as usize);
         let expected = (segment.sequence, num_envs, layout.frame_bytes, layout.action_bytes);
@@ -356,6 +412,9 @@ impl ReplayBuffer {
             }
         }
         self.counters = counters;
+        for env in 0..self.layout.num_envs {
+            self.first_frames[env] = self.count_first_frames(env);
+        }
         truncated
     }
 
@@ -364,7 +423,9 @@ impl ReplayBuffer {
         self.written.fill(0);
         self.floors.fill(0);
         self.in_episode.fill(false);
+        self.first_frames.fill(0);
         self.steps_recorded = 0;
         self.counters = ReplayCounters::default();
+        self.priorities = None;
     }
 }

@@ -224,7 +224,7 @@ fn a_foreign_file_or_another_format_version_is_named_as_such() {
     fs::write(&manifest, &bytes).unwrap();
     let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
     let error = restore(&at(&recording.path), IDENTITY, &mut buffer).unwrap_err();
-    assert!(error.to_string().contains("snapshot format version 2; this server reads version 1"), "{error}");
+    assert!(error.to_string().contains("snapshot format version 3; this server reads versions 1 to 2"), "{error}");
     fs::write(&manifest, b"{\"identity\": \"someone else's JSON\"}").unwrap();
     let error = restore(&at(&recording.path), IDENTITY, &mut buffer).unwrap_err();
     assert!(error.to_string().contains("not a radserve snapshot manifest") && error.file == manifest, "{error}");
@@ -481,5 +481,104 @@ proptest! {
         }
         let error = restore_error(&recording);
         prop_assert!(error.file == target, "{planted:?} at {}: {error}", target.display());
+    }
+}
+
+/// The transitions `buffer` can sample.
+fn held(buffer: &ReplayBuffer) -> Vec<TransitionRef> {
+    (0..buffer.layout.num_envs)
+        .flat_map(|env| (buffer.oldest_sampleable(env)..buffer.written[env]).map(move |frame| TransitionRef { env, frame }))
+        .filter(|transition| buffer.flags[buffer.slot(transition.env, transition.frame)] & FIRST_OF_EPISODE == 0)
+        .collect()
+}
+
+/// A snapshot taken before any prioritized stream, then priorities set (some to 0) and a second
+/// snapshot with them, then steps the snapshot does not have.
+fn prioritized_on_disk() -> Recording {
+    let mut recording = Recording::new(13, 150);
+    recording.record(25);
+    recording.snapshot().unwrap();
+    {
+        let mut buffer = recording.buffer.write().unwrap();
+        buffer.acquire_priorities(0.5).unwrap();
+        let keys: Vec<u64> = held(&buffer).iter().map(|transition| transition.key()).collect();
+        let values: Vec<f64> = (0..keys.len()).map(|index| (index % 5) as f64 * 1.5).collect();
+        buffer.update_priorities(&keys, &values).unwrap();
+    }
+    recording.record(15);
+    recording.snapshot().unwrap();
+    recording.record(5);
+    recording
+}
+
+#[test]
+fn priorities_survive_a_snapshot() {
+    let recording = prioritized_on_disk();
+    let restored = recording.restored();
+    let original = recording.buffer.read().unwrap();
+    let transitions = held(&restored);
+    assert!(transitions.len() > 80);
+    for transition in &transitions {
+        assert_eq!(restored.priority(*transition), original.priority(*transition), "{transition:?}");
+    }
+    assert!(transitions.iter().any(|transition| restored.priority(*transition) == Some(0.0)));
+    assert_eq!(restored.max_priority(), Some(6.0));
+    // One priorities file on disk, the last snapshot's, counted in the snapshot's bytes.
+    let names: Vec<String> = files(&recording.path).iter().map(|file| file.file_name().unwrap().to_string_lossy().into()).collect();
+    assert_eq!(names.iter().filter(|name| name.starts_with("prio-")).collect::<Vec<_>>(), ["prio-00000002.rsnap"]);
+    let on_disk: u64 = files(&recording.path).iter().filter(|file| !file.ends_with(MANIFEST)).map(|file| fs::metadata(file).unwrap().len()).sum();
+    assert_eq!(recording.writer.disk_bytes(), on_disk);
+}
+
+#[test]
+fn a_snapshot_of_format_1_still_reads_without_priorities() {
+    let recording = snapshot_on_disk();
+    let open = at(&recording.path).open(false).unwrap().unwrap();
+    // As a format 1 build wrote it: the version in the manifest's header and in each segment's
+    // (under the segment header's checksum).
+    let manifest = parse_manifest(&fs::read(recording.path.join(MANIFEST)).unwrap()).unwrap();
+    write_manifest(&open, &manifest).unwrap();
+    let mut bytes = fs::read(recording.path.join(MANIFEST)).unwrap();
+    bytes[8..12].copy_from_slice(&1u32.to_le_bytes());
+    fs::write(recording.path.join(MANIFEST), &bytes).unwrap();
+    for segment in &manifest.segments {
+        let path = recording.path.join(segment_name(segment.sequence));
+        let mut bytes = fs::read(&path).unwrap();
+        bytes[8..12].copy_from_slice(&1u32.to_le_bytes());
+        let crc = crc32fast::hash(&bytes[..SEGMENT_HEADER_BYTES - 4]);
+        bytes[SEGMENT_HEADER_BYTES - 4..SEGMENT_HEADER_BYTES].copy_from_slice(&crc.to_le_bytes());
+        fs::write(&path, &bytes).unwrap();
+    }
+    let restored = recording.restored();
+    assert!(assert_same_transitions(&recording.buffer.read().unwrap(), &restored) > 80);
+    assert_eq!(restored.max_priority(), None, "no priorities until a prioritized stream samples it");
+}
+
+#[test]
+fn a_damaged_or_forged_priorities_file_is_refused_naming_it() {
+    const HEADER: usize = PRIORITIES_HEADER_BYTES;
+    type Damage = fn(&mut Vec<u8>);
+    let damages: [(&str, Damage); 4] = [
+        ("checksum mismatch", |bytes| bytes[HEADER + 3] ^= 1),
+        ("the manifest says", |bytes| bytes.truncate(bytes.len() - 16)),
+        ("not a radserve snapshot priorities file", |bytes| bytes[0] = b'X'),
+        ("not a priority of this buffer", |bytes| {
+            // A negative priority under a valid checksum.
+            bytes[HEADER + 8..HEADER + 16].copy_from_slice(&(-1.0f64).to_le_bytes());
+            let end = bytes.len() - 4;
+            let crc = crc32fast::hash(&bytes[..end]);
+            bytes[end..].copy_from_slice(&crc.to_le_bytes());
+        }),
+    ];
+    for (expected, damage) in damages {
+        let recording = prioritized_on_disk();
+        let path = recording.path.join(priorities_name(2));
+        let mut bytes = fs::read(&path).unwrap();
+        damage(&mut bytes);
+        fs::write(&path, &bytes).unwrap();
+        let mut buffer = ReplayBuffer::new(layout(150)).unwrap();
+        let error = restore(&at(&recording.path), IDENTITY, &mut buffer).expect_err("refused");
+        assert!(error.to_string().contains(expected) && error.file == path, "{expected}: {error}");
+        assert!(buffer.is_empty() && buffer.max_priority().is_none());
     }
 }

@@ -1,5 +1,6 @@
 //! Writing snapshots: a segment of the frames recorded since the last one (or every frame held, for
-//! a full one), copied a block at a time under the buffer's read lock and paced, then the manifest.
+//! a full one), copied a block at a time under the buffer's read lock and paced, the priorities
+//! (whole, once a prioritized stream sampled the buffer), then the manifest.
 
 use std::io::{self, BufWriter, Write};
 use std::path::PathBuf;
@@ -9,9 +10,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use super::dir::{SnapshotDir, SnapshotPath};
 use super::{
-    block_records, segment_name, Manifest, Result, SavedCounters, SegmentEntry, SessionCounters, SnapshotError,
-    BLOCK_HEADER_BYTES, FORMAT_VERSION, MANIFEST, MANIFEST_MAGIC, MANIFEST_TMP, MAX_SEGMENTS, SEGMENT_HEADER_BYTES,
-    SEGMENT_MAGIC,
+    block_records, priorities_name, segment_name, Manifest, PriorityEntry, Result, SavedCounters, SegmentEntry,
+    SessionCounters, SnapshotError, BLOCK_HEADER_BYTES, FORMAT_VERSION, MANIFEST, MANIFEST_MAGIC, MANIFEST_TMP,
+    MAX_SEGMENTS, PRIORITIES_HEADER_BYTES, PRIORITIES_MAGIC, SEGMENT_HEADER_BYTES, SEGMENT_MAGIC,
 };
 use crate::buffer::{BufferKind, ReplayBuffer, ReplayLayout};
 
@@ -45,13 +46,13 @@ impl Throttle {
 /// What one snapshot wrote.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SnapshotReport {
-    /// Bytes of the new segment.
+    /// Bytes of the new segment, and of the priorities file written with it.
     pub bytes: u64,
     /// Transitions (frames) it holds.
     pub frames: u64,
     /// Whether it was full (every frame the buffer holds; older segments deleted).
     pub full: bool,
-    /// Bytes the snapshot takes on disk now (every listed segment).
+    /// Bytes the snapshot takes on disk now (every listed segment and the priorities file).
     pub disk_bytes: u64,
     pub duration: Duration,
 }
@@ -129,7 +130,18 @@ impl SnapshotWriter {
             }
         };
         let (bytes, frames, hi) = written;
+        // The priorities, whole (copied under the read lock in one go: 16 bytes per transition).
+        let exported = buffer.read().expect("replay lock").export_priorities();
+        let priorities = match exported.map(|contents| write_priorities(&dir, sequence, &contents)).transpose() {
+            Ok(entry) => entry,
+            Err(error) => {
+                let _ = dir.remove(&name);
+                let _ = dir.remove(&priorities_name(sequence));
+                return Err(SnapshotError::io(&dir.path().join(priorities_name(sequence)), error));
+            }
+        };
         let mut manifest = self.manifest.clone();
+        manifest.priorities = priorities;
         if full {
             manifest.segments.clear();
         }
@@ -141,7 +153,11 @@ impl SnapshotWriter {
         manifest.unix_time_s = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |since| since.as_secs());
         if let Err(error) = write_manifest(&dir, &manifest) {
             let _ = dir.remove(&name);
+            let _ = dir.remove(&priorities_name(sequence));
             return Err(error);
+        }
+        if let Some(old) = self.manifest.priorities {
+            let _ = dir.remove(&priorities_name(old.sequence));
         }
         if full {
             for old in &self.manifest.segments {
@@ -150,6 +166,7 @@ impl SnapshotWriter {
         }
         self.manifest = manifest;
         self.next_sequence += 1;
+        let bytes = bytes + priorities.map_or(0, |entry| entry.bytes);
         Ok(SnapshotReport { bytes, frames, full, disk_bytes: self.manifest.bytes(), duration: started.elapsed() })
     }
 
@@ -223,6 +240,27 @@ impl SnapshotWriter {
             None => Ok(()),
         }
     }
+}
+
+/// Writes a priorities file (`contents` without its header and checksum) for segment `sequence`.
+fn write_priorities(dir: &SnapshotDir, sequence: u64, records: &[u8]) -> io::Result<PriorityEntry> {
+    let name = priorities_name(sequence);
+    let mut file = BufWriter::new(dir.create_exclusive(&name)?);
+    let mut hasher = crc32fast::Hasher::new();
+    let mut put = |bytes: &[u8]| -> io::Result<()> {
+        hasher.update(bytes);
+        file.write_all(bytes)
+    };
+    let (max, pairs) = records.split_at(8);
+    put(PRIORITIES_MAGIC)?;
+    put(&FORMAT_VERSION.to_le_bytes())?;
+    put(&((pairs.len() / 16) as u64).to_le_bytes())?;
+    put(max)?;
+    put(pairs)?;
+    let crc = hasher.finalize();
+    file.write_all(&crc.to_le_bytes())?;
+    file.into_inner().map_err(|error| error.into_error())?.sync_all()?;
+    Ok(PriorityEntry { sequence, bytes: (PRIORITIES_HEADER_BYTES + pairs.len() + 4) as u64 })
 }
 
 pub(super) fn write_manifest(dir: &SnapshotDir, manifest: &Manifest) -> Result<()> {
