@@ -101,7 +101,8 @@ def sample_requests(session_id):
         samples_per_insert=st.one_of(st.none(), f64), error_buffer=f64, max_batches=st.one_of(st.none(), st.integers(0, 4)),
         chunk_bytes=u32, source=st.integers(0, 2), epochs=u32, include_next_obs=st.one_of(st.none(), st.booleans()),
         views=st.one_of(st.just([]), views), n_step=st.one_of(st.none(), st.integers(0, 70), u32),
-        discount=st.one_of(st.none(), f64),
+        discount=st.one_of(st.none(), f64), sampler=st.one_of(st.integers(0, 1), st.integers(-2**31, 2**31 - 1)),
+        priority_exponent=st.one_of(st.none(), f64), importance_sampling_exponent=st.one_of(st.none(), f64),
     )
 
 
@@ -110,7 +111,7 @@ def calls(draw, base):
     """One RPC and its request; session ids are mostly live ones."""
     session_id = draw(st.one_of(st.sampled_from(base), st.sampled_from(base), text("", "s-0", "../x")))
     kind = draw(st.sampled_from(["ListEnvs", "CreateSession", "DescribeSession", "ListSessions", "Reset", "Step", "Act",
-                                 "SampleBatches", "SampleBatchesShared"]))
+                                 "SampleBatches", "SampleBatchesShared", "UpdatePriorities"]))
     if kind == "ListEnvs":
         return kind, pb.ListEnvsRequest(prefix=draw(text("", "gym/", "dmc/", "zzz")))
     if kind == "CreateSession":
@@ -120,6 +121,9 @@ def calls(draw, base):
                                              observation_view=draw(st.one_of(st.just(""), pipelines)))
     if kind in ("DescribeSession", "ListSessions"):
         return kind, (pb.DescribeSessionRequest(session_id=session_id) if kind == "DescribeSession" else pb.ListSessionsRequest())
+    if kind == "UpdatePriorities":
+        return kind, pb.UpdatePrioritiesRequest(session_id=session_id, keys=draw(st.lists(u64, max_size=4)),
+                                                priorities=draw(st.lists(f64, max_size=4)))
     if kind == "Reset":
         return kind, pb.ResetRequest(session_id=session_id, seed=draw(st.one_of(st.none(), u64)))
     if kind == "Step":

@@ -141,6 +141,18 @@ def test_sharded_batches_have_the_size_asked_for_and_say_where_they_came_from(sh
                 assert batch.views["obs_aug"].shape == (16, 9, 64, 64) and batch.discount.shape == (16,)
                 assert (batch.discount[~batch.terminated] > 0.97).all() and (batch.discount[batch.terminated] == 0).all()
                 assert len(set(batch.server.tolist())) == 3
+        # Prioritized: each server draws its share by its own priorities (all 1 before any update);
+        # the batch's probability is per draw of the whole batch, each key goes back to its server.
+        prioritized = dict(sampler="prioritized", priority_exponent=1.0, importance_sampling_exponent=1.0)
+        with envs.sample_batches(16, seed=5, max_batches=1, **prioritized) as stream:
+            batch = next(stream)
+            sizes = np.array([info.replay.size for info in envs.describe()])
+            assert (batch.table_size == sizes.sum()).all()
+            shares = np.bincount(batch.server, minlength=3)
+            np.testing.assert_allclose(batch.probability, shares[batch.server] / 16 / sizes[batch.server], rtol=1e-9)
+            np.testing.assert_allclose(batch.weight, radserve.importance_weights(batch.probability, batch.table_size, 1.0),
+                                       rtol=1e-6)
+            assert stream.update_priorities(batch, np.full(16, 2.0)) == radserve.PriorityUpdate(updated=16, missing=0)
     finally:
         envs.close()
     # Closing the sharded session closes its session on every server.

@@ -7,7 +7,7 @@ Public names only. `radserve.proto` holds the generated messages and stubs of th
 from ._version import __version__
 from ._security import TlsConfig
 from ._transport import resolve as resolve_addresses
-from .batches import Batch, BatchStream, SharedBatchStream, View
+from .batches import Batch, BatchStream, PriorityUpdate, SharedBatchStream, View, importance_weights
 from .client import Client
 from .errors import (
     AlreadyExistsError,
@@ -35,7 +35,7 @@ __all__ = [
     "__version__", "Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "View",
     "SharedBatchStream", "RemoteVectorEnv", "ShardedVectorEnv", "ShardedBatchStream", "LocalServer", "TlsConfig",
     "resolve_addresses", "ActingInfo", "LoadedPolicy", "Batches", "SessionEnv", "ReplayInfo", "SnapshotInfo",
-    "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
+    "PriorityUpdate", "importance_weights", "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",
     "ResourceExhaustedError", "UnavailableError", "InternalError", "SharedMemoryError",
     "UnauthenticatedError", "PermissionDeniedError", "DeadlineExceededError", "AlreadyExistsError",
     "CancelledError", "UnimplementedError",

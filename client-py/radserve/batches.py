@@ -29,7 +29,7 @@ from .errors import InvalidArgumentError, SharedMemoryError, from_rpc_error
 # Every field of a batch but its observations; any other field is a view (obs and next_obs when the
 # request names no views).
 METADATA_FIELDS = ("action", "reward", "discount", "terminated", "truncated", "env_index", "step_index", "t",
-                   "policy_version", "log_prob", "value")
+                   "policy_version", "log_prob", "value", "key", "probability", "table_size", "weight")
 
 SHARING = {
     "reference": pb.DRAW_SHARING_REFERENCE,
@@ -71,6 +71,12 @@ class Batch:
     `reward` is the n-step return, `discount` the bootstrap's factor (0 where the episode terminated
     within the window) and `next_obs` the observation after the window: the target is
     `reward + discount * Q(next_obs)`.
+
+    A prioritized stream's batches (`sampler="prioritized"`) carry each transition's `key` (what
+    `update_priorities` names it by), the `probability` of its draw, `table_size` (the transitions
+    that could be drawn) and its importance `weight`, `(table_size * probability) ** -beta` over
+    the batch's largest, with the request's `importance_sampling_exponent` as beta
+    (`radserve.importance_weights` computes them for another beta).
     """
 
     index: int
@@ -90,9 +96,79 @@ class Batch:
     server: "np.ndarray | None" = None
     discount: "np.ndarray | None" = None
     views: "dict[str, np.ndarray]" = field(default_factory=dict)
+    key: "np.ndarray | None" = None
+    probability: "np.ndarray | None" = None
+    table_size: "np.ndarray | None" = None
+    weight: "np.ndarray | None" = None
 
     def __len__(self) -> int:
         return len(self.reward)
+
+
+def importance_weights(probability: np.ndarray, table_size: "np.ndarray | int", beta: float) -> np.ndarray:
+    """Prioritized replay's importance weights (Schaul et al. 2016): `(table_size * probability) **
+    -beta`, divided by the largest, as float32; what the server sends as `Batch.weight` for the
+    request's beta, for a learner that anneals beta itself."""
+    weights = (np.asarray(table_size, dtype=np.float64) * np.asarray(probability, dtype=np.float64)) ** -float(beta)
+    return (weights / weights.max()).astype(np.float32)
+
+
+# The server's default beta (Schaul et al.'s starting value).
+DEFAULT_IMPORTANCE_SAMPLING_EXPONENT = 0.4
+
+
+@dataclass(frozen=True)
+class PriorityUpdate:
+    """What `update_priorities` changed: transitions whose priority was replaced, and keys of
+    transitions the replay no longer holds (overwritten since they were sampled: skipped)."""
+
+    updated: int
+    missing: int
+
+    def __add__(self, other: "PriorityUpdate") -> "PriorityUpdate":
+        return PriorityUpdate(self.updated + other.updated, self.missing + other.missing)
+
+
+def _host(value: Any) -> Any:
+    """A torch tensor (on any device: a learner's TD errors) as numpy; anything else as it is."""
+    if hasattr(value, "detach") and hasattr(value, "cpu"):
+        return value.detach().cpu().numpy()
+    return value
+
+
+def _priority_arrays(batch: Any, priorities: Any) -> "tuple[np.ndarray, np.ndarray]":
+    if batch.key is None:
+        raise InvalidArgumentError("this batch carries no `key`: update_priorities takes batches of a stream "
+                                   "opened with sampler='prioritized'")
+    keys = np.asarray(_host(batch.key), dtype=np.int64).reshape(-1)
+    values = np.asarray(_host(priorities), dtype=np.float64).reshape(-1)
+    if values.shape != keys.shape:
+        raise InvalidArgumentError(f"update_priorities needs one priority per transition of the batch ({len(keys)}), "
+                                   f"got {values.size}")
+    return keys, values
+
+
+def send_priorities(transport, session_id: str, keys: np.ndarray, priorities: np.ndarray) -> PriorityUpdate:
+    """One UpdatePriorities call (the server checks every value first: finite, non-negative)."""
+    request = pb.UpdatePrioritiesRequest(session_id=session_id, keys=keys.astype(np.uint64).tolist(),
+                                         priorities=priorities.tolist())
+    response = transport.call("UpdatePriorities", request)
+    return PriorityUpdate(updated=response.updated, missing=response.missing)
+
+
+class _Prioritized:
+    """`update_priorities` for a stream of one server's session."""
+
+    _transport: Any = None
+    _session_id: str = ""
+
+    def update_priorities(self, batch: Batch, priorities: Any) -> PriorityUpdate:
+        """Replace the priorities of `batch`'s transitions (from this stream, `sampler="prioritized"`;
+        a `radserve.torch` TensorBatch too) with `priorities`, one per transition, finite and
+        non-negative (numpy or a torch tensor on any device): a learner sends `abs(td_error) + 1e-6`,
+        say. New transitions enter at the largest priority set so far."""
+        keys, values = _priority_arrays(batch, priorities)
+        return send_priorities(self._transport, self._session_id, keys, values)
 
 
 def make_batch(index: int, arrays: "dict[str, np.ndarray]", order: "list[str] | None" = None) -> Batch:
@@ -185,7 +261,7 @@ def iterate_batches(stream, error=from_rpc_error) -> Iterator[Batch]:
         raise error(failure) from None
 
 
-class BatchStream:
+class BatchStream(_Prioritized):
     """An iterator of Batch objects; `close()` (or leaving a `with` block) cancels the stream and the
     server frees its producer."""
 
@@ -223,7 +299,7 @@ def map_region(region: "pb.SharedMemoryRegion") -> mmap.mmap:
     return memory
 
 
-class SharedBatchStream:
+class SharedBatchStream(_Prioritized):
     """An iterator of Batch objects whose observations are read in place from shared memory.
 
     `obs` and `next_obs` are views of a slot the server owns again once the next batch is taken:
@@ -324,10 +400,13 @@ def open_batch_stream(transport, request: "pb.SampleBatchesRequest", delivery: s
             raise transport.error(call) from None
         return BatchStream(call, transport.error)
 
-    return transport.negotiate(delivery, shared, streamed)
+    stream = transport.negotiate(delivery, shared, streamed)
+    stream._transport, stream._session_id = transport, request.session_id
+    return stream
 
 
 _SOURCES = {"replay": pb.SOURCE_REPLAY, "rollout": pb.SOURCE_ROLLOUT}
+_SAMPLERS = {"uniform": pb.SAMPLER_UNIFORM, "prioritized": pb.SAMPLER_PRIORITIZED}
 
 
 def sample_request(session_id: str, batch_size: int, *, augment: str = "none", sharing: str = "reference",
@@ -336,12 +415,16 @@ def sample_request(session_id: str, batch_size: int, *, augment: str = "none", s
                    max_batches: "int | None" = None, chunk_bytes: int = 0, source: str = "replay", epochs: int = 1,
                    per_env_augmentation: bool = False, include_next_obs: "bool | None" = None,
                    views: "Mapping[str, str | View] | None" = None, n_step: "int | None" = None,
-                   discount: "float | None" = None) -> "pb.SampleBatchesRequest":
+                   discount: "float | None" = None, sampler: str = "uniform",
+                   priority_exponent: "float | None" = None,
+                   importance_sampling_exponent: "float | None" = None) -> "pb.SampleBatchesRequest":
     """SampleBatches' request (see `SamplingMixin.sample_batches` for the settings)."""
     if sharing not in SHARING:
         raise InvalidArgumentError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
     if source not in _SOURCES:
         raise InvalidArgumentError(f"source must be one of {sorted(_SOURCES)}, got {source!r}")
+    if sampler not in _SAMPLERS:
+        raise InvalidArgumentError(f"sampler must be one of {sorted(_SAMPLERS)}, got {sampler!r}")
     named = []
     for name, view in (views or {}).items():
         view = View(view) if isinstance(view, str) else view
@@ -356,7 +439,8 @@ def sample_request(session_id: str, batch_size: int, *, augment: str = "none", s
         prefetch=prefetch, seed=seed, min_size=min_size, samples_per_insert=samples_per_insert,
         error_buffer=error_buffer, max_batches=max_batches, chunk_bytes=chunk_bytes, source=_SOURCES[source],
         epochs=epochs, per_env_augmentation=per_env_augmentation, include_next_obs=include_next_obs,
-        views=named, n_step=n_step, discount=discount, **pipeline)
+        views=named, n_step=n_step, discount=discount, sampler=_SAMPLERS[sampler],
+        priority_exponent=priority_exponent, importance_sampling_exponent=importance_sampling_exponent, **pipeline)
 
 
 class SamplingMixin:
@@ -380,7 +464,10 @@ class SamplingMixin:
         "next_obs_aug": "shift(4)"}`): each a pipeline's text or a `radserve.View`, carried in
         `Batch.views` under its name (see docs/replay.md). `n_step` and `discount` make `reward` the
         n-step return, with `Batch.discount` the bootstrap's factor and `next_obs` the observation
-        after the window. Sampling waits for `min_size`
+        after the window. `sampler="prioritized"` draws in proportion to priority ** `priority_exponent`
+        (default 0.6) and adds `key`, `probability`, `table_size` and `weight` (with
+        `importance_sampling_exponent`, default 0.4) to each batch; `stream.update_priorities(batch,
+        td_errors)` sets new priorities (see docs/replay.md). Sampling waits for `min_size`
         transitions (default: one batch) and, with `samples_per_insert` (and `error_buffer`), keeps
         to Reverb's SampleToInsertRatio, counted from `min_size` on, against the envs' inserts.
 

@@ -37,7 +37,8 @@ from gymnasium.vector.utils import batch_space
 from ._proto import radserve_pb2 as pb
 from ._transport import Transport
 from .actors import ActingMixin
-from .batches import METADATA_FIELDS, Batch, SamplingMixin, make_batch, open_batch_stream
+from .batches import (DEFAULT_IMPORTANCE_SAMPLING_EXPONENT, METADATA_FIELDS, Batch, PriorityUpdate, SamplingMixin,
+                      _priority_arrays, importance_weights, make_batch, open_batch_stream, send_priorities)
 from .infos import merge_infos
 from .errors import InvalidArgumentError, NotFoundError, RadServeError, UnavailableError
 from .types import SessionInfo
@@ -518,7 +519,38 @@ class ShardedBatchStream:
                 self._open()
                 return next(self)
             parts.append((shard, batch))
-        return _concatenate(parts)
+        batch = _concatenate(parts)
+        if batch.probability is not None and len(parts) > 1:
+            # Server s draws n_s of the batch's B transitions, each with its own probability p_s(i):
+            # a transition's probability per draw of the whole batch is n_s * p_s(i) / B, among the
+            # transitions every server could draw.
+            share = np.concatenate([np.full(len(part), len(part) / len(batch)) for _, part in parts])
+            batch.probability = batch.probability * share
+            batch.table_size = np.full(len(batch), sum(int(part.table_size[0]) for _, part in parts), dtype=np.int64)
+            request = self._request
+            beta = (request.importance_sampling_exponent if request.HasField("importance_sampling_exponent")
+                    else DEFAULT_IMPORTANCE_SAMPLING_EXPONENT)
+            batch.weight = importance_weights(batch.probability, batch.table_size, beta)
+        return batch
+
+    def update_priorities(self, batch: Batch, priorities: Any) -> PriorityUpdate:
+        """Replace the priorities of `batch`'s transitions (`sampler="prioritized"`), each on the
+        server it came from (`Batch.server`); keys of a lost server count as missing."""
+        keys, values = _priority_arrays(batch, priorities)
+        total = PriorityUpdate(updated=0, missing=0)
+        for shard in self._envs.shards:
+            rows = np.asarray(batch.server) == shard.server
+            if not rows.any():
+                continue
+            if shard.lost or shard.env is None:
+                total += PriorityUpdate(updated=0, missing=int(rows.sum()))
+                continue
+            try:
+                total += send_priorities(shard.transport, shard.env.session_id, keys[rows], values[rows])
+            except _LOSS as error:
+                self._lost(shard, error)
+                total += PriorityUpdate(updated=0, missing=int(rows.sum()))
+        return total
 
     def _close_streams(self) -> None:
         for _, _, stream in self._streams:

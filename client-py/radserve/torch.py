@@ -35,6 +35,10 @@ class TensorBatch:
     server: "torch.Tensor | None" = None
     discount: "torch.Tensor | None" = None
     views: "dict[str, torch.Tensor]" = field(default_factory=dict)
+    key: "torch.Tensor | None" = None
+    probability: "torch.Tensor | None" = None
+    table_size: "torch.Tensor | None" = None
+    weight: "torch.Tensor | None" = None
 
     def __len__(self) -> int:
         return len(self.reward)

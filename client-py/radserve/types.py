@@ -14,7 +14,7 @@ from ._proto import radserve_pb2 as pb
 
 if TYPE_CHECKING:
     from .actors import ActingInfo, LoadedPolicy
-    from .batches import Batch
+    from .batches import Batch, PriorityUpdate
 
 
 @dataclass(frozen=True)
@@ -179,6 +179,10 @@ class Batches(Protocol):
     def __next__(self) -> "Batch": ...
 
     def close(self) -> None: ...
+
+    def update_priorities(self, batch: "Batch", priorities: Any) -> "PriorityUpdate":
+        """Set the priorities of a prioritized batch's transitions (see `Batch`)."""
+        ...
 
     def __enter__(self) -> "Batches": ...
 

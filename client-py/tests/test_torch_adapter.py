@@ -50,3 +50,13 @@ def test_views_and_the_discount_become_tensors_once(cartpole):
     assert batch.obs is batch.views["obs"] and batch.next_obs is batch.views["next_obs"]
     assert batch.views["obs_aug"].dtype == torch.float32 and batch.discount.shape == (8,)
     assert not torch.equal(batch.views["obs"], batch.views["obs_aug"]), "two independent draws of noise"
+
+
+def test_a_prioritized_tensor_batch_updates_its_priorities_from_tensors(cartpole):
+    with cartpole.sample_batches(8, sampler="prioritized", max_batches=1) as stream:
+        batch = radserve_torch.to_tensors(next(stream))
+        assert batch.key.dtype == torch.int64 and batch.weight.dtype == torch.float32
+        assert batch.probability.dtype == torch.float64 and batch.table_size.shape == (8,)
+        td_errors = torch.linspace(-1.0, 1.0, 8)
+        update = stream.update_priorities(batch, td_errors.abs() + 1e-6)
+    assert (update.updated, update.missing) == (8, 0)

@@ -45,6 +45,11 @@ class ViewOf(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     VIEW_OF_OBS: _ClassVar[ViewOf]
     VIEW_OF_NEXT_OBS: _ClassVar[ViewOf]
 
+class Sampler(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    SAMPLER_UNIFORM: _ClassVar[Sampler]
+    SAMPLER_PRIORITIZED: _ClassVar[Sampler]
+
 class BatchSource(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     SOURCE_REPLAY: _ClassVar[BatchSource]
@@ -72,6 +77,8 @@ DRAW_SHARING_INDEPENDENT: DrawSharing
 VIEW_OF_UNSPECIFIED: ViewOf
 VIEW_OF_OBS: ViewOf
 VIEW_OF_NEXT_OBS: ViewOf
+SAMPLER_UNIFORM: Sampler
+SAMPLER_PRIORITIZED: Sampler
 SOURCE_REPLAY: BatchSource
 SOURCE_ROLLOUT: BatchSource
 
@@ -648,7 +655,7 @@ class SampleView(_message.Message):
     def __init__(self, name: _Optional[str] = ..., of: _Optional[_Union[ViewOf, str]] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., draws: _Optional[str] = ...) -> None: ...
 
 class SampleBatchesRequest(_message.Message):
-    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs", "views", "n_step", "discount")
+    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs", "views", "n_step", "discount", "sampler", "priority_exponent", "importance_sampling_exponent")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     PIPELINE_FIELD_NUMBER: _ClassVar[int]
@@ -668,6 +675,9 @@ class SampleBatchesRequest(_message.Message):
     VIEWS_FIELD_NUMBER: _ClassVar[int]
     N_STEP_FIELD_NUMBER: _ClassVar[int]
     DISCOUNT_FIELD_NUMBER: _ClassVar[int]
+    SAMPLER_FIELD_NUMBER: _ClassVar[int]
+    PRIORITY_EXPONENT_FIELD_NUMBER: _ClassVar[int]
+    IMPORTANCE_SAMPLING_EXPONENT_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     batch_size: int
     pipeline: AugmentationPipeline
@@ -687,7 +697,28 @@ class SampleBatchesRequest(_message.Message):
     views: _containers.RepeatedCompositeFieldContainer[SampleView]
     n_step: int
     discount: float
-    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ..., views: _Optional[_Iterable[_Union[SampleView, _Mapping]]] = ..., n_step: _Optional[int] = ..., discount: _Optional[float] = ...) -> None: ...
+    sampler: Sampler
+    priority_exponent: float
+    importance_sampling_exponent: float
+    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ..., views: _Optional[_Iterable[_Union[SampleView, _Mapping]]] = ..., n_step: _Optional[int] = ..., discount: _Optional[float] = ..., sampler: _Optional[_Union[Sampler, str]] = ..., priority_exponent: _Optional[float] = ..., importance_sampling_exponent: _Optional[float] = ...) -> None: ...
+
+class UpdatePrioritiesRequest(_message.Message):
+    __slots__ = ("session_id", "keys", "priorities")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    KEYS_FIELD_NUMBER: _ClassVar[int]
+    PRIORITIES_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    keys: _containers.RepeatedScalarFieldContainer[int]
+    priorities: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, session_id: _Optional[str] = ..., keys: _Optional[_Iterable[int]] = ..., priorities: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class UpdatePrioritiesResponse(_message.Message):
+    __slots__ = ("updated", "missing")
+    UPDATED_FIELD_NUMBER: _ClassVar[int]
+    MISSING_FIELD_NUMBER: _ClassVar[int]
+    updated: int
+    missing: int
+    def __init__(self, updated: _Optional[int] = ..., missing: _Optional[int] = ...) -> None: ...
 
 class BatchChunk(_message.Message):
     __slots__ = ("batch_index", "field", "dtype", "shape", "offset", "field_bytes", "last", "data")

@@ -124,6 +124,11 @@ class RadServeStub:
                 request_serializer=radserve__pb2.StopActingRequest.SerializeToString,
                 response_deserializer=radserve__pb2.ActingInfo.FromString,
                 _registered_method=True)
+        self.UpdatePriorities = channel.unary_unary(
+                '/radserve.v1.RadServe/UpdatePriorities',
+                request_serializer=radserve__pb2.UpdatePrioritiesRequest.SerializeToString,
+                response_deserializer=radserve__pb2.UpdatePrioritiesResponse.FromString,
+                _registered_method=True)
 
 
 class RadServeServicer:
@@ -282,6 +287,18 @@ class RadServeServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def UpdatePriorities(self, request, context):
+        """Prioritized replay (Schaul et al. 2016): replaces the priorities of sampled transitions, named
+        by the `key` field of a batch from a SAMPLER_PRIORITIZED stream, with new values (finite and
+        non-negative; a learner sends |TD error| plus a small constant). Every key and value is checked
+        before anything changes (INVALID_ARGUMENT names the first bad one). Keys of transitions the
+        buffer overwrote since they were sampled are skipped and counted, as Reverb skips keys it does
+        not hold. FAILED_PRECONDITION before any prioritized stream sampled the session's replay.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_RadServeServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -374,6 +391,11 @@ def add_RadServeServicer_to_server(servicer, server):
                     servicer.StopActing,
                     request_deserializer=radserve__pb2.StopActingRequest.FromString,
                     response_serializer=radserve__pb2.ActingInfo.SerializeToString,
+            ),
+            'UpdatePriorities': grpc.unary_unary_rpc_method_handler(
+                    servicer.UpdatePriorities,
+                    request_deserializer=radserve__pb2.UpdatePrioritiesRequest.FromString,
+                    response_serializer=radserve__pb2.UpdatePrioritiesResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -862,6 +884,33 @@ class RadServe:
             '/radserve.v1.RadServe/StopActing',
             radserve__pb2.StopActingRequest.SerializeToString,
             radserve__pb2.ActingInfo.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def UpdatePriorities(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/radserve.v1.RadServe/UpdatePriorities',
+            radserve__pb2.UpdatePrioritiesRequest.SerializeToString,
+            radserve__pb2.UpdatePrioritiesResponse.FromString,
             options,
             channel_credentials,
             insecure,
