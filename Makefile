@@ -151,12 +151,14 @@ bench-views: setup
 	$(PYTHON) bench/views_cost.py
 
 ## bench-learning: do the learners learn? SAC-state on InvertedPendulum, RAD-SAC vs pixel SAC on
-## cartpole-balance, PPO on bigfish, DrQ-v2 on cartpole-swingup; appends to docs/learning.md
+## cartpole-balance, PPO on bigfish, DrQ-v2 on cartpole-swingup, prioritized DQN on CartPole; appends
+## to docs/learning.md
 bench-learning: setup torch
 	$(PYTHON) bench/learning.py sac-state
 	$(PYTHON) bench/learning.py rad-sac
 	$(PYTHON) bench/learning.py ppo
 	$(PYTHON) bench/learning.py drqv2
+	$(PYTHON) bench/learning.py dqn-per
 
 ## docs-tables: render every benchmark table of the README and docs/ from bench/results/*.json, and
 ## docs/configuration.md's reference from the binary (tests/test_docs.py fails when they are stale)

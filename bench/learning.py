@@ -5,6 +5,7 @@ table docs/learning.md renders: `make docs-tables`), and draws the runs' evaluat
     python bench/learning.py sac-state      # SAC + RAS-S on gym/InvertedPendulum-v5, target >= 900 in 20k steps
     python bench/learning.py rad-sac        # RAD-SAC translate vs pixel SAC on dmc/cartpole-balance, >= 600 in 80k
     python bench/learning.py ppo            # PPO + crop on procgen/bigfish at a reduced budget: the curve rises
+    python bench/learning.py dqn-per        # DQN with prioritized 3-step replay vs uniform on CartPole-v1, >= 475 in 50k
     python bench/learning.py drqv2          # DrQ-v2 (server shift, 3-step returns) on cartpole-swingup at the demo's budget, both actor modes: the curves rise
     python bench/learning.py rad-sac --extra --batch-size 512   # extra learner flags, recorded in the table
 
@@ -70,13 +71,19 @@ CHECKS = {
                                                   "--total-timesteps", "300000", "--eval-every", "20480",
                                                   "--eval-episodes", "16", "--amp", "--torch-threads", "1"])],
         "charts/eval_return", None, 300_000),
+    "dqn-per": Check(
+        "DQN, prioritized 3-step replay vs uniform, gym/CartPole-v1",
+        [Run(label, "dqn_prioritized.py", ["--env", "gym/CartPole-v1", "--total-steps", "50000", "--eval-every", "5000",
+                                           "--priority-exponent", exponent])
+         for label, exponent in (("prioritized (alpha 0.6)", "0.6"), ("uniform (alpha 0)", "0"))],
+        "charts/eval_return", 475.0, 50_000),
     "drqv2": Check(
         "DrQ-v2 shift(4) + 3-step returns, dmc/cartpole-swingup at the demo's budget",
         [Run(f"DrQ-v2, {actor} acts", "drqv2_pixels.py",
              ["--env", "dmc/cartpole-swingup", "--actor", actor, "--image-size", "64", "--num-filters", "16",
-              "--hidden-dim", "256", "--batch-size", "32", "--action-repeat", "4", "--total-env-steps", "40000",
-              "--num-expl-steps", "500", "--std-steps", "40000", "--lr", "3e-4", "--eval-every", "8000",
-              "--eval-episodes", "10", "--render-profile", "fast", "--log-every", "100"])
+              "--hidden-dim", "256", "--batch-size", "32", "--action-repeat", "8", "--update-every", "1",
+              "--total-env-steps", "40000", "--num-expl-steps", "250", "--std-steps", "20000", "--lr", "3e-4",
+              "--eval-every", "8000", "--eval-episodes", "10", "--render-profile", "fast", "--log-every", "100"])
          for actor in ("learner", "server")],
         "charts/eval_return", None, 40_000),
 }

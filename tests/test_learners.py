@@ -112,6 +112,19 @@ def test_discrete_sac_on_cartpole_with_noise(tmp_path):
     check_run(run_dir, {"losses/qf_loss", "losses/actor_loss", "losses/alpha_loss"})
 
 
+def test_dqn_with_prioritized_n_step_replay(tmp_path):
+    """Prioritized 3-step batches from the server; the learner's |TD errors| go back as priorities and
+    beta follows its schedule up to 1."""
+    run_dir = run_learner("dqn_prioritized.py", tmp_path, "--env", "gym/CartPole-v1", "--total-steps", "300",
+                          "--learning-starts", "100", "--batch-size", "16", "--eval-every", "300", "--eval-episodes", "2",
+                          "--log-every", "50", "--target-every", "20")
+    metrics = check_run(run_dir, {"losses/td_loss", "losses/q_values", "losses/mean_weight"})
+    steps, betas = metrics["charts/beta"]
+    assert betas[0] < betas[-1] <= 1.0, "beta anneals towards 1"
+    weights = metrics["losses/mean_weight"][1]
+    assert ((weights > 0) & (weights <= 1)).all(), "importance weights are scaled by the batch's largest"
+
+
 def test_ppo_on_procgen_with_rollouts(tmp_path):
     run_dir = run_learner("ppo_procgen.py", tmp_path, "--env", "procgen/bigfish", "--aug", "crop(56)",
                           "--num-envs", "4", "--num-steps", "16", "--num-minibatches", "2", "--total-timesteps", "128",
