@@ -270,16 +270,7 @@ impl ReplayBuffer {
     /// largest priority set so far.
     pub fn acquire_priorities(&mut self, exponent: f64) -> Result<()> {
         if self.priorities.is_none() {
-            let mut priorities = Priorities::new(self.flags.len());
-            for env in 0..self.layout.num_envs {
-                for frame in self.oldest_sampleable(env)..self.written[env] {
-                    let slot = self.slot(env, frame);
-                    if self.flags[slot] & FIRST_OF_EPISODE == 0 {
-                        priorities.insert(slot);
-                    }
-                }
-            }
-            self.priorities = Some(priorities);
+            self.priorities = Some(self.every_transition_at(INITIAL_PRIORITY));
         }
         self.priorities.as_mut().expect("set above").acquire(exponent)
     }
@@ -304,6 +295,21 @@ impl ReplayBuffer {
     /// The largest priority set so far: what new transitions enter at.
     pub fn max_priority(&self) -> Option<f64> {
         self.priorities.as_ref().map(Priorities::max)
+    }
+
+    /// Priorities with every transition the buffer can sample at `priority` (also the largest set).
+    fn every_transition_at(&self, priority: f64) -> Priorities {
+        let mut priorities = Priorities::new(self.flags.len());
+        priorities.max = priority;
+        for env in 0..self.layout.num_envs {
+            for frame in self.oldest_sampleable(env)..self.written[env] {
+                let slot = self.slot(env, frame);
+                if self.flags[slot] & FIRST_OF_EPISODE == 0 {
+                    priorities.insert(slot);
+                }
+            }
+        }
+        priorities
     }
 
     /// The transition `slot` holds (one with a priority: its env wrote at least one frame).
@@ -486,16 +492,7 @@ impl ReplayBuffer {
         {
             return Err(format!("entry {index} (key {key}, priority {priority}) is not a priority of this buffer's transitions"));
         }
-        let mut priorities = Priorities::new(self.flags.len());
-        priorities.max = max;
-        for env in 0..num_envs {
-            for frame in self.oldest_sampleable(env)..self.written[env] {
-                let slot = self.slot(env, frame);
-                if self.flags[slot] & FIRST_OF_EPISODE == 0 {
-                    priorities.insert(slot);
-                }
-            }
-        }
+        let mut priorities = self.every_transition_at(max);
         for &(key, priority) in saved {
             let transition = TransitionRef::from_key(key);
             let slot = self.slot(transition.env, transition.frame);
