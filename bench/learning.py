@@ -82,7 +82,7 @@ CHECKS = {
         [Run(f"DrQ-v2, {actor} acts", "drqv2_pixels.py",
              ["--env", "dmc/cartpole-swingup", "--actor", actor, "--image-size", "64", "--num-filters", "16",
               "--hidden-dim", "256", "--batch-size", "32", "--action-repeat", "8", "--update-every", "1",
-              "--total-env-steps", "40000", "--num-expl-steps", "250", "--std-steps", "20000", "--lr", "3e-4",
+              "--total-env-steps", "40000", "--num-expl-steps", "250", "--std-steps", "20000", "--lr", "1e-4",
               "--eval-every", "8000", "--eval-episodes", "10", "--render-profile", "fast", "--log-every", "100"])
          for actor in ("learner", "server")],
         "charts/eval_return", None, 40_000),
