@@ -138,6 +138,16 @@ class Encoder(nn.Module):
         return self.convs(obs / 255.0 - 0.5).flatten(1)
 
 
+def orthogonal_init(module: nn.Module) -> None:
+    """DrQ-v2's initialisation (its utils.weight_init): orthogonal weights (with the ReLU gain for
+    convs) and zero biases, instead of PyTorch's uniform defaults."""
+    if isinstance(module, (nn.Linear, nn.Conv2d)):
+        gain = nn.init.calculate_gain("relu") if isinstance(module, nn.Conv2d) else 1.0
+        nn.init.orthogonal_(module.weight, gain)
+        if module.bias is not None:
+            nn.init.zeros_(module.bias)
+
+
 def trunk(repr_dim: int, feature_dim: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(repr_dim, feature_dim), nn.LayerNorm(feature_dim), nn.Tanh())
 
@@ -200,6 +210,8 @@ class DrQV2:
         repr_dim = self.encoder.repr_dim
         self.actor = Actor(repr_dim, action_dim, args.feature_dim, args.hidden_dim).to(device)
         self.critic = Critic(repr_dim, action_dim, args.feature_dim, args.hidden_dim).to(device)
+        for module in (self.encoder, self.actor, self.critic):
+            module.apply(orthogonal_init)
         self.critic_target = copy.deepcopy(self.critic)
         self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=args.lr)
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=args.lr)
