@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import radserve
+from radserve.batches import map_region, sample_request
 from radserve.proto import radserve_pb2 as pb
 
 
@@ -321,6 +322,29 @@ def copies(batch):
     arrays = {name: None if value is None else np.array(value) for name, value in vars(batch).items()
               if name not in ("index", "views")}
     return {**arrays, "views": {name: np.array(value) for name, value in batch.views.items()}}
+
+
+def test_a_shared_stream_that_ran_out_ends_once_its_batches_are_released(cheetah):
+    """max_batches=1 over shared memory: the producer is done at once, and the stream still waits for
+    the client to release its batch, so a learner that maps the memory after the batch was sent finds
+    the hand-off socket open (before, the stream ended and closed it: connection refused)."""
+    envs = cheetah[0]
+    method = envs._transport.channel.stream_stream(
+        "/radserve.v1.RadServe/SampleBatchesShared", request_serializer=pb.SharedSampleRequest.SerializeToString,
+        response_deserializer=pb.SharedSampleResponse.FromString)
+    requests = queue.SimpleQueue()
+    requests.put(pb.SharedSampleRequest(start=sample_request(envs.session_id, 8, max_batches=1)))
+    call = method(iter(requests.get, None), timeout=30)
+    try:
+        first, only = next(call), next(call)
+        time.sleep(0.5)  # a slow learner: the batch was made long ago
+        memory = map_region(first.region)
+        assert len(memory) == first.region.size
+        requests.put(pb.SharedSampleRequest(release=only.batch.batch_index))
+        assert list(call) == [], "the stream ends once the batch is released"
+    finally:
+        requests.put(None)
+        call.cancel()
 
 
 @pytest.mark.parametrize("source", ["replay", "rollout"])

@@ -252,7 +252,9 @@ class RadServeServicer:
         request carries the SampleBatchesRequest; the first response names the memory (a ring of
         slots). Each SharedBatch occupies one slot until the client releases it with a later request;
         the server fills only free slots, so a client that holds batches slows the stream down, never
-        corrupts it. Memory is freed when the stream ends, however it ends.
+        corrupts it. A stream that runs out (max_batches, a rollout's last epoch) ends once the client
+        has released every batch it holds (or closed its side). Memory is freed when the stream ends,
+        however it ends.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

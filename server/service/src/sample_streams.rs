@@ -101,6 +101,7 @@ impl RadServeService {
             metrics: self.manager.metrics().clone(),
             progress: holds.0.progress(),
             _offer: offer,
+            finished: false,
         };
         tokio::spawn(run(source, holds, sender, self.stopping.clone(), start.session_id, "shared sample stream"));
         Ok(Box::pin(ReceiverStream::new(receiver)))
@@ -236,6 +237,10 @@ struct SharedBatches {
     progress: Progress,
     /// The hand-off of the memory's descriptor, for as long as the stream runs.
     _offer: AbortOnDrop,
+    /// The producer made its last batch (max_batches, or a rollout's last epoch): the stream ends
+    /// once the client has released every batch it holds, so that a client that maps the memory
+    /// after the last batch was sent still finds the hand-off socket open.
+    finished: bool,
 }
 
 impl Source for SharedBatches {
@@ -244,9 +249,16 @@ impl Source for SharedBatches {
 
     async fn next(&mut self) -> Option<Result<proto::SharedSampleResponse, Status>> {
         loop {
+            if self.finished && self.held.is_empty() {
+                return None;
+            }
             tokio::select! {
-                batch = self.ready.recv() => {
-                    let batch = match batch_or_end(batch)? {
+                batch = self.ready.recv(), if !self.finished => {
+                    let Some(batch) = batch_or_end(batch) else {
+                        self.finished = true;
+                        continue;
+                    };
+                    let batch = match batch {
                         Ok(batch) => batch,
                         Err(status) => return Some(Err(status)),
                     };
