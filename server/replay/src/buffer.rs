@@ -458,14 +458,32 @@ impl ReplayBuffer {
         (oldest..written).filter(|frame| self.flags[self.slot(env, *frame)] & FIRST_OF_EPISODE != 0).count() as u64
     }
 
-    /// After `env` wrote frame `written - 1` (with its flags) and its sampleable frames began at
-    /// `oldest` before: the first frames that left the range and the one that entered it.
-    fn count_written(&mut self, env: usize, oldest: u64) {
-        let first = |buffer: &Self, frame: u64| u64::from(buffer.flags[buffer.slot(env, frame)] & FIRST_OF_EPISODE != 0);
+    /// After `env` wrote frame `written - 1` into `slot` (with its flags), its sampleable frames
+    /// having begun at `oldest` before: the frames that left the sampleable range (usually none or
+    /// one) leave the first-frame count and the priorities; the new frame enters them (a first
+    /// frame the count, a transition the priorities, at the largest priority so far).
+    fn after_write(&mut self, env: usize, slot: usize, oldest: u64) {
         let (now, newest) = (self.oldest_sampleable(env), self.written[env] - 1);
-        let left: u64 = (oldest..now.min(newest)).map(|frame| first(self, frame)).sum();
-        let entered = if newest >= now { first(self, newest) } else { 0 };
-        self.first_frames[env] = self.first_frames[env] + entered - left;
+        let first = |buffer: &Self, slot: usize| buffer.flags[slot] & FIRST_OF_EPISODE != 0;
+        for frame in oldest..now {
+            let old = self.slot(env, frame);
+            debug_assert_ne!(old, slot, "a frame's stack never reaches the slot written");
+            self.first_frames[env] -= u64::from(first(self, old));
+            if let Some(priorities) = &mut self.priorities {
+                priorities.remove(old);
+            }
+        }
+        let entered_first = first(self, slot);
+        if newest >= now {
+            self.first_frames[env] += u64::from(entered_first);
+        }
+        if let Some(priorities) = &mut self.priorities {
+            if entered_first {
+                priorities.remove(slot);
+            } else {
+                priorities.insert(slot);
+            }
+        }
     }
 
     /// An episode starts in `env` with `frame` (a Reset, or the autoreset after an episode ended).
@@ -479,8 +497,7 @@ impl ReplayBuffer {
         self.step_indices[slot] = step_index;
         self.stamp(slot, None);
         self.in_episode[env] = true;
-        self.count_written(env, oldest);
-        self.track_priorities(env, slot, oldest);
+        self.after_write(env, slot, oldest);
     }
 
     /// `env` took a step. Steps of an env with no episode in progress are ignored (nothing to
@@ -506,30 +523,8 @@ impl ReplayBuffer {
         if step.terminated || step.truncated {
             self.in_episode[env] = false;
         }
-        self.count_written(env, oldest);
-        self.track_priorities(env, slot, oldest);
+        self.after_write(env, slot, oldest);
         self.activity.bump();
-    }
-
-    /// After `env` wrote into `slot`: the slot's transition (none for a first frame) enters the
-    /// priorities at the largest priority so far, and those whose stacks now reach an overwritten
-    /// frame (below the new oldest sampleable, from `oldest` before the write) leave them.
-    fn track_priorities(&mut self, env: usize, slot: usize, oldest: u64) {
-        if self.priorities.is_none() {
-            return;
-        }
-        let leaving: Vec<usize> = (oldest..self.oldest_sampleable(env)).map(|frame| self.slot(env, frame)).collect();
-        let first = self.flags[slot] & FIRST_OF_EPISODE != 0;
-        let priorities = self.priorities.as_mut().expect("checked above");
-        for old in leaving {
-            debug_assert_ne!(old, slot, "a frame's stack never reaches the slot written");
-            priorities.remove(old);
-        }
-        if first {
-            priorities.remove(slot);
-        } else {
-            priorities.insert(slot);
-        }
     }
 
     pub(crate) fn stamp(&mut self, slot: usize, acted: Option<ActedBy>) {

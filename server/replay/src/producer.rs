@@ -521,8 +521,10 @@ impl Producer {
                     break match self.spec.prioritized {
                         Some(prioritized) => {
                             let probabilities = &mut batch.metadata.probabilities;
-                            let drawn = buffer.sample_prioritized(count, n_step, prioritized.exponent, rng, &mut batch.refs, probabilities);
-                            (drawn, buffer.sampleable(n_step))
+                            match buffer.sample_prioritized(count, n_step, prioritized.exponent, rng, &mut batch.refs, probabilities) {
+                                Ok(sampleable) => (Ok(()), sampleable),
+                                Err(error) => (Err(error), 0),
+                            }
                         }
                         None => (buffer.sample_windows(count, n_step, rng, &mut batch.refs), 0),
                     };

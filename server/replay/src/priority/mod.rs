@@ -342,6 +342,7 @@ impl ReplayBuffer {
     /// Draw `count` transitions with replacement, each with probability `priority^exponent` over
     /// the sum of that over the transitions whose `n_step` windows are complete; `probabilities`
     /// gets each draw's. The stream drawing must hold `exponent` ([`Self::acquire_priorities`]).
+    /// Returns how many transitions could be drawn (the importance weights' N).
     pub fn sample_prioritized(
         &mut self,
         count: usize,
@@ -350,10 +351,11 @@ impl ReplayBuffer {
         rng: &mut impl Rng,
         out: &mut Vec<TransitionRef>,
         probabilities: &mut Vec<f64>,
-    ) -> Result<()> {
+    ) -> Result<usize> {
         out.clear();
         probabilities.clear();
-        if self.counters.inserts == 0 || self.sampleable(n_step) == 0 {
+        let sampleable = self.sampleable(n_step);
+        if self.counters.inserts == 0 || sampleable == 0 {
             return Err(ReplayError::FailedPrecondition("the replay buffer holds no transitions yet".into()));
         }
         let drawable = self.drawable_weight(n_step, exponent)?;
@@ -379,7 +381,7 @@ impl ReplayBuffer {
             }
         }
         self.count_samples(count);
-        Ok(())
+        Ok(sampleable)
     }
 
     /// One draw as `sample_prioritized` draws, without counting it as sampled (it replaces one of
@@ -448,8 +450,8 @@ impl ReplayBuffer {
         for (&key, &priority) in keys.iter().zip(priorities) {
             let transition = TransitionRef::from_key(key);
             let slot = self.slot(transition.env, transition.frame);
-            let held = self.still_holds(transition) && self.priority(transition).is_some();
-            if held {
+            // `priority` is None for a key the buffer no longer holds (its slot holds a newer frame).
+            if self.priority(transition).is_some() {
                 self.priorities.as_mut().expect("checked above").update(slot, priority);
                 report.updated += 1;
             } else {

@@ -96,7 +96,8 @@ fn draws_follow_the_priorities_among_complete_windows() {
     let mass: f64 = held.iter().enumerate().filter(|(_, (_, t))| !incomplete.contains(t)).map(|(index, _)| weight(index)).sum();
     let draws = 300_000;
     let (mut refs, mut probabilities) = (Vec::new(), Vec::new());
-    buffer.sample_prioritized(draws, n_step, 0.5, &mut rng, &mut refs, &mut probabilities).unwrap();
+    let table_size = buffer.sample_prioritized(draws, n_step, 0.5, &mut rng, &mut refs, &mut probabilities).unwrap();
+    assert_eq!(table_size, held.len() - incomplete.len(), "what could be drawn: the complete windows");
     let mut counts = vec![0usize; held.len()];
     let position: std::collections::HashMap<TransitionRef, usize> =
         held.iter().enumerate().map(|(index, (_, transition))| (*transition, index)).collect();
