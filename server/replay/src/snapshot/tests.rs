@@ -582,3 +582,20 @@ fn a_damaged_or_forged_priorities_file_is_refused_naming_it() {
         assert!(buffer.is_empty() && buffer.max_priority().is_none());
     }
 }
+
+#[test]
+fn a_symlink_or_fifo_in_place_of_the_priorities_file_is_refused_without_being_read() {
+    let recording = prioritized_on_disk();
+    let path = recording.path.join(priorities_name(2));
+    fs::remove_file(&path).unwrap();
+    std::os::unix::fs::symlink("/proc/self/pagemap", &path).unwrap();
+    let error = restore_error(&recording);
+    assert!(error.to_string().contains("symlink") && error.file == path, "{error}");
+
+    let recording = prioritized_on_disk();
+    let path = recording.path.join(priorities_name(2));
+    fs::remove_file(&path).unwrap();
+    rustix::fs::mknodat(rustix::fs::CWD, &path, rustix::fs::FileType::Fifo, rustix::fs::Mode::from_raw_mode(0o600), 0).unwrap();
+    let error = restore_error(&recording);
+    assert!(error.to_string().contains("is a FIFO, not a regular file") && error.file == path, "{error}");
+}
