@@ -103,6 +103,9 @@ def sample_requests(session_id):
         views=st.one_of(st.just([]), views), n_step=st.one_of(st.none(), st.integers(0, 70), u32),
         discount=st.one_of(st.none(), f64), sampler=st.one_of(st.integers(0, 1), st.integers(-2**31, 2**31 - 1)),
         priority_exponent=st.one_of(st.none(), f64), importance_sampling_exponent=st.one_of(st.none(), f64),
+        sequence=st.one_of(st.none(), st.builds(
+            pb.SequenceRequest, length=st.one_of(st.integers(0, 12), u32), burn_in=st.one_of(st.integers(0, 4), u32),
+            period=st.one_of(st.integers(0, 4), u32), boundary=st.one_of(st.integers(0, 1), st.integers(-2**31, 2**31 - 1)))),
     )
 
 

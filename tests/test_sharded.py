@@ -153,6 +153,17 @@ def test_sharded_batches_have_the_size_asked_for_and_say_where_they_came_from(sh
             np.testing.assert_allclose(batch.weight, radserve.importance_weights(batch.probability, batch.table_size, 1.0),
                                        rtol=1e-6)
             assert stream.update_priorities(batch, np.full(16, 2.0)) == radserve.PriorityUpdate(updated=16, missing=0)
+        # Sequences from every server: [batch, length] first, each sequence one env of one server.
+        with envs.sample_batches(16, sequence=radserve.Sequence(8, burn_in=2), augment="crop(56)", seed=6,
+                                 max_batches=1) as stream:
+            batch = next(stream)
+            assert batch.obs.shape == (16, 8, 9, 56, 56) and batch.mask.shape == (16, 8) and batch.mask.all()
+            assert batch.server.shape == (16,) and len(set(batch.server.tolist())) == 3
+            assert (batch.env_index == batch.env_index[:, :1]).all()
+            for server, rows in enumerate([range(0, 3), range(3, 5), range(5, 7)]):
+                assert set(batch.env_index[batch.server == server].ravel().tolist()) <= set(rows)
+            # Consecutive steps of one env: each Step call's index follows the one before.
+            assert (np.diff(batch.step_index, axis=1) == 1).all()
     finally:
         envs.close()
     # Closing the sharded session closes its session on every server.

@@ -7,7 +7,7 @@ Public names only. `radserve.proto` holds the generated messages and stubs of th
 from ._version import __version__
 from ._security import TlsConfig
 from ._transport import resolve as resolve_addresses
-from .batches import Batch, BatchStream, PriorityUpdate, SharedBatchStream, View, importance_weights
+from .batches import Batch, BatchStream, PriorityUpdate, Sequence, SharedBatchStream, View, importance_weights
 from .client import Client
 from .errors import (
     AlreadyExistsError,
@@ -32,7 +32,7 @@ from .types import Batches, EnvInfo, ReplayInfo, ServerInfo, SessionEnv, Session
 from .vector import RemoteVectorEnv
 
 __all__ = [
-    "__version__", "Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "View",
+    "__version__", "Client", "EnvInfo", "ServerInfo", "SessionInfo", "SessionSummary", "Batch", "BatchStream", "View", "Sequence",
     "SharedBatchStream", "RemoteVectorEnv", "ShardedVectorEnv", "ShardedBatchStream", "LocalServer", "TlsConfig",
     "resolve_addresses", "ActingInfo", "LoadedPolicy", "Batches", "SessionEnv", "ReplayInfo", "SnapshotInfo",
     "PriorityUpdate", "importance_weights", "RadServeError", "NotFoundError", "InvalidArgumentError", "FailedPreconditionError",

@@ -29,7 +29,11 @@ from .errors import InvalidArgumentError, SharedMemoryError, from_rpc_error
 # Every field of a batch but its observations; any other field is a view (obs and next_obs when the
 # request names no views).
 METADATA_FIELDS = ("action", "reward", "discount", "terminated", "truncated", "env_index", "step_index", "t",
-                   "policy_version", "log_prob", "value", "key", "probability", "table_size", "weight")
+                   "policy_version", "log_prob", "value", "key", "probability", "table_size", "weight", "is_first",
+                   "is_last", "is_terminal", "mask")
+
+# The uint8 fields a Batch carries as bools.
+_FLAGS = ("terminated", "truncated", "is_first", "is_last", "is_terminal", "mask")
 
 SHARING = {
     "reference": pb.DRAW_SHARING_REFERENCE,
@@ -51,6 +55,39 @@ class View:
 
 
 _VIEW_OF = {None: pb.VIEW_OF_UNSPECIFIED, "obs": pb.VIEW_OF_OBS, "next_obs": pb.VIEW_OF_NEXT_OBS}
+
+
+@dataclass(frozen=True)
+class Sequence:
+    """Sequences of consecutive steps of one env instead of single transitions
+    (`sample_batches(sequence=radserve.Sequence(120, burn_in=40, period=40))`, R2D2's): every
+    array of a batch is `[batch, length, ...]`. `length` counts the `burn_in` steps (the leading
+    steps a recurrent learner only unrolls its state over); windows start every `period` steps.
+    `boundary="within_episode"` (the default) starts windows in an episode and pads the steps after
+    its last frame (`Batch.mask` False, zeros elsewhere: R2D2, SPR's futures);
+    `"across_episodes"` runs on through episode ends, flagged by `is_first` and `is_last`
+    (Dreamer). See docs/replay.md, "Sequences"."""
+
+    length: int
+    burn_in: int = 0
+    period: int = 1
+    boundary: str = "within_episode"
+
+
+_BOUNDARIES = {"within_episode": pb.SEQUENCE_BOUNDARY_WITHIN_EPISODE,
+               "across_episodes": pb.SEQUENCE_BOUNDARY_ACROSS_EPISODES}
+
+
+def _sequence_request(sequence: "int | Sequence | None") -> "pb.SequenceRequest | None":
+    if sequence is None:
+        return None
+    if isinstance(sequence, int) and not isinstance(sequence, bool):
+        sequence = Sequence(sequence)
+    if not isinstance(sequence, Sequence) or sequence.boundary not in _BOUNDARIES:
+        raise InvalidArgumentError(
+            f"sequence must be a length or a radserve.Sequence with boundary one of {sorted(_BOUNDARIES)}, got {sequence!r}")
+    return pb.SequenceRequest(length=sequence.length, burn_in=sequence.burn_in, period=sequence.period,
+                              boundary=_BOUNDARIES[sequence.boundary])
 
 
 @dataclass
@@ -77,6 +114,12 @@ class Batch:
     that could be drawn) and its importance `weight`, `(table_size * probability) ** -beta` over
     the batch's largest, with the request's `importance_sampling_exponent` as beta
     (`radserve.importance_weights` computes them for another beta).
+
+    A sequence stream's batches (`sequence=radserve.Sequence(...)`) have `[batch, length]` as the
+    first two dimensions of every array: step i's observation, then the `action`, `reward`,
+    `terminated` and `truncated` of the step taken from it (zero where none was); `is_first` (the
+    observation is its episode's first), `is_last` (its episode's last), `is_terminal` (the last of
+    an episode that terminated) and `mask` (False for padding after an episode's end).
     """
 
     index: int
@@ -100,6 +143,10 @@ class Batch:
     probability: "np.ndarray | None" = None
     table_size: "np.ndarray | None" = None
     weight: "np.ndarray | None" = None
+    is_first: "np.ndarray | None" = None
+    is_last: "np.ndarray | None" = None
+    is_terminal: "np.ndarray | None" = None
+    mask: "np.ndarray | None" = None
 
     def __len__(self) -> int:
         return len(self.reward)
@@ -178,8 +225,9 @@ def make_batch(index: int, arrays: "dict[str, np.ndarray]", order: "list[str] | 
     if order:
         views = {name: views[name] for name in sorted(views, key=lambda name: order.index(name) if name in order else len(order))}
     fields = {name: arrays[name] for name in (*METADATA_FIELDS, "server") if name in arrays}
-    for flag in ("terminated", "truncated"):
-        fields[flag] = fields[flag].astype(bool)
+    for flag in _FLAGS:
+        if flag in fields:
+            fields[flag] = fields[flag].astype(bool)
     return Batch(index=index, obs=views.get("obs"), next_obs=views.get("next_obs"), views=views, **fields)
 
 
@@ -417,7 +465,8 @@ def sample_request(session_id: str, batch_size: int, *, augment: str = "none", s
                    views: "Mapping[str, str | View] | None" = None, n_step: "int | None" = None,
                    discount: "float | None" = None, sampler: str = "uniform",
                    priority_exponent: "float | None" = None,
-                   importance_sampling_exponent: "float | None" = None) -> "pb.SampleBatchesRequest":
+                   importance_sampling_exponent: "float | None" = None,
+                   sequence: "int | Sequence | None" = None) -> "pb.SampleBatchesRequest":
     """SampleBatches' request (see `SamplingMixin.sample_batches` for the settings)."""
     if sharing not in SHARING:
         raise InvalidArgumentError(f"sharing must be one of {sorted(SHARING)}, got {sharing!r}")
@@ -440,7 +489,8 @@ def sample_request(session_id: str, batch_size: int, *, augment: str = "none", s
         error_buffer=error_buffer, max_batches=max_batches, chunk_bytes=chunk_bytes, source=_SOURCES[source],
         epochs=epochs, per_env_augmentation=per_env_augmentation, include_next_obs=include_next_obs,
         views=named, n_step=n_step, discount=discount, sampler=_SAMPLERS[sampler],
-        priority_exponent=priority_exponent, importance_sampling_exponent=importance_sampling_exponent, **pipeline)
+        priority_exponent=priority_exponent, importance_sampling_exponent=importance_sampling_exponent,
+        sequence=_sequence_request(sequence), **pipeline)
 
 
 class SamplingMixin:
@@ -467,7 +517,10 @@ class SamplingMixin:
         after the window. `sampler="prioritized"` draws in proportion to priority ** `priority_exponent`
         (default 0.6) and adds `key`, `probability`, `table_size` and `weight` (with
         `importance_sampling_exponent`, default 0.4) to each batch; `stream.update_priorities(batch,
-        td_errors)` sets new priorities (see docs/replay.md). Sampling waits for `min_size`
+        td_errors)` sets new priorities (see docs/replay.md). `sequence` (a length or a
+        `radserve.Sequence`) samples sequences of consecutive steps instead: every array gains a
+        time axis and batches carry `is_first`, `is_last`, `is_terminal` and `mask` (R2D2's burn-in
+        and period, Dreamer's windows across episodes, SPR's futures). Sampling waits for `min_size`
         transitions (default: one batch) and, with `samples_per_insert` (and `error_buffer`), keeps
         to Reverb's SampleToInsertRatio, counted from `min_size` on, against the envs' inserts.
 

@@ -39,6 +39,10 @@ class TensorBatch:
     probability: "torch.Tensor | None" = None
     table_size: "torch.Tensor | None" = None
     weight: "torch.Tensor | None" = None
+    is_first: "torch.Tensor | None" = None
+    is_last: "torch.Tensor | None" = None
+    is_terminal: "torch.Tensor | None" = None
+    mask: "torch.Tensor | None" = None
 
     def __len__(self) -> int:
         return len(self.reward)

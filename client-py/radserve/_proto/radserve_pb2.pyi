@@ -45,6 +45,11 @@ class ViewOf(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     VIEW_OF_OBS: _ClassVar[ViewOf]
     VIEW_OF_NEXT_OBS: _ClassVar[ViewOf]
 
+class SequenceBoundary(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    SEQUENCE_BOUNDARY_WITHIN_EPISODE: _ClassVar[SequenceBoundary]
+    SEQUENCE_BOUNDARY_ACROSS_EPISODES: _ClassVar[SequenceBoundary]
+
 class Sampler(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     SAMPLER_UNIFORM: _ClassVar[Sampler]
@@ -77,6 +82,8 @@ DRAW_SHARING_INDEPENDENT: DrawSharing
 VIEW_OF_UNSPECIFIED: ViewOf
 VIEW_OF_OBS: ViewOf
 VIEW_OF_NEXT_OBS: ViewOf
+SEQUENCE_BOUNDARY_WITHIN_EPISODE: SequenceBoundary
+SEQUENCE_BOUNDARY_ACROSS_EPISODES: SequenceBoundary
 SAMPLER_UNIFORM: Sampler
 SAMPLER_PRIORITIZED: Sampler
 SOURCE_REPLAY: BatchSource
@@ -655,7 +662,7 @@ class SampleView(_message.Message):
     def __init__(self, name: _Optional[str] = ..., of: _Optional[_Union[ViewOf, str]] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., draws: _Optional[str] = ...) -> None: ...
 
 class SampleBatchesRequest(_message.Message):
-    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs", "views", "n_step", "discount", "sampler", "priority_exponent", "importance_sampling_exponent")
+    __slots__ = ("session_id", "batch_size", "pipeline", "pipeline_text", "sharing", "prefetch", "seed", "min_size", "samples_per_insert", "error_buffer", "max_batches", "chunk_bytes", "source", "epochs", "per_env_augmentation", "include_next_obs", "views", "n_step", "discount", "sampler", "priority_exponent", "importance_sampling_exponent", "sequence")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     PIPELINE_FIELD_NUMBER: _ClassVar[int]
@@ -678,6 +685,7 @@ class SampleBatchesRequest(_message.Message):
     SAMPLER_FIELD_NUMBER: _ClassVar[int]
     PRIORITY_EXPONENT_FIELD_NUMBER: _ClassVar[int]
     IMPORTANCE_SAMPLING_EXPONENT_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     batch_size: int
     pipeline: AugmentationPipeline
@@ -700,7 +708,20 @@ class SampleBatchesRequest(_message.Message):
     sampler: Sampler
     priority_exponent: float
     importance_sampling_exponent: float
-    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ..., views: _Optional[_Iterable[_Union[SampleView, _Mapping]]] = ..., n_step: _Optional[int] = ..., discount: _Optional[float] = ..., sampler: _Optional[_Union[Sampler, str]] = ..., priority_exponent: _Optional[float] = ..., importance_sampling_exponent: _Optional[float] = ...) -> None: ...
+    sequence: SequenceRequest
+    def __init__(self, session_id: _Optional[str] = ..., batch_size: _Optional[int] = ..., pipeline: _Optional[_Union[AugmentationPipeline, _Mapping]] = ..., pipeline_text: _Optional[str] = ..., sharing: _Optional[_Union[DrawSharing, str]] = ..., prefetch: _Optional[int] = ..., seed: _Optional[int] = ..., min_size: _Optional[int] = ..., samples_per_insert: _Optional[float] = ..., error_buffer: _Optional[float] = ..., max_batches: _Optional[int] = ..., chunk_bytes: _Optional[int] = ..., source: _Optional[_Union[BatchSource, str]] = ..., epochs: _Optional[int] = ..., per_env_augmentation: _Optional[bool] = ..., include_next_obs: _Optional[bool] = ..., views: _Optional[_Iterable[_Union[SampleView, _Mapping]]] = ..., n_step: _Optional[int] = ..., discount: _Optional[float] = ..., sampler: _Optional[_Union[Sampler, str]] = ..., priority_exponent: _Optional[float] = ..., importance_sampling_exponent: _Optional[float] = ..., sequence: _Optional[_Union[SequenceRequest, _Mapping]] = ...) -> None: ...
+
+class SequenceRequest(_message.Message):
+    __slots__ = ("length", "burn_in", "period", "boundary")
+    LENGTH_FIELD_NUMBER: _ClassVar[int]
+    BURN_IN_FIELD_NUMBER: _ClassVar[int]
+    PERIOD_FIELD_NUMBER: _ClassVar[int]
+    BOUNDARY_FIELD_NUMBER: _ClassVar[int]
+    length: int
+    burn_in: int
+    period: int
+    boundary: SequenceBoundary
+    def __init__(self, length: _Optional[int] = ..., burn_in: _Optional[int] = ..., period: _Optional[int] = ..., boundary: _Optional[_Union[SequenceBoundary, str]] = ...) -> None: ...
 
 class UpdatePrioritiesRequest(_message.Message):
     __slots__ = ("session_id", "keys", "priorities")

@@ -762,7 +762,7 @@ impl ReplayBuffer {
 
     /// Copy the stack of frames ending at absolute frame `last` of `env` into `out`
     /// (`frame_stack * frame_bytes`), padding with the episode's first frame.
-    fn copy_stack(&self, env: usize, last: u64, episode_start: u64, out: &mut [u8]) {
+    pub(crate) fn copy_stack(&self, env: usize, last: u64, episode_start: u64, out: &mut [u8]) {
         let stack = self.layout.frame_stack as u64;
         let frame_bytes = self.layout.frame_bytes;
         for (position, target) in out.chunks_exact_mut(frame_bytes).enumerate() {
@@ -851,6 +851,13 @@ pub struct TransitionMetadata {
     /// [`crate::importance_weights`]).
     pub probabilities: Vec<f64>,
     pub weights: Vec<f32>,
+    /// In a sequence batch, per step (see [`crate::Sequence`]): the step's observation is its
+    /// episode's first, its episode's last (no step was taken from it), the last of an episode that
+    /// terminated; and whether the step holds data at all (0: padding after its episode's end).
+    pub is_first: Vec<u8>,
+    pub is_last: Vec<u8>,
+    pub is_terminal: Vec<u8>,
+    pub mask: Vec<u8>,
 }
 
 impl TransitionMetadata {
@@ -870,6 +877,14 @@ impl TransitionMetadata {
         self.keys.resize(len, 0);
         self.probabilities.resize(len, 0.0);
         self.weights.resize(len, 1.0);
+    }
+
+    /// The same with the sequence flags (every row a step of a sequence).
+    pub(crate) fn resize_steps(&mut self, len: usize, action_bytes: usize) {
+        self.resize(len, action_bytes);
+        for flags in [&mut self.is_first, &mut self.is_last, &mut self.is_terminal, &mut self.mask] {
+            flags.resize(len, 0);
+        }
     }
 }
 

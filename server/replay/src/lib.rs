@@ -10,6 +10,7 @@ mod error;
 mod priority;
 mod producer;
 mod rate_limiter;
+mod sequence;
 mod shared;
 pub mod snapshot;
 
@@ -27,4 +28,5 @@ pub use priority::{
     importance_weights, Prioritized, PriorityUpdate, SumTree, INITIAL_PRIORITY, MAX_EXPONENTS, MAX_PRIORITY_UPDATES,
 };
 pub use rate_limiter::{Activity, Occupancy, RateLimiter};
+pub use sequence::{Boundary, Sequence, MAX_SEQUENCE_LENGTH};
 pub use shared::{SharedRing, Slot, SHARED_HEADER_BYTES, SHARED_MAGIC};

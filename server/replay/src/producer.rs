@@ -19,6 +19,7 @@ use crate::buffer::{BufferKind, ProducerPermit, ReplayBuffer, Returns, Transitio
 use crate::error::{ReplayError, Result};
 use crate::priority::{importance_weights, Prioritized};
 use crate::rate_limiter::{Occupancy, RateLimiter};
+use crate::sequence::Sequence;
 use crate::shared::{SharedRing, Slot};
 
 /// The largest batch of observations a stream may produce (1 GiB): 512 translated 108x108 stacks with
@@ -87,9 +88,10 @@ pub const MAX_VIEWS: usize = 8;
 pub const MAX_VIEW_NAME: usize = 32;
 
 /// Names a view may not take: the batch's other fields (and the Python client's `server`).
-pub const RESERVED_FIELDS: [&str; 16] = [
+pub const RESERVED_FIELDS: [&str; 20] = [
     "action", "reward", "discount", "terminated", "truncated", "env_index", "step_index", "policy_version", "t",
-    "log_prob", "value", "key", "probability", "table_size", "weight", "server",
+    "log_prob", "value", "key", "probability", "table_size", "weight", "server", "is_first", "is_last", "is_terminal",
+    "mask",
 ];
 
 /// One named output of a batch: the observation or the next observation of each sample, through a
@@ -149,6 +151,9 @@ pub struct SampleSpec {
     pub returns: Option<Returns>,
     /// Proportional prioritized sampling (none: uniform): replay only.
     pub prioritized: Option<Prioritized>,
+    /// Sequences of consecutive steps instead of single transitions (replay only): every field
+    /// gains a time axis after the batch's.
+    pub sequence: Option<Sequence>,
     pub seed: u64,
     /// Batches produced ahead and waiting (1..=64).
     pub prefetch: usize,
@@ -231,6 +236,10 @@ pub struct Batch {
     /// In a prioritized batch: the transitions that could be drawn (the N of the importance
     /// weights).
     pub table_size: usize,
+    /// A sequence batch: `len` sequences of this many steps; every field is `[len, steps, ...]`
+    /// (its views' data and metadata rows in that order) and the metadata's sequence flags are
+    /// part of it.
+    pub sequence_steps: Option<usize>,
     /// For rollouts: each transition's step within the rollout (0 the oldest).
     pub rollout_t: Option<Vec<u32>>,
     /// With shared output: the slot holding the views, region i view i; their `data` stays empty.
@@ -297,6 +306,11 @@ pub struct Producer {
     n_step: usize,
     /// This stream's place among the buffer's producers, reserved at admission.
     permit: Option<ProducerPermit>,
+    /// Rows per sample: the sequence's steps (1 for transitions).
+    steps: usize,
+    /// The buffer's insert count when a sequence stream last found no window to start: it waits
+    /// for the next insert rather than drawing again in vain (`u64::MAX`: it found one).
+    no_window_at: std::sync::atomic::AtomicU64,
 }
 
 impl Producer {
@@ -318,6 +332,9 @@ impl Producer {
                 "min_size {} can never be reached: the replay capacity is {capacity}",
                 spec.min_size
             ));
+        }
+        if let Some(sequence) = spec.sequence {
+            Self::check_sequence(&spec, &sequence, &buffer.read().expect("replay lock"))?;
         }
         let kind = buffer.read().expect("replay lock").layout().kind;
         match (spec.source, kind) {
@@ -362,18 +379,72 @@ impl Producer {
             (false, true) => Frames::NextOnly,
             _ => Frames::ObsOnly,
         };
-        let sample_bytes = views.iter().fold(0usize, |sum, view| sum.saturating_add(view.bytes));
+        let steps = spec.sequence.map_or(1, |sequence| sequence.length);
+        let sample_bytes = views.iter().fold(0usize, |sum, view| sum.saturating_add(view.bytes)).saturating_mul(steps);
         let batch_bytes = spec.batch_size.saturating_mul(sample_bytes);
         if batch_bytes > MAX_BATCH_BYTES {
             let names: Vec<&str> = views.iter().map(|view| view.name.as_str()).collect();
+            let what = if steps > 1 { format!("sequences of {steps} steps") } else { "samples".to_owned() };
             return invalid(format!(
-                "a batch of {} samples of {sample_bytes} bytes (views {}) is {batch_bytes} bytes; the most allowed is \
-                 {MAX_BATCH_BYTES} (use a smaller batch_size, fewer views or a smaller augmentation output)",
+                "a batch of {} {what} of {sample_bytes} bytes (views {}) is {batch_bytes} bytes; the most allowed is \
+                 {MAX_BATCH_BYTES} (use a smaller batch_size, fewer views, shorter sequences or a smaller augmentation \
+                 output)",
                 spec.batch_size,
                 names.join(", "),
             ));
         }
-        Ok(Self { buffer, spec, limiter, views, frames, n_step, permit: None })
+        Ok(Self { buffer, spec, limiter, views, frames, n_step, permit: None, steps, no_window_at: u64::MAX.into() })
+    }
+
+    /// What sequences combine with: replay, views of the observation, per-step discounts; not
+    /// n-step returns (a sequence carries every step's reward: the learner sums them, as R2D2
+    /// does), next observations (the next step is the next observation) or priorities (yet).
+    fn check_sequence(spec: &SampleSpec, sequence: &Sequence, buffer: &ReplayBuffer) -> Result<()> {
+        let invalid = |message: String| Err(ReplayError::InvalidArgument(message));
+        if spec.source != Source::Replay {
+            return invalid(
+                "sequences sample replay: a rollout is served whole, in its (t, env) order, per epoch".into(),
+            );
+        }
+        if spec.returns.is_some_and(|returns| returns.n_step > 1) {
+            return invalid(
+                "sequences carry every step's reward and discount; n_step returns apply to single transitions (sum \
+                 them over the sequence, as R2D2 does)"
+                    .into(),
+            );
+        }
+        if spec.prioritized.is_some() {
+            return invalid(
+                "prioritized sampling draws single transitions; sequences are drawn uniformly (sampler \
+                 SAMPLER_UNIFORM)"
+                    .into(),
+            );
+        }
+        let next = if spec.views.is_empty() {
+            spec.include_next_obs
+        } else {
+            spec.views.iter().any(|view| view.of == TransitionPart::NextObs)
+        };
+        if next {
+            return invalid(
+                "a sequence's next observation is its next step: name views of obs only, and leave include_next_obs \
+                 off"
+                .into(),
+            );
+        }
+        let layout = buffer.layout();
+        let per_env = layout.capacity / layout.num_envs;
+        if sequence.length + 1 > per_env {
+            return invalid(format!(
+                "a sequence of {} steps needs {} frames of one env held at once; the replay keeps {per_env} transitions \
+                 per env (capacity {} over {} envs)",
+                sequence.length,
+                sequence.length + 1,
+                layout.capacity,
+                layout.num_envs
+            ));
+        }
+        Ok(())
     }
 
     /// The request's views checked against the observation; without named views, obs (and
@@ -440,7 +511,7 @@ impl Producer {
 
     /// Bytes of each view's observations in one batch: the regions of a shared slot.
     pub fn region_bytes(&self) -> Vec<usize> {
-        self.views.iter().map(|view| self.spec.batch_size * view.bytes).collect()
+        self.views.iter().map(|view| self.spec.batch_size * self.steps * view.bytes).collect()
     }
 
     /// Batches produced ahead of the learner.
@@ -508,7 +579,12 @@ impl Producer {
         };
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {
-            let mut batch = Batch { index, prioritized: self.spec.prioritized.is_some(), ..Batch::default() };
+            let mut batch = Batch {
+                index,
+                prioritized: self.spec.prioritized.is_some(),
+                sequence_steps: self.spec.sequence.map(|sequence| sequence.length),
+                ..Batch::default()
+            };
             // Checked again under the write lock that counts the samples, so that two streams on
             // one buffer cannot both take the limiter's last allowance.
             let (sampled, sampleable) = loop {
@@ -518,6 +594,16 @@ impl Producer {
                 let mut buffer = self.buffer.write().expect("replay lock");
                 if self.allowed(&buffer) {
                     let (count, n_step) = (self.spec.batch_size, self.n_step);
+                    if let Some(sequence) = &self.spec.sequence {
+                        match buffer.sample_sequences(count, sequence, rng, &mut batch.refs) {
+                            Ok(true) => break (Ok(()), 0),
+                            Ok(false) => {
+                                self.no_window_at.store(buffer.counters().inserts, std::sync::atomic::Ordering::Relaxed);
+                                continue;
+                            }
+                            Err(error) => break (Err(error), 0),
+                        }
+                    }
                     break match self.spec.prioritized {
                         Some(prioritized) => {
                             let probabilities = &mut batch.metadata.probabilities;
@@ -530,11 +616,16 @@ impl Producer {
                     };
                 }
             };
-            if !self.allocate(spare, &mut batch, self.spec.batch_size, ready) {
+            if !self.allocate(spare, &mut batch, self.spec.batch_size * self.steps, ready) {
                 return;
             }
             let seed = self.spec.seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-            if let Err(error) = sampled.and_then(|()| self.fill(pool, &mut batch, seed, None, &|| !ready.is_closed())) {
+            let keep_going = || !ready.is_closed();
+            let filled = sampled.and_then(|()| match &self.spec.sequence {
+                Some(sequence) => self.fill_sequences(pool, &mut batch, sequence, seed, &keep_going),
+                None => self.fill(pool, &mut batch, seed, None, &keep_going),
+            });
+            if let Err(error) = filled {
                 if error != ReplayError::Cancelled {
                     let _ = ready.blocking_send(Err(error));
                 }
@@ -610,9 +701,12 @@ impl Producer {
     /// Whether the buffer holds `min_size` transitions (with complete n-step windows) and the rate
     /// limiter lets a batch through.
     fn allowed(&self, buffer: &ReplayBuffer) -> bool {
+        if self.no_window_at.load(std::sync::atomic::Ordering::Relaxed) == buffer.counters().inserts {
+            return false;
+        }
         let size = buffer.sampleable(self.n_step);
         match &self.limiter {
-            Some(limiter) => limiter.can_sample(Occupancy::of(buffer.counters(), size), self.spec.batch_size as u64),
+            Some(limiter) => limiter.can_sample(Occupancy::of(buffer.counters(), size), (self.spec.batch_size * self.steps) as u64),
             None => size >= self.spec.min_size.max(1),
         }
     }
@@ -833,6 +927,142 @@ impl Producer {
             }
         }
         Ok(())
+    }
+}
+
+impl Producer {
+    /// Gather and augment the sequences starting at `batch.refs` into the observation memory
+    /// `allocate` gave the batch (`len * steps` rows per view). Each sequence draws its
+    /// augmentation once (its index in the batch is its key) and holds it over its steps; padding
+    /// steps are zeros. As in `fill`, each turn reads its sequences' metadata under one read lock
+    /// and each sequence copies its stacks under a read lock of its own; a sequence whose first
+    /// frame the buffer overwrote meanwhile is drawn again.
+    fn fill_sequences(
+        &self,
+        pool: &rayon::ThreadPool,
+        batch: &mut Batch,
+        sequence: &Sequence,
+        draw_seed: u64,
+        keep_going: &(dyn Fn() -> bool + Sync),
+    ) -> Result<()> {
+        let (size, steps) = (batch.refs.len(), sequence.length);
+        batch.len = size;
+        batch.sequence_steps = Some(steps);
+        batch.obs_float32 = self.views.first().is_some_and(|view| matches!(view.plan, Plan::State(_)));
+        batch.has_discount = self.spec.returns.is_some();
+        let discount = self.spec.returns.map(|returns| returns.discount);
+        let draws: Vec<Draws> = self.views.iter().map(|view| Draws { seed: draw_seed, ..view.draws }).collect();
+        let bytes: Vec<usize> = self.views.iter().map(|view| view.bytes).collect();
+        let lens: Vec<usize> = bytes.iter().map(|bytes| size * steps * bytes).collect();
+        let mut outputs: Vec<&mut [u8]> = match &mut batch.slot {
+            Some(slot) => slot.regions_mut(&lens),
+            None => batch.views.iter_mut().zip(&lens).map(|(view, &len)| &mut view.data[..len]).collect(),
+        };
+        let stack_bytes = {
+            let buffer = self.buffer.read().expect("replay lock");
+            let layout = buffer.layout();
+            batch.metadata.resize_steps(size * steps, layout.action_bytes);
+            layout.frame_stack * layout.frame_bytes
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(draw_seed ^ 0x5E_ED0F_D2A5);
+        // A sequence the buffer overwrote since it was drawn is replaced by a fresh draw.
+        let refresh = |buffer: &ReplayBuffer, refs: &mut [TransitionRef], sample: usize, rng: &mut ChaCha8Rng| {
+            if !buffer.still_holds_sequence(refs[sample]) {
+                if let Some(fresh) = buffer.draw_one_sequence(sequence, rng) {
+                    refs[sample] = fresh;
+                }
+            }
+        };
+        // Real steps per sequence, known once its metadata is gathered.
+        let mut real = vec![0usize; size];
+        let (refs, metadata) = (&mut batch.refs, &mut batch.metadata);
+        let images = self.views.iter().all(|view| matches!(view.plan, Plan::Image(_)));
+        // Writes the augmented steps of one sequence, from its stacks, into its rows of each view.
+        let augment = |frames: &[u8], sample: usize, real: usize, outputs: Vec<&mut [u8]>| {
+            for ((view, draws), dst) in self.views.iter().zip(&draws).zip(outputs) {
+                let (padding_from, rows) = (real * view.bytes, dst);
+                match &view.plan {
+                    Plan::Image(plan) => {
+                        let params = plan.draw(draws, sample as u64);
+                        for (step, out) in rows[..padding_from].chunks_exact_mut(view.bytes).enumerate() {
+                            plan.apply_sample(&frames[step * stack_bytes..(step + 1) * stack_bytes], out, &params);
+                        }
+                    }
+                    Plan::State(plan) => {
+                        let values: Vec<f32> = frames[..real * stack_bytes]
+                            .chunks_exact(4)
+                            .map(|bytes| f32::from_le_bytes(bytes.try_into().expect("4 bytes")))
+                            .collect();
+                        let mut augmented = vec![0.0f32; values.len()];
+                        let keys = vec![sample as u64; real];
+                        plan.apply_keyed(&values, &mut augmented, draws, Some(&keys)).expect("sizes checked in Producer::new");
+                        for (bytes, value) in rows[..padding_from].chunks_exact_mut(4).zip(&augmented) {
+                            bytes.copy_from_slice(&value.to_le_bytes());
+                        }
+                    }
+                }
+                rows[padding_from..].fill(0);
+            }
+        };
+        let work = |samples: Range<usize>| {
+            {
+                let buffer = self.buffer.read().expect("replay lock");
+                for sample in samples.clone() {
+                    refresh(&buffer, refs, sample, &mut rng);
+                    real[sample] = buffer.gather_sequence_at(refs[sample], sequence, discount, metadata, sample * steps);
+                }
+            }
+            let stale = std::sync::Mutex::new(Vec::new());
+            {
+                let (refs, real) = (&refs[..], &real[..]);
+                let mut destinations: Vec<Vec<&mut [u8]>> = (0..samples.len()).map(|_| Vec::with_capacity(bytes.len())).collect();
+                for (output, &bytes) in outputs.iter_mut().zip(&bytes) {
+                    let part = &mut output[samples.start * steps * bytes..samples.end * steps * bytes];
+                    for (destination, chunk) in destinations.iter_mut().zip(part.chunks_exact_mut(steps * bytes)) {
+                        destination.push(chunk);
+                    }
+                }
+                let each = |(offset, outputs): (usize, Vec<&mut [u8]>)| {
+                    let sample = samples.start + offset;
+                    STACK.with(|frames| {
+                        let mut frames = frames.borrow_mut();
+                        frames.resize(real[sample] * stack_bytes, 0);
+                        {
+                            let buffer = self.buffer.read().expect("replay lock");
+                            if !buffer.still_holds_sequence(refs[sample]) {
+                                stale.lock().expect("stale list").push(sample);
+                                return;
+                            }
+                            buffer.copy_sequence(refs[sample], real[sample], &mut frames);
+                        }
+                        augment(&frames, sample, real[sample], outputs);
+                    });
+                };
+                if images {
+                    destinations.into_par_iter().enumerate().for_each(each);
+                } else {
+                    destinations.into_iter().enumerate().for_each(each);
+                }
+            }
+            // Rare: drawn again, with metadata and frames read under one lock.
+            for sample in stale.into_inner().expect("stale list") {
+                let mut frames = Vec::new();
+                {
+                    let buffer = self.buffer.read().expect("replay lock");
+                    refresh(&buffer, refs, sample, &mut rng);
+                    real[sample] = buffer.gather_sequence_at(refs[sample], sequence, discount, metadata, sample * steps);
+                    frames.resize(real[sample] * stack_bytes, 0);
+                    buffer.copy_sequence(refs[sample], real[sample], &mut frames);
+                }
+                let outputs = outputs
+                    .iter_mut()
+                    .zip(&bytes)
+                    .map(|(output, &bytes)| &mut output[sample * steps * bytes..(sample + 1) * steps * bytes])
+                    .collect();
+                augment(&frames, sample, real[sample], outputs);
+            }
+        };
+        pool.install(|| in_turns(size, keep_going, work))
     }
 }
 

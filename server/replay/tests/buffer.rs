@@ -174,6 +174,7 @@ fn replay_spec(batch_size: usize, text: &str, max_batches: Option<u64>) -> Sampl
         views: Vec::new(),
         returns: None,
         prioritized: None,
+        sequence: None,
     }
 }
 
@@ -296,6 +297,7 @@ fn the_producer_augments_and_checks_the_request_first() {
         views: Vec::new(),
         returns: None,
         prioritized: None,
+        sequence: None,
     };
     let refuse = |spec: SampleSpec, format| Producer::new(shared.clone(), format, spec).err().unwrap().to_string();
     let image = ObservationFormat::Image(SHAPE);
@@ -326,6 +328,7 @@ fn the_rate_limiter_holds_sampling_to_its_ratio() {
         views: Vec::new(),
         returns: None,
         prioritized: None,
+        sequence: None,
     };
     let producer = Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap();
     let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
@@ -384,6 +387,7 @@ fn rollout_spec(batch_size: usize, epochs: usize, per_env_draws: bool, text: &st
         views: Vec::new(),
         returns: None,
         prioritized: None,
+        sequence: None,
     }
 }
 

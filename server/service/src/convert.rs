@@ -4,7 +4,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use radserve_augment::{Pipeline, Sharing, TransitionPart};
-use radserve_replay::{Batch, Prioritized, ReplayError, Returns, SampleSpec, Slot, Source, ViewSpec, MAX_VIEWS};
+use radserve_replay::{Batch, Boundary, Prioritized, ReplayError, Returns, SampleSpec, Sequence, Slot, Source, ViewSpec, MAX_VIEWS};
 use radserve_core::{
     BufferRequest, CatalogEntry, DType, EpisodeEnd, InfoKind, Infos, OptionValue, Options, SessionInfo, SessionSummary, Space,
     StepOutcome,
@@ -379,6 +379,23 @@ fn prioritized_from_proto(request: &proto::SampleBatchesRequest) -> Result<Optio
     }
 }
 
+/// A request's sequence (none: single transitions), its bounds checked.
+fn sequence_from_proto(request: &proto::SampleBatchesRequest) -> Result<Option<Sequence>> {
+    let Some(sequence) = &request.sequence else { return Ok(None) };
+    let boundary = match proto::SequenceBoundary::try_from(sequence.boundary) {
+        Ok(proto::SequenceBoundary::WithinEpisode) => Boundary::WithinEpisode,
+        Ok(proto::SequenceBoundary::AcrossEpisodes) => Boundary::AcrossEpisodes,
+        Err(_) => {
+            return Err(ServiceError::BadRequest(format!(
+                "sequence.boundary must be SEQUENCE_BOUNDARY_WITHIN_EPISODE (0) or SEQUENCE_BOUNDARY_ACROSS_EPISODES (1), got {}",
+                sequence.boundary
+            )))
+        }
+    };
+    let period = if sequence.period == 0 { 1 } else { sequence.period as usize };
+    Ok(Some(Sequence::new(sequence.length as usize, sequence.burn_in as usize, period, boundary).map_err(ServiceError::from)?))
+}
+
 /// Schaul et al.'s proportional variant: alpha 0.6, beta from 0.4.
 pub const DEFAULT_PRIORITY_EXPONENT: f64 = 0.6;
 pub const DEFAULT_IMPORTANCE_SAMPLING_EXPONENT: f64 = 0.4;
@@ -407,7 +424,9 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
         }
         Err(_) => return Err(ServiceError::BadRequest(format!("unknown BatchSource value {}", request.source))),
     };
-    let include_next_obs = request.include_next_obs.unwrap_or(source == Source::Replay);
+    let sequence = sequence_from_proto(request)?;
+    // A sequence's next observations are its next steps: not sent unless asked for (and refused then).
+    let include_next_obs = request.include_next_obs.unwrap_or(source == Source::Replay && sequence.is_none());
     let views = views_from_proto(request)?;
     let returns = returns_from_proto(request)?;
     let prioritized = prioritized_from_proto(request)?;
@@ -420,6 +439,7 @@ pub fn sample_spec_from_proto(request: &proto::SampleBatchesRequest) -> Result<S
         views,
         returns,
         prioritized,
+        sequence,
         seed: request.seed,
         prefetch: if request.prefetch == 0 { SampleSpec::DEFAULT_PREFETCH } else { request.prefetch as usize },
         min_size: if source == Source::Replay { request.min_size.map_or(batch_size, |size| size as usize) } else { 0 },
@@ -442,35 +462,48 @@ impl AsRef<[u8]> for SharedBuffer {
 /// The fields of a batch other than its observations, in the stream's order, as (name, dtype,
 /// shape, little-endian bytes); `discount` only with n-step returns, `t` only for rollout batches.
 fn small_fields(batch: &mut Batch, action: &Space) -> Vec<(String, proto::DType, Vec<i64>, Vec<u8>)> {
-    let len = batch.len;
-    let with_batch = |shape: &[usize]| -> Vec<i64> { std::iter::once(len).chain(shape.iter().copied()).map(|d| d as i64).collect() };
+    // [batch] or, for sequences, [batch, steps]: the leading dimensions of every field.
+    let lead: Vec<usize> = std::iter::once(batch.len).chain(batch.sequence_steps).collect();
+    let len = lead.iter().product::<usize>();
+    let with_batch = |shape: &[usize]| -> Vec<i64> { lead.iter().chain(shape).map(|&d| d as i64).collect() };
+    let rows = with_batch(&[]);
     let metadata = std::mem::take(&mut batch.metadata);
     let int32_bytes: Vec<u8> = metadata.env_indices.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect();
     let int64_bytes: Vec<u8> = metadata.step_indices.iter().flat_map(|v| (*v as i64).to_le_bytes()).collect();
     let reward_bytes: Vec<u8> = metadata.rewards.iter().flat_map(|v| v.to_le_bytes()).collect();
     let mut fields = vec![
         ("action", dtype_to_proto(action.dtype()), with_batch(action.shape()), metadata.actions),
-        ("reward", proto::DType::DtypeFloat32, vec![len as i64], reward_bytes),
-        ("terminated", proto::DType::DtypeUint8, vec![len as i64], metadata.terminated),
-        ("truncated", proto::DType::DtypeUint8, vec![len as i64], metadata.truncated),
-        ("env_index", proto::DType::DtypeInt32, vec![len as i64], int32_bytes),
-        ("step_index", proto::DType::DtypeInt64, vec![len as i64], int64_bytes),
-        ("policy_version", proto::DType::DtypeInt32, vec![len as i64], metadata.policy_versions.iter().flat_map(|v| v.to_le_bytes()).collect()),
+        ("reward", proto::DType::DtypeFloat32, rows.clone(), reward_bytes),
+        ("terminated", proto::DType::DtypeUint8, rows.clone(), metadata.terminated),
+        ("truncated", proto::DType::DtypeUint8, rows.clone(), metadata.truncated),
+        ("env_index", proto::DType::DtypeInt32, rows.clone(), int32_bytes),
+        ("step_index", proto::DType::DtypeInt64, rows.clone(), int64_bytes),
+        ("policy_version", proto::DType::DtypeInt32, rows.clone(), metadata.policy_versions.iter().flat_map(|v| v.to_le_bytes()).collect()),
     ];
     if batch.has_discount {
-        fields.push(("discount", proto::DType::DtypeFloat32, vec![len as i64], metadata.discounts.iter().flat_map(|v| v.to_le_bytes()).collect()));
+        fields.push(("discount", proto::DType::DtypeFloat32, rows.clone(), metadata.discounts.iter().flat_map(|v| v.to_le_bytes()).collect()));
     }
     if batch.prioritized {
-        fields.push(("key", proto::DType::DtypeInt64, vec![len as i64], metadata.keys.iter().flat_map(|v| (*v as i64).to_le_bytes()).collect()));
-        fields.push(("probability", proto::DType::DtypeFloat64, vec![len as i64], metadata.probabilities.iter().flat_map(|v| v.to_le_bytes()).collect()));
+        fields.push(("key", proto::DType::DtypeInt64, rows.clone(), metadata.keys.iter().flat_map(|v| (*v as i64).to_le_bytes()).collect()));
+        fields.push(("probability", proto::DType::DtypeFloat64, rows.clone(), metadata.probabilities.iter().flat_map(|v| v.to_le_bytes()).collect()));
         let table_size = (batch.table_size as i64).to_le_bytes();
-        fields.push(("table_size", proto::DType::DtypeInt64, vec![len as i64], table_size.repeat(len)));
-        fields.push(("weight", proto::DType::DtypeFloat32, vec![len as i64], metadata.weights.iter().flat_map(|v| v.to_le_bytes()).collect()));
+        fields.push(("table_size", proto::DType::DtypeInt64, rows.clone(), table_size.repeat(len)));
+        fields.push(("weight", proto::DType::DtypeFloat32, rows.clone(), metadata.weights.iter().flat_map(|v| v.to_le_bytes()).collect()));
+    }
+    if batch.sequence_steps.is_some() {
+        for (name, flags) in [
+            ("is_first", metadata.is_first),
+            ("is_last", metadata.is_last),
+            ("is_terminal", metadata.is_terminal),
+            ("mask", metadata.mask),
+        ] {
+            fields.push((name, proto::DType::DtypeUint8, rows.clone(), flags));
+        }
     }
     if let Some(rollout_t) = &batch.rollout_t {
-        fields.push(("t", proto::DType::DtypeInt32, vec![len as i64], rollout_t.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect()));
-        fields.push(("log_prob", proto::DType::DtypeFloat32, vec![len as i64], metadata.log_probs.iter().flat_map(|v| v.to_le_bytes()).collect()));
-        fields.push(("value", proto::DType::DtypeFloat32, vec![len as i64], metadata.values.iter().flat_map(|v| v.to_le_bytes()).collect()));
+        fields.push(("t", proto::DType::DtypeInt32, rows.clone(), rollout_t.iter().flat_map(|v| (*v as i32).to_le_bytes()).collect()));
+        fields.push(("log_prob", proto::DType::DtypeFloat32, rows.clone(), metadata.log_probs.iter().flat_map(|v| v.to_le_bytes()).collect()));
+        fields.push(("value", proto::DType::DtypeFloat32, rows.clone(), metadata.values.iter().flat_map(|v| v.to_le_bytes()).collect()));
     }
     fields.into_iter().map(|(name, dtype, shape, data)| (name.to_owned(), dtype, shape, data)).collect()
 }
@@ -484,7 +517,7 @@ fn observation_dtype(batch: &Batch) -> proto::DType {
 }
 
 fn observation_shape(batch: &Batch, view: &radserve_replay::ViewData) -> Vec<i64> {
-    std::iter::once(batch.len).chain(view.shape.iter().copied()).map(|d| d as i64).collect()
+    std::iter::once(batch.len).chain(batch.sequence_steps).chain(view.shape.iter().copied()).map(|d| d as i64).collect()
 }
 
 /// Split a batch into BatchChunk messages of at most `chunk_bytes` of tensor data each. The

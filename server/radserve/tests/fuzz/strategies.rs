@@ -140,6 +140,12 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
         (edge_u32(), prop_oneof![4 => 0i32..2, 1 => any::<i32>()], edge_u32(), any::<bool>(), prop::option::of(any::<bool>())),
         (views(), prop::option::of(prop_oneof![3 => 0u32..6, 1 => edge_u32()]), prop::option::of(edge_f64())),
         (prop_oneof![4 => 0i32..2, 1 => any::<i32>()], prop::option::of(edge_f64()), prop::option::of(edge_f64())),
+        prop::option::of((
+            prop_oneof![3 => 0u32..12, 1 => edge_u32()],
+            prop_oneof![3 => 0u32..4, 1 => edge_u32()],
+            prop_oneof![3 => 0u32..4, 1 => edge_u32()],
+            prop_oneof![4 => 0i32..2, 1 => any::<i32>()],
+        )),
     )
         .prop_map(
             |(
@@ -148,6 +154,7 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
                 (chunk_bytes, source, epochs, per_env_augmentation, include_next_obs),
                 (views, n_step, discount),
                 (sampler, priority_exponent, importance_sampling_exponent),
+                sequence,
             )| proto::SampleBatchesRequest {
                 session_id: String::new(),
                 batch_size,
@@ -170,6 +177,7 @@ pub fn sample_request() -> impl Strategy<Value = proto::SampleBatchesRequest> {
                 sampler,
                 priority_exponent,
                 importance_sampling_exponent,
+                sequence: sequence.map(|(length, burn_in, period, boundary)| proto::SequenceRequest { length, burn_in, period, boundary }),
             },
         )
 }
