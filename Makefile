@@ -8,7 +8,7 @@ DIST_STAMP := $(VENV)/.installed-dist
 BIN := target/release/radserve
 export PYO3_PYTHON := $(abspath $(PYTHON))
 
-.PHONY: setup system-libs build dist demo test test-rust test-python test-learners test-cluster images images-local bench-cluster fuzz soak bench bench-sim bench-augment bench-replay bench-views bench-security bench-demo bench-learning docs-tables preview torch lock proto api-snapshot clean
+.PHONY: setup system-libs build dist demo test test-rust test-python test-learners test-cluster images images-local bench-cluster fuzz soak bench bench-sim bench-augment bench-replay bench-views bench-security bench-demo bench-learning bench-reverb docs-tables preview torch lock proto api-snapshot clean
 
 ## setup: system libraries, .venv with the locked Python dependencies and the client, release binary
 setup: system-libs $(STAMP) build
@@ -149,6 +149,17 @@ bench-replay: setup torch
 ## bench-views: what named views and n-step returns cost beside RAD's crop batches (bench/views_cost.py)
 bench-views: setup
 	$(PYTHON) bench/views_cost.py
+
+## bench-reverb: radserve's replay against DeepMind Reverb's on the same 84x84 frames (bench/vs_reverb.py);
+## Reverb and its TensorFlow live in a venv of their own, .venv-reverb (bench/reverb-requirements.txt)
+REVERB_VENV := .venv-reverb
+$(REVERB_VENV)/.installed: bench/reverb-requirements.txt
+	python3 -m venv $(REVERB_VENV)
+	$(REVERB_VENV)/bin/python -m pip install -q -r bench/reverb-requirements.txt
+	touch $@
+
+bench-reverb: setup $(REVERB_VENV)/.installed
+	$(PYTHON) bench/vs_reverb.py
 
 ## bench-learning: do the learners learn? SAC-state on InvertedPendulum, RAD-SAC vs pixel SAC on
 ## cartpole-balance, PPO on bigfish, DrQ-v2 on cartpole-swingup, prioritized DQN on CartPole; appends
