@@ -48,14 +48,14 @@ def rss(pid: int) -> int:
 
 
 def fill(envs, transitions: int) -> float:
-    """Steps `envs` until its replay holds `transitions`; returns transitions recorded per second."""
+    """Steps `envs` until `transitions` were recorded (the replay then holds its capacity, less the
+    episodes' first frames); returns transitions recorded per second."""
     envs.reset(seed=0)
     began = time.perf_counter()
     steps = 0
-    while envs.describe()[0].replay.size < transitions:
-        for _ in range(50):
-            envs.step(envs.action_space.sample())
-            steps += envs.num_envs
+    while steps < transitions:
+        envs.step(envs.action_space.sample())
+        steps += envs.num_envs
     return steps / (time.perf_counter() - began)
 
 

@@ -1,10 +1,12 @@
 //! Prioritized sampling against uniform sampling on the same buffer of 1M transitions (8 envs,
-//! stacks of 3 one-byte frames: the draws, not the copies), and the sum tree alone: a batch of 256
-//! draws and 256 priority updates. `cargo bench -p radserve-replay --bench priorities`; compare the
-//! rows of one run (these machines are noisy).
+//! stacks of 3 one-byte frames: the draws, not the copies), the sum tree alone (a batch of 256 draws
+//! and 256 priority updates), sequence draws (32 windows of 80 steps: R2D2's within episodes,
+//! Dreamer's across them), and what recording one step of an 84x84x3 frame costs the replay (the
+//! insert path under a session's steps). `cargo bench -p radserve-replay --bench priorities`;
+//! compare the rows of one run (these machines are noisy).
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
-use radserve_replay::{BufferKind, RecordedStep, ReplayBuffer, ReplayLayout, SumTree};
+use radserve_replay::{Boundary, BufferKind, RecordedStep, ReplayBuffer, ReplayLayout, Sequence, SumTree};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -86,7 +88,38 @@ fn sampling(c: &mut Criterion) {
         })
     });
     group.finish();
+
+    let mut group = c.benchmark_group("1M transitions, 32 sequences of 80");
+    let r2d2 = Sequence::new(80, 40, 40, Boundary::WithinEpisode).unwrap();
+    let dreamer = Sequence::new(80, 0, 1, Boundary::AcrossEpisodes).unwrap();
+    group.bench_function("within episodes, period 40", |b| b.iter(|| buffer.sample_sequences(32, &r2d2, &mut rng, &mut refs).unwrap()));
+    group.bench_function("across episodes, period 1", |b| b.iter(|| buffer.sample_sequences(32, &dreamer, &mut rng, &mut refs).unwrap()));
+    group.finish();
 }
 
-criterion_group!(benches, sampling);
+/// One step of an 84x84x3 frame recorded into a full replay of 50k transitions (8 envs).
+fn recording(c: &mut Criterion) {
+    let frame_bytes = 84 * 84 * 3;
+    let layout = ReplayLayout { kind: BufferKind::Replay, capacity: 50_000, num_envs: ENVS, frame_stack: 3, frame_bytes, action_bytes: 24 };
+    let mut buffer = ReplayBuffer::new(layout).unwrap();
+    let frame = vec![7u8; frame_bytes];
+    let action = [0u8; 24];
+    for env in 0..ENVS {
+        buffer.record_first_frame(env, &frame, 0);
+    }
+    let mut step = 0u64;
+    let mut record = |buffer: &mut ReplayBuffer| {
+        let recorded = RecordedStep { action: &action, reward: 1.0, terminated: false, truncated: false, next_frame: &frame, step_index: step, acted: None };
+        buffer.record_step((step % ENVS as u64) as usize, &recorded);
+        step += 1;
+    };
+    for _ in 0..60_000 {
+        record(&mut buffer);
+    }
+    let mut group = c.benchmark_group("50k transitions of 84x84x3 frames");
+    group.bench_function("record one step", |b| b.iter(|| record(&mut buffer)));
+    group.finish();
+}
+
+criterion_group!(benches, sampling, recording);
 criterion_main!(benches);
