@@ -185,6 +185,11 @@ def test_a_lost_server_is_named_or_survived_and_comes_back(servers):
     for _ in range(5):
         first.step(actions)
         second.step(actions)
+    # A prioritized batch drawn before the loss: its keys name transitions of sessions as they are.
+    prioritized = second.sample_batches(16, min_size=16, sampler="prioritized")
+    before = next(prioritized)
+    victims_rows = int((before.server == 1).sum())
+    assert victims_rows > 0
     victim = servers[1]
     victim.process.send_signal(signal.SIGKILL)
     victim.process.wait()
@@ -239,6 +244,14 @@ def test_a_lost_server_is_named_or_survived_and_comes_back(servers):
             time.sleep(0.1)
         assert servers_seen == {0, 1, 2}
         stream.close()
+        # The prioritized stream draws from the returned server's new session too; the batch drawn
+        # before the loss names the old session's transitions there: those keys count as missing,
+        # never as the new session's transitions that happen to have the same env and frame.
+        while 1 not in set(next(prioritized).server.tolist()):
+            time.sleep(0.1)
+        update = prioritized.update_priorities(before, np.ones(16))
+        assert update == radserve.PriorityUpdate(updated=16 - victims_rows, missing=victims_rows)
+        prioritized.close()
     finally:
         first.close()
         second.close()

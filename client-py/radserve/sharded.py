@@ -434,6 +434,12 @@ class ShardedBatchStream:
         self._waiting: "list[Shard]" = []
         self._plans = 0
         self._next_check = 0.0
+        # Batches handed out (each batch's index), and per server the session generation the
+        # stream last drew from and the first batch index drawn from it: keys of earlier batches
+        # name transitions of a session the server no longer has.
+        self._count = 0
+        self._generation_of: "dict[int, int]" = {}
+        self._since: "dict[int, int]" = {}
         self._open()
 
     @property
@@ -480,6 +486,10 @@ class ShardedBatchStream:
                 return self._open()
             self._streams.append((shard, share, stream))
         self._generations = tuple(shard.generation for shard in envs.shards)
+        for shard in envs.shards:
+            if self._generation_of.setdefault(shard.server, shard.generation) != shard.generation:
+                self._generation_of[shard.server] = shard.generation
+                self._since[shard.server] = self._count
 
     def _holds(self, shard: Shard, share: int) -> bool:
         try:
@@ -520,6 +530,7 @@ class ShardedBatchStream:
                 return next(self)
             parts.append((shard, batch))
         batch = _concatenate(parts)
+        batch.index, self._count = self._count, self._count + 1
         if batch.probability is not None and len(parts) > 1:
             # Server s draws n_s of the batch's B transitions, each with its own probability p_s(i):
             # a transition's probability per draw of the whole batch is n_s * p_s(i) / B, among the
@@ -535,12 +546,16 @@ class ShardedBatchStream:
 
     def update_priorities(self, batch: Batch, priorities: Any) -> PriorityUpdate:
         """Replace the priorities of `batch`'s transitions (`sampler="prioritized"`), each on the
-        server it came from (`Batch.server`); keys of a lost server count as missing."""
+        server it came from (`Batch.server`); keys of a lost server count as missing, and so do keys
+        drawn from a server's earlier session (it was lost and came back with a new one)."""
         keys, values = _priority_arrays(batch, priorities)
         total = PriorityUpdate(updated=0, missing=0)
         for shard in self._envs.shards:
             rows = np.asarray(batch.server) == shard.server
             if not rows.any():
+                continue
+            if batch.index < self._since.get(shard.server, 0):
+                total += PriorityUpdate(updated=0, missing=int(rows.sum()))
                 continue
             if shard.lost or shard.env is None:
                 total += PriorityUpdate(updated=0, missing=int(rows.sum()))
