@@ -25,7 +25,7 @@ pub use producer::{
     MAX_VIEW_NAME, RESERVED_FIELDS,
 };
 pub use priority::{
-    importance_weights, Prioritized, PriorityUpdate, SumTree, INITIAL_PRIORITY, MAX_EXPONENTS, MAX_PRIORITY_UPDATES,
+    importance_weights, priority_memory_bytes, Prioritized, PriorityUpdate, SumTree, INITIAL_PRIORITY, MAX_EXPONENTS, MAX_PRIORITY_UPDATES,
 };
 pub use rate_limiter::{Activity, Occupancy, RateLimiter};
 pub use sequence::{Boundary, Sequence, MAX_SEQUENCE_LENGTH};

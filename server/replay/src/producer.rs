@@ -519,10 +519,19 @@ impl Producer {
         self.spec.prefetch
     }
 
-    /// Observation bytes the stream may hold at once, whichever the output: `prefetch` batches
-    /// ready, one being filled and one with the transport or the learner.
+    /// Bytes the stream may hold at once, whichever the output: the observations of `prefetch`
+    /// batches ready, one being filled and one with the transport or the learner. A prioritized stream also counts what its sampling may add to the buffer: the priorities
+    /// and its exponent's sum tree ([`crate::priority_memory_bytes`]).
     pub fn stream_memory_bytes(&self) -> u64 {
-        ((self.spec.prefetch + 2) * self.region_bytes().iter().sum::<usize>()) as u64
+        let batches = ((self.spec.prefetch + 2) * self.region_bytes().iter().sum::<usize>()) as u64;
+        let priorities = match self.spec.prioritized {
+            Some(_) => {
+                let layout = *self.buffer.read().expect("replay lock").layout();
+                crate::priority::priority_memory_bytes(layout.num_envs * layout.slots_per_env())
+            }
+            None => 0,
+        };
+        batches + priorities
     }
 
     /// Start producing on a thread of its own, augmenting on `pool`. Batches arrive on the returned

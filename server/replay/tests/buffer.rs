@@ -716,6 +716,23 @@ fn collect(shared: &Arc<RwLock<ReplayBuffer>>, spec: SampleSpec) -> Vec<radserve
 }
 
 #[test]
+fn a_prioritized_stream_reserves_its_priorities_and_tree() {
+    let (buffer, _) = simulate(2, 200, 30, 5);
+    let slots = buffer.layout().num_envs * buffer.layout().slots_per_env();
+    let shared = Arc::new(RwLock::new(buffer));
+    let memory = |prioritized| {
+        let spec = SampleSpec { prioritized, ..replay_spec(64, "none", None) };
+        Producer::new(shared.clone(), ObservationFormat::Image(SHAPE), spec).unwrap().stream_memory_bytes()
+    };
+    let uniform = memory(None);
+    assert_eq!(uniform, 4 * 64 * 2 * 3 * FRAME_BYTES as u64);
+    // 206 slots: 8 bytes each, and a tree of 256 leaves at 16 bytes.
+    assert_eq!(slots, 206);
+    assert_eq!(memory(Some(Prioritized::new(0.6, 0.4).unwrap())) - uniform, 206 * 8 + 256 * 16);
+    assert_eq!(radserve_replay::priority_memory_bytes(slots), 206 * 8 + 256 * 16);
+}
+
+#[test]
 fn a_prioritized_stream_draws_by_priority_with_keys_probabilities_and_weights() {
     let (buffer, expected) = simulate(2, 200, 300, 5);
     let shared = Arc::new(RwLock::new(buffer));

@@ -252,8 +252,9 @@ impl SessionManager {
         let limit = self.limits.stream_memory_bytes;
         if bytes > limit {
             return Err(CoreError::TooLarge(format!(
-                "this stream would hold {bytes} bytes of batches ((prefetch {prefetch} + 2) batches of observations), over \
-                 this server's limit of {limit} (limits.stream_memory_bytes): lower prefetch or batch_size"
+                "this stream would hold {bytes} bytes ((prefetch {prefetch} + 2) batches of observations, and a prioritized \
+                 stream's priorities and sum tree), over this server's limit of {limit} (limits.stream_memory_bytes): \
+                 lower prefetch or batch_size"
             )));
         }
         self.budget.try_reserve_within(

@@ -161,6 +161,14 @@ fn weight(priority: f64, exponent: f64) -> f64 {
     }
 }
 
+/// Bytes prioritized sampling may add to a buffer of `slots` slots for one exponent: each slot's
+/// priority (8 bytes) and the exponent's sum tree (two f64 per leaf, leaves rounded up to a power of
+/// two). A prioritized stream's memory reservation counts them.
+pub fn priority_memory_bytes(slots: usize) -> u64 {
+    let leaves = slots.max(1).next_power_of_two() as u64;
+    8 * slots as u64 + 16 * leaves
+}
+
 impl Priorities {
     /// Every slot absent.
     pub(crate) fn new(slots: usize) -> Self {
