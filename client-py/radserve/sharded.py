@@ -554,10 +554,8 @@ class ShardedBatchStream:
             rows = np.asarray(batch.server) == shard.server
             if not rows.any():
                 continue
-            if batch.index < self._since.get(shard.server, 0):
-                total += PriorityUpdate(updated=0, missing=int(rows.sum()))
-                continue
-            if shard.lost or shard.env is None:
+            stale = batch.index < self._since.get(shard.server, 0)  # drawn from an earlier session
+            if stale or shard.lost or shard.env is None:
                 total += PriorityUpdate(updated=0, missing=int(rows.sum()))
                 continue
             try:

@@ -221,9 +221,23 @@ pub struct Window {
 }
 
 /// Where draws come from: (oldest sampleable frame, frames written) per env.
-struct Candidates {
+pub(crate) struct Candidates {
     ranges: Vec<(u64, u64)>,
-    total: u64,
+    pub(crate) total: u64,
+}
+
+impl Candidates {
+    /// One (env, frame) drawn uniformly among the candidates (`total` > 0).
+    pub(crate) fn pick(&self, rng: &mut impl Rng) -> TransitionRef {
+        let span = |env: usize| self.ranges[env].1.saturating_sub(self.ranges[env].0);
+        let mut pick = rng.random_range(0..self.total);
+        let mut env = 0;
+        while pick >= span(env) {
+            pick -= span(env);
+            env += 1;
+        }
+        TransitionRef { env, frame: self.ranges[env].0 + pick }
+    }
 }
 
 /// Counters for the statistics RPC and the rate limiter.
@@ -581,8 +595,12 @@ impl ReplayBuffer {
 
     /// Each env's sampleable frames now, and how many there are in all.
     fn candidates(&self) -> Candidates {
-        let ranges: Vec<(u64, u64)> =
-            (0..self.layout.num_envs).map(|env| (self.oldest_sampleable(env), self.written[env])).collect();
+        self.candidates_from(|env| self.oldest_sampleable(env))
+    }
+
+    /// Each env's frames from `oldest(env)` to the newest.
+    pub(crate) fn candidates_from(&self, oldest: impl Fn(usize) -> u64) -> Candidates {
+        let ranges: Vec<(u64, u64)> = (0..self.layout.num_envs).map(|env| (oldest(env), self.written[env])).collect();
         let total = ranges.iter().map(|(oldest, written)| written.saturating_sub(*oldest)).sum();
         Candidates { ranges, total }
     }
@@ -590,15 +608,8 @@ impl ReplayBuffer {
     /// One draw, uniform over (env, frame) candidates (`total` > 0); `None` when it picked an
     /// episode's first frame, which is not a transition (the caller draws again).
     fn draw(&self, candidates: &Candidates, rng: &mut impl Rng) -> Option<TransitionRef> {
-        let ranges = &candidates.ranges;
-        let mut pick = rng.random_range(0..candidates.total);
-        let mut env = 0;
-        while pick >= ranges[env].1.saturating_sub(ranges[env].0) {
-            pick -= ranges[env].1.saturating_sub(ranges[env].0);
-            env += 1;
-        }
-        let frame = ranges[env].0 + pick;
-        (self.flags[self.slot(env, frame)] & FIRST_OF_EPISODE == 0).then_some(TransitionRef { env, frame })
+        let transition = candidates.pick(rng);
+        (self.flags[self.slot(transition.env, transition.frame)] & FIRST_OF_EPISODE == 0).then_some(transition)
     }
 
     /// Whether `transition` (drawn earlier) is still in the buffer with its whole stack: false once

@@ -252,6 +252,24 @@ impl Batch {
     pub fn view(&self, name: &str) -> Option<&ViewData> {
         self.views.iter().find(|view| view.name == name)
     }
+
+    /// The leading dimensions of every field: `[len]`, or `[len, steps]` for sequences.
+    pub fn lead_dims(&self) -> Vec<usize> {
+        std::iter::once(self.len).chain(self.sequence_steps).collect()
+    }
+}
+
+/// Each sample of `samples`' destination in every view: the views' outputs cut into pieces of
+/// `bytes[view]` per sample (a sequence's sample is all its steps).
+fn destinations<'a>(outputs: &'a mut [&mut [u8]], bytes: &[usize], samples: Range<usize>) -> Vec<Vec<&'a mut [u8]>> {
+    let mut destinations: Vec<Vec<&mut [u8]>> = (0..samples.len()).map(|_| Vec::with_capacity(bytes.len())).collect();
+    for (output, &bytes) in outputs.iter_mut().zip(bytes) {
+        let part = &mut output[samples.start * bytes..samples.end * bytes];
+        for (destination, chunk) in destinations.iter_mut().zip(part.chunks_exact_mut(bytes)) {
+            destination.push(chunk);
+        }
+    }
+    destinations
 }
 
 /// Where `fill` gets the memory for a batch's observations.
@@ -520,8 +538,9 @@ impl Producer {
     }
 
     /// Bytes the stream may hold at once, whichever the output: the observations of `prefetch`
-    /// batches ready, one being filled and one with the transport or the learner. A prioritized stream also counts what its sampling may add to the buffer: the priorities
-    /// and its exponent's sum tree ([`crate::priority_memory_bytes`]).
+    /// batches ready, one being filled and one with the transport or the learner. A prioritized
+    /// stream also counts what its sampling may add to the buffer: the priorities and its
+    /// exponent's sum tree ([`crate::priority_memory_bytes`]).
     pub fn stream_memory_bytes(&self) -> u64 {
         let batches = ((self.spec.prefetch + 2) * self.region_bytes().iter().sum::<usize>()) as u64;
         let priorities = match self.spec.prioritized {
@@ -588,12 +607,7 @@ impl Producer {
         };
         let mut index = 0u64;
         while self.spec.max_batches.is_none_or(|max| index < max) {
-            let mut batch = Batch {
-                index,
-                prioritized: self.spec.prioritized.is_some(),
-                sequence_steps: self.spec.sequence.map(|sequence| sequence.length),
-                ..Batch::default()
-            };
+            let mut batch = Batch { index, prioritized: self.spec.prioritized.is_some(), ..Batch::default() };
             // Checked again under the write lock that counts the samples, so that two streams on
             // one buffer cannot both take the limiter's last allowance.
             let (sampled, sampleable) = loop {
@@ -869,18 +883,9 @@ impl Producer {
                     let stale = std::sync::Mutex::new(Vec::new());
                     {
                         let (refs, last_frames) = (&refs[..], &metadata.last_frames);
-                        // Each sample's destination in every view.
-                        let mut destinations: Vec<Vec<&mut [u8]>> =
-                            (0..samples.len()).map(|_| Vec::with_capacity(bytes.len())).collect();
-                        for (output, &bytes) in outputs.iter_mut().zip(&bytes) {
-                            let part = &mut output[samples.start * bytes..samples.end * bytes];
-                            for (destination, chunk) in destinations.iter_mut().zip(part.chunks_exact_mut(bytes)) {
-                                destination.push(chunk);
-                            }
-                        }
                         // Copied under a read lock of its own, augmented without it; set aside
                         // when the buffer overwrote it after the turn's metadata was read.
-                        destinations.into_par_iter().enumerate().for_each(|(offset, outputs)| {
+                        destinations(&mut outputs, &bytes, samples.clone()).into_par_iter().enumerate().for_each(|(offset, outputs)| {
                             let sample = samples.start + offset;
                             STACK.with(|frames| {
                                 let mut frames = frames.borrow_mut();
@@ -905,11 +910,7 @@ impl Producer {
                             gather(&buffer, &refs[sample..=sample], metadata, sample);
                             copy(&buffer, refs[sample], metadata.last_frames[sample], &mut frames);
                         }
-                        let outputs = outputs
-                            .iter_mut()
-                            .zip(&bytes)
-                            .map(|(output, &bytes)| &mut output[sample * bytes..(sample + 1) * bytes])
-                            .collect();
+                        let outputs = destinations(&mut outputs, &bytes, sample..sample + 1).pop().expect("one sample");
                         augment(&frames, key(sample), outputs);
                     }
                 })
@@ -961,8 +962,9 @@ impl Producer {
         batch.has_discount = self.spec.returns.is_some();
         let discount = self.spec.returns.map(|returns| returns.discount);
         let draws: Vec<Draws> = self.views.iter().map(|view| Draws { seed: draw_seed, ..view.draws }).collect();
-        let bytes: Vec<usize> = self.views.iter().map(|view| view.bytes).collect();
-        let lens: Vec<usize> = bytes.iter().map(|bytes| size * steps * bytes).collect();
+        // A sample is a whole sequence: its steps' rows in every view.
+        let bytes: Vec<usize> = self.views.iter().map(|view| steps * view.bytes).collect();
+        let lens: Vec<usize> = bytes.iter().map(|bytes| size * bytes).collect();
         let mut outputs: Vec<&mut [u8]> = match &mut batch.slot {
             Some(slot) => slot.regions_mut(&lens),
             None => batch.views.iter_mut().zip(&lens).map(|(view, &len)| &mut view.data[..len]).collect(),
@@ -1024,13 +1026,7 @@ impl Producer {
             let stale = std::sync::Mutex::new(Vec::new());
             {
                 let (refs, real) = (&refs[..], &real[..]);
-                let mut destinations: Vec<Vec<&mut [u8]>> = (0..samples.len()).map(|_| Vec::with_capacity(bytes.len())).collect();
-                for (output, &bytes) in outputs.iter_mut().zip(&bytes) {
-                    let part = &mut output[samples.start * steps * bytes..samples.end * steps * bytes];
-                    for (destination, chunk) in destinations.iter_mut().zip(part.chunks_exact_mut(steps * bytes)) {
-                        destination.push(chunk);
-                    }
-                }
+                let destinations = destinations(&mut outputs, &bytes, samples.clone());
                 let each = |(offset, outputs): (usize, Vec<&mut [u8]>)| {
                     let sample = samples.start + offset;
                     STACK.with(|frames| {
@@ -1063,11 +1059,7 @@ impl Producer {
                     frames.resize(real[sample] * stack_bytes, 0);
                     buffer.copy_sequence(refs[sample], real[sample], &mut frames);
                 }
-                let outputs = outputs
-                    .iter_mut()
-                    .zip(&bytes)
-                    .map(|(output, &bytes)| &mut output[sample * steps * bytes..(sample + 1) * steps * bytes])
-                    .collect();
+                let outputs = destinations(&mut outputs, &bytes, sample..sample + 1).pop().expect("one sample");
                 augment(&frames, sample, real[sample], outputs);
             }
         };

@@ -12,7 +12,7 @@
 
 use rand::Rng;
 
-use crate::buffer::{ReplayBuffer, TransitionMetadata, TransitionRef, FIRST_OF_EPISODE, NO_POLICY, TERMINATED, TRUNCATED};
+use crate::buffer::{Candidates, ReplayBuffer, TransitionMetadata, TransitionRef, FIRST_OF_EPISODE, NO_POLICY, TERMINATED, TRUNCATED};
 use crate::error::{ReplayError, Result};
 
 /// The longest sequence a request may ask for (Acme's R2D2 uses 80 + 40 burn-in, DreamerV3 64).
@@ -138,26 +138,21 @@ impl ReplayBuffer {
         }
     }
 
+    /// The frames a sequence may start at: every held frame whose stack is whole.
+    fn sequence_candidates(&self) -> Candidates {
+        self.candidates_from(|env| self.oldest_observation(env))
+    }
+
     /// One start drawn uniformly among those `sequence_starts_at` allows, by rejection from the
     /// held frames (uniform over frames, then kept if a window may start there); None when
     /// `attempts` draws found none.
-    fn draw_sequence(&self, sequence: &Sequence, attempts: usize, rng: &mut impl Rng) -> Option<TransitionRef> {
-        let ranges: Vec<(u64, u64)> =
-            (0..self.layout.num_envs).map(|env| (self.oldest_observation(env), self.written[env])).collect();
-        let span = |env: usize| ranges[env].1.saturating_sub(ranges[env].0);
-        let total: u64 = (0..ranges.len()).map(span).sum();
-        if total == 0 {
+    fn draw_sequence(&self, candidates: &Candidates, sequence: &Sequence, attempts: usize, rng: &mut impl Rng) -> Option<TransitionRef> {
+        if candidates.total == 0 {
             return None;
         }
         (0..attempts).find_map(|_| {
-            let mut pick = rng.random_range(0..total);
-            let mut env = 0;
-            while pick >= span(env) {
-                pick -= span(env);
-                env += 1;
-            }
-            let start = ranges[env].0 + pick;
-            self.sequence_starts_at(env, start, sequence).then_some(TransitionRef { env, frame: start })
+            let start = candidates.pick(rng);
+            self.sequence_starts_at(start.env, start.frame, sequence).then_some(start)
         })
     }
 
@@ -172,11 +167,12 @@ impl ReplayBuffer {
         }
         // Rejection keeps about one frame in `period` (and fewer near episode ends).
         let attempts = (64 * count + 1024).saturating_mul(sequence.period);
-        let Some(first) = self.draw_sequence(sequence, attempts, rng) else { return Ok(false) };
+        let candidates = self.sequence_candidates();
+        let Some(first) = self.draw_sequence(&candidates, sequence, attempts, rng) else { return Ok(false) };
         out.push(first);
         while out.len() < count {
             // A window exists (the first), so each attempt succeeds with positive probability.
-            out.extend(self.draw_sequence(sequence, attempts, rng));
+            out.extend(self.draw_sequence(&candidates, sequence, attempts, rng));
         }
         self.count_samples(count * sequence.length);
         Ok(true)
@@ -185,7 +181,7 @@ impl ReplayBuffer {
     /// One start drawn as `sample_sequences` draws, without counting it (it replaces a sequence of
     /// a batch whose first frame the buffer overwrote meanwhile).
     pub fn draw_one_sequence(&self, sequence: &Sequence, rng: &mut impl Rng) -> Option<TransitionRef> {
-        self.draw_sequence(sequence, (64 + 1024) * sequence.period, rng)
+        self.draw_sequence(&self.sequence_candidates(), sequence, (64 + 1024) * sequence.period, rng)
     }
 
     /// Whether the sequence starting at `start` (drawn earlier) is still held: its first frame's
@@ -212,35 +208,31 @@ impl ReplayBuffer {
         for step in 0..sequence.length {
             let index = row + step;
             let frame = start.frame + step as u64;
+            // Every field starts as "no step": zeros, no policy. Padding after the episode's end
+            // (within-episode windows only) stays so; a frame fills what it has.
             let actions = &mut batch.actions[index * action_bytes..(index + 1) * action_bytes];
+            actions.fill(0);
+            batch.rewards[index] = 0.0;
+            batch.terminated[index] = 0;
+            batch.truncated[index] = 0;
+            batch.env_indices[index] = env as u32;
+            batch.step_indices[index] = 0;
+            batch.policy_versions[index] = NO_POLICY;
+            batch.log_probs[index] = 0.0;
+            batch.values[index] = 0.0;
+            batch.discounts[index] = 0.0;
+            batch.keys[index] = 0;
+            batch.last_frames[index] = 0;
+            for flags in [&mut batch.is_first, &mut batch.is_last, &mut batch.is_terminal, &mut batch.mask] {
+                flags[index] = 0;
+            }
             if ended || frame >= self.written[env] {
-                // Padding after the episode's end (within-episode windows only).
-                actions.fill(0);
-                batch.rewards[index] = 0.0;
-                batch.terminated[index] = 0;
-                batch.truncated[index] = 0;
-                batch.env_indices[index] = env as u32;
-                batch.step_indices[index] = 0;
-                batch.policy_versions[index] = NO_POLICY;
-                batch.log_probs[index] = 0.0;
-                batch.values[index] = 0.0;
-                batch.discounts[index] = 0.0;
-                batch.keys[index] = 0;
-                batch.last_frames[index] = 0;
-                for flags in [&mut batch.is_first, &mut batch.is_last, &mut batch.is_terminal, &mut batch.mask] {
-                    flags[index] = 0;
-                }
                 continue;
             }
             real += 1;
             let slot = self.slot(env, frame);
-            let after = self.after(env, frame);
-            let taken = match after {
-                After::Step(next) => Some(next),
-                After::End | After::Unknown => None,
-            };
-            match taken {
-                Some(next) => {
+            match self.after(env, frame) {
+                After::Step(next) => {
                     actions.copy_from_slice(&self.actions[next * action_bytes..(next + 1) * action_bytes]);
                     batch.rewards[index] = self.rewards[next];
                     batch.terminated[index] = u8::from(self.flags[next] & TERMINATED != 0);
@@ -249,32 +241,22 @@ impl ReplayBuffer {
                     batch.policy_versions[index] = self.policy_versions[next];
                     batch.log_probs[index] = self.log_probs[next];
                     batch.values[index] = self.values[next];
-                    batch.discounts[index] =
-                        if self.flags[next] & TERMINATED != 0 { 0.0 } else { discount.unwrap_or(1.0) as f32 };
+                    if self.flags[next] & TERMINATED == 0 {
+                        batch.discounts[index] = discount.unwrap_or(1.0) as f32;
+                    }
                 }
-                None => {
-                    actions.fill(0);
-                    batch.rewards[index] = 0.0;
-                    batch.terminated[index] = 0;
-                    batch.truncated[index] = 0;
+                After::End | After::Unknown => {
                     // The step that produced the frame (the reset's, for a first frame).
                     batch.step_indices[index] = self.step_indices[slot];
-                    batch.policy_versions[index] = NO_POLICY;
-                    batch.log_probs[index] = 0.0;
-                    batch.values[index] = 0.0;
-                    batch.discounts[index] = 0.0;
+                    batch.is_last[index] = 1;
+                    ended = sequence.boundary == Boundary::WithinEpisode;
                 }
             }
-            batch.env_indices[index] = env as u32;
             batch.keys[index] = TransitionRef { env, frame }.key();
             batch.last_frames[index] = frame;
             batch.is_first[index] = u8::from(self.flags[slot] & FIRST_OF_EPISODE != 0);
-            batch.is_last[index] = u8::from(taken.is_none());
             batch.is_terminal[index] = u8::from(self.flags[slot] & TERMINATED != 0);
             batch.mask[index] = 1;
-            if taken.is_none() && sequence.boundary == Boundary::WithinEpisode {
-                ended = true;
-            }
         }
         real
     }

@@ -463,7 +463,7 @@ impl AsRef<[u8]> for SharedBuffer {
 /// shape, little-endian bytes); `discount` only with n-step returns, `t` only for rollout batches.
 fn small_fields(batch: &mut Batch, action: &Space) -> Vec<(String, proto::DType, Vec<i64>, Vec<u8>)> {
     // [batch] or, for sequences, [batch, steps]: the leading dimensions of every field.
-    let lead: Vec<usize> = std::iter::once(batch.len).chain(batch.sequence_steps).collect();
+    let lead = batch.lead_dims();
     let len = lead.iter().product::<usize>();
     let with_batch = |shape: &[usize]| -> Vec<i64> { lead.iter().chain(shape).map(|&d| d as i64).collect() };
     let rows = with_batch(&[]);
@@ -517,7 +517,7 @@ fn observation_dtype(batch: &Batch) -> proto::DType {
 }
 
 fn observation_shape(batch: &Batch, view: &radserve_replay::ViewData) -> Vec<i64> {
-    std::iter::once(batch.len).chain(batch.sequence_steps).chain(view.shape.iter().copied()).map(|d| d as i64).collect()
+    batch.lead_dims().into_iter().chain(view.shape.iter().copied()).map(|d| d as i64).collect()
 }
 
 /// Split a batch into BatchChunk messages of at most `chunk_bytes` of tensor data each. The
